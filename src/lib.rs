@@ -1,0 +1,15 @@
+//! fall-guard: forecasts falls of a walking Poppy Humanoid before they happen.
+//!
+//! Data flows one way (see `docs/contracts.md` and the shared architecture
+//! page): sources -> tick grid (`window`) -> inference (`model`, `forecast`)
+//! -> outputs (ROS 2, safety latch, diagnostics, recorder). Training
+//! (`train`) builds its windows with the same `window` code the daemon uses.
+
+pub mod frame;
+pub mod model;
+pub mod msgs;
+pub mod recording;
+pub mod robot;
+pub mod sources;
+pub mod train;
+pub mod window;

@@ -1,0 +1,2 @@
+//! The EMP network (to be written).
+

@@ -1,0 +1,2 @@
+//! Input streams, each behind one small interface (to be written).
+

@@ -1,0 +1,2 @@
+//! Training and evaluation (to be written).
+
