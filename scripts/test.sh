@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# The whole test suite: Rust (unit, integration with real MCAP files, a real pty and
+# real rclpy peers) and the simulator's pytest suite. Run scripts/setup-python.sh once first.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+cargo test --all-targets --no-fail-fast
+cargo test --doc
+
+if [ -x sim/.venv/bin/python ]; then
+  sim/.venv/bin/python -m pytest -q sim/tests
+else
+  echo "sim/.venv missing: run 'bash scripts/setup-python.sh' first" >&2
+  exit 1
+fi
