@@ -38,7 +38,7 @@ SIGMAS = (0.005, 0.010, 0.035, 0.040)
 RAMP_A = 90.0
 RAMP_B = 0.125
 MAX_PLAN_ATTEMPTS = 60
-MIN_PROGRESS_M = 0.04                  # a kept plan walks at least this far along its heading
+MIN_PROGRESS_M = 0.04                  # a kept 10 s plan walks at least this far along its heading
 CAMERA_FOV_DEG = 60.0
 CAMERA_PITCH_DOWN_DEG = 10.0           # camera axis below the head's forward direction
 JPEG_QUALITY = 90
@@ -109,7 +109,6 @@ class Episode:
     scene: dict = field(default_factory=dict)
     plan_attempts: int = 0
     progress_m: float = 0.0
-    tick_ns: int = 0  # unused: stamps come from stamp_ns(); kept for the writer's signature
     plan_period_ticks: int = PLAN_PERIOD_TICKS
 
     @property
@@ -229,7 +228,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
     n_ticks = int(round(duration_s * RATE_HZ))
     n_plan = n_ticks + PLAN_FUTURE_TICKS + 1
     standing = standing_head_height_m()
-    threshold = FALL_FRACTION * standing
+    threshold = round(FALL_FRACTION * standing, 4)
     world = World()
     try:
         yaw = float(rng.uniform(-math.pi, math.pi))
@@ -242,6 +241,8 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
         lo, hi = joint_limits(robot)
         initial_state = pb.saveState(physicsClientId=world.client)
         direction = np.array([math.cos(heading), math.sin(heading)])
+        # Progress asked of a kept plan: MIN_PROGRESS_M over 10 s, pro rata after the 2 s start-up.
+        min_progress_m = MIN_PROGRESS_M * min(1.0, max(0.0, duration_s - 2.0) / 8.0)
 
         # Plan search: sample gait parameters, keep the first plan that, run
         # without perturbation in this very room, stays up and walks forward.
@@ -253,7 +254,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
                 pb.restoreState(initial_state, physicsClientId=world.client)
                 _, heights, _ = _rollout(world, robot, cand_plan, n_ticks, threshold, True, None)
                 moved = float((robot.base_xy() - start_xy) @ direction)
-                if len(heights) == n_ticks and heights.min() >= threshold and moved >= MIN_PROGRESS_M:
+                if len(heights) == n_ticks and heights.min() >= threshold and moved >= min_progress_m:
                     params, plan, progress = cand, cand_plan, moved
                     break
             else:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from mcap_ros2.writer import Writer
 
+from .episode import stamp_ns
 from .robot import JOINT_NAMES, ROBOT_NAME
 
 SEPARATOR = "=" * 80
@@ -60,14 +61,14 @@ TOPIC_TYPES = {
 METADATA_NAME = "fall_guard.episode"
 
 
-def ros_time(stamp_ns: int) -> dict[str, int]:
+def ros_time(ns: int) -> dict[str, int]:
     """builtin_interfaces/Time (or Duration) of a signed ns count: sec floors, nanosec in [0, 1e9)."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
     return {"sec": sec, "nanosec": nanosec}
 
 
-def header(stamp_ns: int, frame_id: str = "") -> dict:
-    return {"stamp": ros_time(stamp_ns), "frame_id": frame_id}
+def header(ns: int, frame_id: str = "") -> dict:
+    return {"stamp": ros_time(ns), "frame_id": frame_id}
 
 
 def write_episode(path: Path, episode) -> None:
@@ -84,33 +85,33 @@ def write_episode(path: Path, episode) -> None:
                                  log_time=log_ns, publish_time=log_ns, sequence=seq[topic])
             seq[topic] += 1
 
-        tick_ns = episode.tick_ns
         plan_every = episode.plan_period_ticks
         for k in range(episode.n_ticks):
-            stamp_ns = k * tick_ns
+            now_ns = stamp_ns(k)
             if k % plan_every == 0:
                 first, points = episode.plan_message_points(k)
                 put(TOPIC_PLAN, {
-                    "header": header(first * tick_ns, "base"),
+                    "header": header(stamp_ns(first), "base"),
                     "joint_names": names,
                     "points": [{
                         "positions": [float(a) for a in row],
                         "velocities": [], "accelerations": [], "effort": [],
-                        "time_from_start": ros_time(i * tick_ns),
+                        "time_from_start": ros_time(stamp_ns(first + i) - stamp_ns(first)),
                     } for i, row in enumerate(points)],
-                }, stamp_ns)
+                }, now_ns)
             put(TOPIC_JOINTS, {
-                "header": header(stamp_ns, "base"),
+                "header": header(now_ns, "base"),
                 "name": names,
                 "position": [float(a) for a in episode.joints_rad[k]],
                 "velocity": [], "effort": [],
-            }, stamp_ns)
+            }, now_ns)
             put(TOPIC_CAMERA, {
-                "header": header(stamp_ns, "head_camera"),
+                "header": header(now_ns, "head_camera"),
                 "format": "jpeg",
                 "data": episode.jpeg_frames[k],
-            }, stamp_ns)
-            put(TOPIC_FALLEN, {"data": bool(episode.fallen[k])}, stamp_ns)
+            }, now_ns)
+            put(TOPIC_FALLEN, {"data": bool(episode.fallen[k])}, now_ns)
+        # mcap_ros2's Writer has no metadata call; its inner mcap Writer does.
         writer._writer.add_metadata(METADATA_NAME, episode.metadata())
         writer.finish()
         f.flush()
