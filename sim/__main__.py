@@ -1,4 +1,4 @@
-"""Command line of the simulator: ``python -m sim {generate,fixtures,strip,build-model}``.
+"""Command line of the simulator: ``python -m sim {generate,fixtures,stats,strip,build-model}``.
 
 Run from the repository root with the venv's Python (see sim/README.md).
 Arguments are checked before any work starts; a bad one ends with a message
@@ -50,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("recording", type=Path)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--frames", type=int, default=10)
+    st = sub.add_parser("stats", help="fall rate per sigma and onset times of a data set directory")
+    st.add_argument("directory", type=Path)
     m = sub.add_parser("build-model", help="rebuild sim/model/poppy_humanoid.urdf from the reference files")
     m.add_argument("--reference", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -64,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             wall = time.perf_counter() - t0
             print(json.dumps({"out": str(args.out), "made": made, "already_there": args.episodes - made,
                               "falling": falls, "wall_s": round(wall, 1),
-                              "cpu_s_per_episode": round(sum(s["seconds"] for s in stats) / made, 2) if made else None}))
+                              "worker_wall_s_per_episode": round(sum(s["seconds"] for s in stats) / made, 2) if made else None}))
         elif args.command == "fixtures":
             if args.jobs < 1:
                 raise DatasetError(f"--jobs must be at least 1 (got {args.jobs})")
@@ -74,6 +76,9 @@ def main(argv: list[str] | None = None) -> int:
             from .strip import write_strip
             write_strip(args.recording, args.out, args.frames)
             print(args.out)
+        elif args.command == "stats":
+            from .stats import summarise
+            print(json.dumps(summarise(args.directory), indent=2))
         elif args.command == "build-model":
             from .build_model import DEFAULT_REFERENCE_DIR, build
             print(build(args.reference or DEFAULT_REFERENCE_DIR))
