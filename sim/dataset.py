@@ -77,6 +77,12 @@ def check_args(out: Path, episodes: int, seed: int, jobs: int, duration_s: float
         raise DatasetError(f"--out {out}: directory is not writable ({e.strerror}); choose a writable path") from e
 
 
+def _write_manifest(path: Path, manifest: dict) -> None:
+    tmp = path.with_suffix(".json.partial")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
 def _make_one(out: str, index: int, seed: int, duration_s: float) -> dict:
     t0 = time.perf_counter()
     ep = simulate_episode(seed, duration_s=duration_s)
@@ -105,6 +111,10 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
             if key in old and old[key] != generator[key]:
                 raise DatasetError(f"{manifest_path}: made with {key}={old[key]}, asked {key}={generator[key]}; "
                                    "use another --out or the same arguments")
+    manifest = split_names(episodes, seed)
+    manifest["generator"] = generator
+    # Written first too, so an interrupted run is recognised (seed, duration) when resumed.
+    _write_manifest(manifest_path, manifest)
     todo = [i for i in range(episodes) if not (out / episode_name(i)).is_file()]
     for stale in out.glob("*.partial"):
         stale.unlink()
@@ -122,9 +132,5 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
                 stats.append(fut.result())
                 bar.update(1)
     bar.close()
-    manifest = split_names(episodes, seed)
-    manifest["generator"] = generator
-    tmp = manifest_path.with_suffix(".json.partial")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, manifest_path)
+    _write_manifest(manifest_path, manifest)
     return sorted(stats, key=lambda s: s["index"])

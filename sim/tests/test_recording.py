@@ -46,6 +46,8 @@ def test_topics_types_counts_and_stamps(small_dataset):
             assert ns_of(msg.header.stamp) == log and msg.format == "jpeg"
         img = Image.open(io.BytesIO(bytes(topics["/head_camera/image_raw/compressed"][0][2].data)))
         assert img.format == "JPEG" and img.size == (64, 64) and img.mode == "RGB"
+        # The camera sees a scene (furniture, walls, floor), not one flat colour.
+        assert np.asarray(img, dtype=float).std(axis=(0, 1)).max() > 10
         for i, (log, _, msg) in enumerate(topics["/planned_trajectory"]):
             assert log == stamp_ns(i * RATE_HZ)
             # point 0 applies 2.5 s before now; points every tick to now + 3 s.
