@@ -17,20 +17,6 @@ from .dataset import DatasetError, generate
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 FIXTURES_DIR = REPO_ROOT / "tests" / "fixtures"
-#: The committed fixture set: base seed and episode count (see `fixtures`).
-FIXTURE_SEED = 7
-FIXTURE_EPISODES = 6
-
-
-def _fixtures(out: Path, jobs: int) -> list[dict]:
-    """Regenerate the committed fixtures: 6 episodes of 10 s, falling and not.
-
-    Episode seeds are fixed; their sigma is set so that the set holds both
-    outcomes whatever the search draws: 2 unperturbed-ish (0.005), 1 at 0.01,
-    3 at 0.035/0.04.
-    """
-    from .fixtures import make_fixtures
-    return make_fixtures(out, jobs)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,13 +50,15 @@ def main(argv: list[str] | None = None) -> int:
             made = len(stats)
             falls = sum(s["fall_onset_tick"] is not None for s in stats)
             wall = time.perf_counter() - t0
+            per_episode = round(sum(s["seconds"] for s in stats) / made, 2) if made else None
             print(json.dumps({"out": str(args.out), "made": made, "already_there": args.episodes - made,
                               "falling": falls, "wall_s": round(wall, 1),
-                              "worker_wall_s_per_episode": round(sum(s["seconds"] for s in stats) / made, 2) if made else None}))
+                              "worker_wall_s_per_episode": per_episode}))
         elif args.command == "fixtures":
             if args.jobs < 1:
                 raise DatasetError(f"--jobs must be at least 1 (got {args.jobs})")
-            for row in _fixtures(args.out, args.jobs):
+            from .fixtures import make_fixtures
+            for row in make_fixtures(args.out, args.jobs):
                 print(json.dumps(row))
         elif args.command == "strip":
             from .strip import write_strip

@@ -248,7 +248,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
         # without perturbation in this very room, stays up and walks forward.
         params, plan, attempts, progress = None, np.tile(standing_pose(), (n_plan, 1)), 0, 0.0
         if gait:
-            for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):
+            for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):  # noqa: B007 (read after the loop)
                 cand = GaitParams.sample(rng)
                 cand_plan = gait_waypoints(cand, n_plan, RATE_HZ)
                 pb.restoreState(initial_state, physicsClientId=world.client)

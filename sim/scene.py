@@ -172,12 +172,17 @@ def _add_furniture(client: int, kind: str, xy, yaw_rad: float, rng: np.random.Ge
     parts = _furniture_parts(kind, rng)
     types, radii, halfs, lengths, frames, rgbas = [], [], [], [], [], []
     for shape, dims, centre, colour in parts:
+        # (pybullet type, radius, half extents, length) of each primitive.
         if shape == "box":
-            types.append(pb.GEOM_BOX); halfs.append(dims); radii.append(0); lengths.append(0)
+            row = (pb.GEOM_BOX, 0, dims, 0)
         elif shape == "cyl":
-            types.append(pb.GEOM_CYLINDER); halfs.append((0, 0, 0)); radii.append(dims[0]); lengths.append(dims[1])
+            row = (pb.GEOM_CYLINDER, dims[0], (0, 0, 0), dims[1])
         else:
-            types.append(pb.GEOM_SPHERE); halfs.append((0, 0, 0)); radii.append(dims[0]); lengths.append(0)
+            row = (pb.GEOM_SPHERE, dims[0], (0, 0, 0), 0)
+        types.append(row[0])
+        radii.append(row[1])
+        halfs.append(row[2])
+        lengths.append(row[3])
         frames.append(centre)
         rgbas.append(colours[colour].tolist())
     vis = pb.createVisualShapeArray(types, radii=radii, halfExtents=halfs, lengths=lengths,

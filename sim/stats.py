@@ -22,6 +22,10 @@ def read_episode_metadata(path: Path) -> dict[str, str]:
     raise ValueError(f"{path}: no {METADATA_NAME} metadata record")
 
 
+def _spread(values: list[float], digits: int) -> dict[str, float]:
+    return {"min": min(values), "max": max(values), "mean": round(sum(values) / len(values), digits)}
+
+
 def summarise(directory: Path) -> dict:
     files = sorted(directory.glob("*.mcap"))
     if not files:
@@ -41,7 +45,8 @@ def summarise(directory: Path) -> dict:
         "episodes": len(files),
         "falling": falls,
         "fall_rate": round(falls / len(files), 3),
-        "per_sigma": {s: {"falling": r[0], "episodes": r[1]} for s, r in sorted(per_sigma.items(), key=lambda kv: float(kv[0]))},
-        "onset_s": {"min": min(onsets_s), "max": max(onsets_s), "mean": round(sum(onsets_s) / len(onsets_s), 2)} if onsets_s else None,
-        "plan_progress_m": {"min": min(progress), "max": max(progress), "mean": round(sum(progress) / len(progress), 3)},
+        "per_sigma": {s: {"falling": r[0], "episodes": r[1]}
+                      for s, r in sorted(per_sigma.items(), key=lambda kv: float(kv[0]))},
+        "onset_s": _spread(onsets_s, 2) if onsets_s else None,
+        "plan_progress_m": _spread(progress, 3),
     }
