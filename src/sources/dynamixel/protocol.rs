@@ -229,7 +229,7 @@ mod tests {
                 end,
                 packet,
             } => {
-                assert_eq!(garbage, 5);
+                assert_eq!(garbage, 6);
                 assert_eq!(end, buf.len());
                 assert_eq!(packet.id, USB2AX_ID);
                 assert_eq!(packet.params, vec![0x00, 0x08, 0xFF, 0xFF]);
