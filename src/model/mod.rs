@@ -1,1 +1,2 @@
 //! The EMP network (to be written).
+

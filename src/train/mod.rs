@@ -1,1 +1,2 @@
 //! Training and evaluation (to be written).
+
