@@ -1,3 +1,3 @@
-//! Input streams, each behind one small interface (to be written).
+//! Input streams, each behind one small interface.
 
 pub mod dynamixel;
