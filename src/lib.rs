@@ -8,8 +8,10 @@
 pub mod frame;
 pub mod model;
 pub mod msgs;
+pub mod outputs;
 pub mod recording;
 pub mod robot;
+pub mod shutdown;
 pub mod sources;
 pub mod train;
 pub mod window;
