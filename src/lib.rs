@@ -11,6 +11,7 @@ pub mod msgs;
 pub mod outputs;
 pub mod recording;
 pub mod robot;
+pub mod ros;
 pub mod shutdown;
 pub mod sources;
 pub mod train;

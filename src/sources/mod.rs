@@ -14,6 +14,8 @@
 //! - camera: `crate::frame::Frame`, already S x S;
 //! - plan: `crate::window::Plan`.
 
+pub mod ros;
+
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
