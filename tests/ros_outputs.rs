@@ -337,3 +337,82 @@ async fn late_rclpy_subscriber_gets_latched_fall_imminent() {
         started.elapsed()
     );
 }
+
+/// When fall-guard owns the servo bus it republishes what it reads on
+/// `/joint_states` (sensor-data QoS); rclpy gets it with the same profile.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rclpy_receives_republished_joint_states() {
+    let Some(python) = rclpy_python("rclpy_receives_republished_joint_states") else {
+        return;
+    };
+    let domain = domain_id(3);
+    let mut node = RosNode::start(&localhost_settings(domain, "/", "fall_guard")).expect("node");
+    let topics = OutputTopics {
+        joint_states: Some("joint_states".into()),
+        ..OutputTopics::default()
+    };
+    let outputs =
+        RosOutputs::new(&mut node, &topics, &HORIZONS_MS, "poppy_humanoid").expect("publishers");
+    let mut listener = Peer::spawn(
+        &python,
+        domain,
+        &[
+            "listen",
+            "--sub",
+            "/joint_states:sensor_msgs/msg/JointState:sensor_data",
+            "--count",
+            "/joint_states=10",
+            "--timeout",
+            "30",
+        ],
+    );
+    let (ready, _) = listener.wait_for("ready", Duration::from_secs(20)).await;
+    assert!(
+        ready.is_some(),
+        "rclpy listener did not start: {}",
+        listener.stderr()
+    );
+    let names = vec!["abs_y".to_owned(), "r_knee_y".to_owned()];
+    let mut events = Vec::new();
+    let mut done = None;
+    for i in 0..(30 * 30) {
+        let msg = fall_guard::msgs::JointState {
+            header: fall_guard::msgs::Header {
+                stamp: fall_guard::outputs::ros::ros_time(
+                    1_000_000_000 + i64::from(i) * 33_000_000,
+                ),
+                frame_id: String::new(),
+            },
+            name: names.clone(),
+            position: vec![f64::from(i) * 0.001, -1.5],
+            velocity: Vec::new(),
+            effort: Vec::new(),
+        };
+        outputs.publish_joint_states(msg).expect("joint states");
+        tokio::time::sleep(Duration::from_millis(33)).await;
+        for e in listener.drain() {
+            if e["event"] == "done" || e["event"] == "timeout" {
+                done = Some(e);
+            } else {
+                events.push(e);
+            }
+        }
+        if done.is_some() {
+            break;
+        }
+    }
+    let done = done.unwrap_or_else(|| panic!("listener never finished: {}", listener.stderr()));
+    assert_eq!(done["event"], "done", "{done}");
+    for e in &events {
+        let m = &e["msg"];
+        assert_eq!(m["name"], serde_json::json!(["abs_y", "r_knee_y"]));
+        let stamp_ns = m["header"]["stamp"]["sec"].as_i64().expect("sec") * 1_000_000_000
+            + m["header"]["stamp"]["nanosec"].as_i64().expect("ns");
+        let i = (stamp_ns - 1_000_000_000) / 33_000_000;
+        assert_eq!(m["position"], serde_json::json!([i as f64 * 0.001, -1.5]));
+    }
+    eprintln!(
+        "ros_outputs: domain {domain}: rclpy received {} republished joint states",
+        events.len()
+    );
+}
