@@ -433,6 +433,35 @@ mod tests {
         assert!(parse_type_name("Bool").is_err());
     }
 
+    /// The DDS topic names ROS 2 peers match on, for the root namespace and
+    /// another one (ros2-client alone gets the root case wrong).
+    #[tokio::test]
+    async fn topics_get_the_dds_names_rclcpp_uses() {
+        use rustdds::TopicDescription;
+        for (namespace, topic, dds) in [
+            ("/", "fall_guard/forecast", "rt/fall_guard/forecast"),
+            ("/", "/diagnostics", "rt/diagnostics"),
+            (
+                "/poppy",
+                "fall_guard/forecast",
+                "rt/poppy/fall_guard/forecast",
+            ),
+            ("/poppy", "/diagnostics", "rt/diagnostics"),
+        ] {
+            let settings = RosSettings {
+                domain_id: MAX_DOMAIN_ID,
+                discovery: DiscoveryRange::Localhost,
+                namespace: namespace.to_owned(),
+                node_name: "fall_guard_names".to_owned(),
+            };
+            let mut node = RosNode::start(&settings).expect("node");
+            let t = node
+                .topic(topic, "std_msgs/msg/Bool", &qos::forecast())
+                .expect("topic");
+            assert_eq!(t.name(), dds, "{namespace} + {topic}");
+        }
+    }
+
     #[test]
     fn qos_profiles_follow_interfaces_md() {
         use ros2_client::qos::Reliability;
