@@ -8,8 +8,11 @@
 pub mod frame;
 pub mod model;
 pub mod msgs;
+pub mod outputs;
 pub mod recording;
 pub mod robot;
+pub mod ros;
+pub mod shutdown;
 pub mod sources;
 pub mod train;
 pub mod window;

@@ -1,0 +1,396 @@
+//! What the daemon produces, and the seam between the service and whoever
+//! publishes it (ROS 2 in `outputs/ros.rs`, stdout, the recorder, benches).
+//!
+//! Per tick the service makes one [`ForecastOutput`]; at 1 Hz one
+//! [`DiagnosticsSnapshot`]. Both go out on an [`OutputBus`] (bounded
+//! `tokio::sync::broadcast` channels: a publisher that falls behind loses the
+//! oldest values and is told how many, nothing queues without bound). A
+//! publisher calls [`OutputBus::subscribe`], turns each value into its
+//! messages, and after publishing a forecast calls
+//! [`OutputSubscription::published`] so that sensor-to-publish latency is
+//! measured at the real publish point.
+//!
+//! Mapping to ROS 2 (see `interfaces.md`):
+//! - `/fall_guard/forecast` (`Float32MultiArray`): `probabilities`, one dim
+//!   labelled `horizon_ms` with `horizons_ms.len()` entries; every tick.
+//! - `/fall_guard/fall_imminent` (`Bool`): `imminent` (already latched with
+//!   hysteresis by [`latch::SafetyLatch`]).
+//! - `/diagnostics` (`DiagnosticArray`): [`DiagnosticsSnapshot::statuses`],
+//!   one [`StatusEntry`] per input stream and one for the model.
+
+pub mod latch;
+pub mod ros;
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use tokio::sync::broadcast;
+
+/// One tick's forecast, published every tick (valid or not), so that a
+/// subscriber can tell silence from "safe".
+#[derive(Debug, Clone, PartialEq)]
+pub struct ForecastOutput {
+    /// Tick index on the model's grid (tick 0 = first tick of the run).
+    pub tick: i64,
+    /// Time of the tick on the tick clock (UNIX ns live, log time in replay).
+    pub stamp_ns: i64,
+    /// Fall probability per horizon, non-decreasing, same order as `horizons_ms`.
+    /// Empty when no forecast could be computed this tick (ring not full).
+    pub probabilities: Vec<f32>,
+    /// The horizons, in ms ahead of `stamp_ns`.
+    pub horizons_ms: Vec<u32>,
+    /// False until the ring is full and whenever an input stream is stale.
+    pub valid: bool,
+    /// The safety latch state after this tick.
+    pub imminent: bool,
+    /// Which network produced it: "EMP", "MP", "EP" or "P".
+    pub ablation: &'static str,
+    /// Why the forecast is not valid (empty when valid).
+    pub invalid_reason: String,
+    /// When the newest sensor sample used by this tick reached the daemon.
+    pub sensed_at: Instant,
+}
+
+/// Level of one diagnostic status (values as in `diagnostic_msgs/DiagnosticStatus`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum DiagnosticLevel {
+    Ok,
+    Warn,
+    Error,
+    Stale,
+}
+
+impl DiagnosticLevel {
+    /// The `level` byte of `diagnostic_msgs/msg/DiagnosticStatus`.
+    pub fn as_byte(self) -> u8 {
+        match self {
+            DiagnosticLevel::Ok => 0,
+            DiagnosticLevel::Warn => 1,
+            DiagnosticLevel::Error => 2,
+            DiagnosticLevel::Stale => 3,
+        }
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DiagnosticLevel::Ok => "OK",
+            DiagnosticLevel::Warn => "WARN",
+            DiagnosticLevel::Error => "ERROR",
+            DiagnosticLevel::Stale => "STALE",
+        }
+    }
+}
+
+/// Health of one input stream.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StreamDiagnostics {
+    /// "joints", "camera" or "plan".
+    pub stream: &'static str,
+    /// Where it comes from: "dynamixel /dev/ttyACM0", "ros /joint_states", "replay", ...
+    pub source: String,
+    pub level: DiagnosticLevel,
+    /// One line for a human ("ok", "stale: no sample for 412 ms", "not configured").
+    pub message: String,
+    /// Samples per second over the last diagnostics period.
+    pub rate_hz: f64,
+    /// Age of the latest sample at the snapshot's tick, ms (None: never received).
+    pub last_sample_age_ms: Option<f64>,
+    /// Total errors since start.
+    pub errors: u64,
+    /// Source-specific counters and state, e.g. ("timeout", "3").
+    pub details: Vec<(String, String)>,
+}
+
+/// Health of the inference.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelDiagnostics {
+    pub level: DiagnosticLevel,
+    pub message: String,
+    /// Active network: "EMP", "MP", "EP" or "P".
+    pub active_ablation: &'static str,
+    /// File the active network was loaded from.
+    pub model_file: String,
+    /// Inference latency over the last diagnostics period (None: no inference yet).
+    pub inference_p50_ms: Option<f64>,
+    pub inference_p99_ms: Option<f64>,
+    /// Ticks skipped because the previous inference was still running (total).
+    pub overruns: u64,
+    /// Ticks run and forecasts computed since start.
+    pub ticks: u64,
+    pub forecasts: u64,
+    /// Whether the latest forecast was valid, and why not.
+    pub valid: bool,
+    pub invalid_reason: String,
+    /// Model switches (degradation and recovery) since start.
+    pub switches: u64,
+    /// Ticks in the ring / ticks needed for a window.
+    pub ring_ticks: usize,
+    pub ring_capacity: usize,
+    /// Safety latch state and the horizon it watches.
+    pub imminent: bool,
+    pub latch_horizon_ms: u32,
+}
+
+/// Everything `/diagnostics` says, once per second.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DiagnosticsSnapshot {
+    /// Tick clock time of the snapshot.
+    pub stamp_ns: i64,
+    /// `hardware_id` of every status (the robot's name from the config).
+    pub hardware_id: String,
+    pub streams: Vec<StreamDiagnostics>,
+    pub model: ModelDiagnostics,
+}
+
+/// One `diagnostic_msgs/DiagnosticStatus`, ready to be copied into a message.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StatusEntry {
+    pub level: DiagnosticLevel,
+    pub name: String,
+    pub message: String,
+    pub hardware_id: String,
+    pub values: Vec<(String, String)>,
+}
+
+fn ms(value: Option<f64>) -> String {
+    value.map_or_else(|| "none".to_string(), |v| format!("{v:.3}"))
+}
+
+impl DiagnosticsSnapshot {
+    /// One status per stream ("fall_guard: joints", ...) and one for the model
+    /// ("fall_guard: model"), with their key-values.
+    pub fn statuses(&self) -> Vec<StatusEntry> {
+        let mut out = Vec::with_capacity(self.streams.len() + 1);
+        for s in &self.streams {
+            let mut values = vec![
+                ("source".to_string(), s.source.clone()),
+                ("rate_hz".to_string(), format!("{:.2}", s.rate_hz)),
+                ("last_sample_age_ms".to_string(), ms(s.last_sample_age_ms)),
+                ("errors".to_string(), s.errors.to_string()),
+            ];
+            values.extend(s.details.iter().cloned());
+            out.push(StatusEntry {
+                level: s.level,
+                name: format!("fall_guard: {}", s.stream),
+                message: s.message.clone(),
+                hardware_id: self.hardware_id.clone(),
+                values,
+            });
+        }
+        let m = &self.model;
+        out.push(StatusEntry {
+            level: m.level,
+            name: "fall_guard: model".to_string(),
+            message: m.message.clone(),
+            hardware_id: self.hardware_id.clone(),
+            values: vec![
+                ("active_model".to_string(), m.active_ablation.to_string()),
+                ("model_file".to_string(), m.model_file.clone()),
+                ("valid".to_string(), m.valid.to_string()),
+                ("invalid_reason".to_string(), m.invalid_reason.clone()),
+                ("inference_p50_ms".to_string(), ms(m.inference_p50_ms)),
+                ("inference_p99_ms".to_string(), ms(m.inference_p99_ms)),
+                ("overruns".to_string(), m.overruns.to_string()),
+                ("ticks".to_string(), m.ticks.to_string()),
+                ("forecasts".to_string(), m.forecasts.to_string()),
+                ("model_switches".to_string(), m.switches.to_string()),
+                (
+                    "ring".to_string(),
+                    format!("{}/{}", m.ring_ticks, m.ring_capacity),
+                ),
+                ("fall_imminent".to_string(), m.imminent.to_string()),
+                ("latch_horizon_ms".to_string(), m.latch_horizon_ms.to_string()),
+            ],
+        });
+        out
+    }
+}
+
+/// Sensor-to-publish latencies, recorded by publishers (shared, bounded).
+#[derive(Debug, Default)]
+pub struct PublishLatency {
+    samples_us: Mutex<Vec<u32>>,
+}
+
+/// Keep at most this many latencies between two reads (about 9 min at 30 Hz).
+const MAX_LATENCY_SAMPLES: usize = 16_384;
+
+impl PublishLatency {
+    pub fn record(&self, latency: Duration) {
+        let mut samples = self.samples_us.lock().unwrap_or_else(|e| e.into_inner());
+        if samples.len() < MAX_LATENCY_SAMPLES {
+            samples.push(u32::try_from(latency.as_micros()).unwrap_or(u32::MAX));
+        }
+    }
+
+    /// All latencies recorded since the last call, in µs, and forget them.
+    pub fn take_us(&self) -> Vec<u32> {
+        std::mem::take(&mut *self.samples_us.lock().unwrap_or_else(|e| e.into_inner()))
+    }
+}
+
+/// Fan-out of forecasts and diagnostics to every publisher.
+#[derive(Debug, Clone)]
+pub struct OutputBus {
+    forecasts: broadcast::Sender<Arc<ForecastOutput>>,
+    diagnostics: broadcast::Sender<Arc<DiagnosticsSnapshot>>,
+    latency: Arc<PublishLatency>,
+}
+
+/// One publisher's end of the [`OutputBus`].
+#[derive(Debug)]
+pub struct OutputSubscription {
+    pub forecasts: broadcast::Receiver<Arc<ForecastOutput>>,
+    pub diagnostics: broadcast::Receiver<Arc<DiagnosticsSnapshot>>,
+    latency: Arc<PublishLatency>,
+}
+
+/// Forecasts a publisher may fall behind before it loses the oldest (~2 s at 30 Hz).
+const FORECAST_CAPACITY: usize = 64;
+const DIAGNOSTICS_CAPACITY: usize = 4;
+
+impl Default for OutputBus {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl OutputBus {
+    pub fn new() -> OutputBus {
+        OutputBus {
+            forecasts: broadcast::channel(FORECAST_CAPACITY).0,
+            diagnostics: broadcast::channel(DIAGNOSTICS_CAPACITY).0,
+            latency: Arc::new(PublishLatency::default()),
+        }
+    }
+
+    /// A new publisher; it sees values sent from now on.
+    pub fn subscribe(&self) -> OutputSubscription {
+        OutputSubscription {
+            forecasts: self.forecasts.subscribe(),
+            diagnostics: self.diagnostics.subscribe(),
+            latency: Arc::clone(&self.latency),
+        }
+    }
+
+    pub fn send_forecast(&self, forecast: ForecastOutput) {
+        // Err only means "no publisher subscribed": nothing to do.
+        let _ = self.forecasts.send(Arc::new(forecast));
+    }
+
+    pub fn send_diagnostics(&self, snapshot: DiagnosticsSnapshot) {
+        let _ = self.diagnostics.send(Arc::new(snapshot));
+    }
+
+    /// The latencies publishers recorded.
+    pub fn latency(&self) -> &Arc<PublishLatency> {
+        &self.latency
+    }
+}
+
+impl OutputSubscription {
+    /// Call right after a forecast went out: records its sensor-to-publish latency.
+    pub fn published(&self, forecast: &ForecastOutput) {
+        self.latency.record(forecast.sensed_at.elapsed());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn forecast(tick: i64) -> ForecastOutput {
+        ForecastOutput {
+            tick,
+            stamp_ns: tick * 33_333_333,
+            probabilities: vec![0.1, 0.2, 0.3, 0.4],
+            horizons_ms: vec![500, 1000, 1500, 2000],
+            valid: true,
+            imminent: false,
+            ablation: "EMP",
+            invalid_reason: String::new(),
+            sensed_at: Instant::now(),
+        }
+    }
+
+    #[tokio::test]
+    async fn every_subscriber_gets_every_forecast_in_order() {
+        let bus = OutputBus::new();
+        let mut a = bus.subscribe();
+        let mut b = bus.subscribe();
+        for t in 0..3 {
+            bus.send_forecast(forecast(t));
+        }
+        for t in 0..3 {
+            assert_eq!(a.forecasts.recv().await.expect("a").tick, t);
+            assert_eq!(b.forecasts.recv().await.expect("b").tick, t);
+        }
+        a.published(&forecast(3));
+        assert_eq!(bus.latency().take_us().len(), 1);
+        assert!(bus.latency().take_us().is_empty());
+    }
+
+    #[tokio::test]
+    async fn a_slow_subscriber_loses_the_oldest_not_the_newest() {
+        let bus = OutputBus::new();
+        let mut slow = bus.subscribe();
+        let n = FORECAST_CAPACITY as i64 + 10;
+        for t in 0..n {
+            bus.send_forecast(forecast(t));
+        }
+        assert!(matches!(
+            slow.forecasts.recv().await,
+            Err(broadcast::error::RecvError::Lagged(10))
+        ));
+        assert_eq!(slow.forecasts.recv().await.expect("next").tick, 10);
+    }
+
+    #[test]
+    fn statuses_name_every_stream_and_the_model() {
+        let snap = DiagnosticsSnapshot {
+            stamp_ns: 0,
+            hardware_id: "poppy".into(),
+            streams: vec![StreamDiagnostics {
+                stream: "joints",
+                source: "replay".into(),
+                level: DiagnosticLevel::Stale,
+                message: "stale".into(),
+                rate_hz: 0.0,
+                last_sample_age_ms: None,
+                errors: 2,
+                details: vec![("timeout".into(), "2".into())],
+            }],
+            model: ModelDiagnostics {
+                level: DiagnosticLevel::Warn,
+                message: "not valid".into(),
+                active_ablation: "P",
+                model_file: "models/p.bpk".into(),
+                inference_p50_ms: Some(1.5),
+                inference_p99_ms: None,
+                overruns: 1,
+                ticks: 10,
+                forecasts: 9,
+                valid: false,
+                invalid_reason: "joints stale".into(),
+                switches: 1,
+                ring_ticks: 10,
+                ring_capacity: 60,
+                imminent: false,
+                latch_horizon_ms: 1000,
+            },
+        };
+        let statuses = snap.statuses();
+        assert_eq!(statuses.len(), 2);
+        assert_eq!(statuses[0].name, "fall_guard: joints");
+        assert_eq!(statuses[0].level.as_byte(), 3);
+        assert!(statuses[0]
+            .values
+            .contains(&("last_sample_age_ms".into(), "none".into())));
+        assert!(statuses[0].values.contains(&("timeout".into(), "2".into())));
+        assert_eq!(statuses[1].name, "fall_guard: model");
+        assert!(statuses[1]
+            .values
+            .contains(&("active_model".into(), "P".into())));
+        assert!(statuses[1].values.contains(&("ring".into(), "10/60".into())));
+    }
+}
