@@ -156,7 +156,7 @@ fn episodes_that_fall_too_early_are_skipped() {
 fn dataset_on_disk_loads_and_checks_its_manifest() {
     let dir = tempfile::tempdir().unwrap();
     let names = joint_names(4);
-    let make = |seed: u64| learnable_episode(seed, seed % 2 == 0, 100, &names, 30.0, 16);
+    let make = |seed: u64| learnable_episode(seed, seed.is_multiple_of(2), 100, &names, 30.0, 16);
     let train: Vec<_> = (0..4).map(make).collect();
     write_dataset(dir.path(), &train, &[make(10)], &[make(11)]).unwrap();
     let ds = Dataset::open(dir.path()).unwrap();
