@@ -1,0 +1,83 @@
+"""Command line of the simulator: ``python -m sim {generate,fixtures,stats,strip,build-model}``.
+
+Run from the repository root with the venv's Python (see sim/README.md).
+Arguments are checked before any work starts; a bad one ends with a message
+naming it and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from .dataset import DatasetError, generate
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+FIXTURES_DIR = REPO_ROOT / "tests" / "fixtures"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sim", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    g = sub.add_parser("generate", help="make a data set of simulated episodes (resumable)")
+    g.add_argument("--out", type=Path, required=True, help="data set directory (created if missing)")
+    g.add_argument("--episodes", type=int, required=True, help="number of episodes")
+    g.add_argument("--seed", type=int, default=1, help="base seed (episode i uses seed*100000+i)")
+    g.add_argument("--jobs", type=int, default=1, help="parallel worker processes")
+    g.add_argument("--duration", type=float, default=10.0, help="episode length in seconds")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    f = sub.add_parser("fixtures", help="regenerate the committed test fixtures in tests/fixtures/")
+    f.add_argument("--out", type=Path, default=FIXTURES_DIR)
+    f.add_argument("--jobs", type=int, default=2)
+    s = sub.add_parser("strip", help="write a PNG strip of head-camera frames of one recording")
+    s.add_argument("recording", type=Path)
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--frames", type=int, default=10)
+    st = sub.add_parser("stats", help="fall rate per sigma and onset times of a data set directory")
+    st.add_argument("directory", type=Path)
+    m = sub.add_parser("build-model", help="rebuild sim/model/poppy_humanoid.urdf from the reference files")
+    m.add_argument("--reference", type=Path, default=None)
+    args = parser.parse_args(argv)
+
+    try:
+        if args.command == "generate":
+            t0 = time.perf_counter()
+            stats = generate(args.out, args.episodes, args.seed, args.jobs, args.duration,
+                             progress=not args.quiet)
+            made = len(stats)
+            falls = sum(s["fall_onset_tick"] is not None for s in stats)
+            wall = time.perf_counter() - t0
+            per_episode = round(sum(s["seconds"] for s in stats) / made, 2) if made else None
+            print(json.dumps({"out": str(args.out), "made": made, "already_there": args.episodes - made,
+                              "falling": falls, "wall_s": round(wall, 1),
+                              "worker_wall_s_per_episode": per_episode}))
+        elif args.command == "fixtures":
+            if args.jobs < 1:
+                raise DatasetError(f"--jobs must be at least 1 (got {args.jobs})")
+            from .fixtures import make_fixtures
+            for row in make_fixtures(args.out, args.jobs):
+                print(json.dumps(row))
+        elif args.command == "strip":
+            from .strip import write_strip
+            write_strip(args.recording, args.out, args.frames)
+            print(args.out)
+        elif args.command == "stats":
+            from .stats import summarise
+            print(json.dumps(summarise(args.directory), indent=2))
+        elif args.command == "build-model":
+            from .build_model import DEFAULT_REFERENCE_DIR, build
+            print(build(args.reference or DEFAULT_REFERENCE_DIR))
+    except DatasetError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, ValueError, RuntimeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,14 @@
+"""Shared fixtures: one small generated data set per test session (2 episodes of 4 s)."""
+
+from __future__ import annotations
+
+import pytest
+
+from sim.dataset import generate
+
+
+@pytest.fixture(scope="session")
+def small_dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("dataset")
+    stats = generate(out, episodes=2, seed=3, jobs=1, duration_s=4.0, progress=False)
+    return out, stats
