@@ -150,8 +150,7 @@ impl TickGrid {
         let mhz = (rate_hz * 1000.0).round();
         if !rate_hz.is_finite()
             || rate_hz <= 0.0
-            || mhz < 1.0
-            || mhz > 1e9
+            || !(1.0..=1e9).contains(&mhz)
             || ((mhz / 1000.0) - rate_hz).abs() > 1e-9 * rate_hz.max(1.0)
         {
             return Err(WindowError::BadRate { rate_hz });

@@ -105,10 +105,10 @@ proptest! {
         for (i, t) in ticks.iter().enumerate() {
             prop_assert_eq!(t.tick, ticks[0].tick + i as i64);
             prop_assert_eq!(t.stamp_ns, g.stamp_ns(t.tick));
-            let last_joint = samples.iter().filter(|s| s.1 == 0 && s.0 <= t.stamp_ns).last();
+            let last_joint = samples.iter().rfind(|s| s.1 == 0 && s.0 <= t.stamp_ns);
             prop_assert_eq!(t.joints_rad.clone(), last_joint.map(|s| vec![s.2; c]));
             prop_assert_eq!(t.age_ns.joints_ns, last_joint.map(|s| t.stamp_ns - s.0));
-            let last_plan = samples.iter().filter(|s| s.1 == 2 && s.0 <= t.stamp_ns).last();
+            let last_plan = samples.iter().rfind(|s| s.1 == 2 && s.0 <= t.stamp_ns);
             prop_assert_eq!(t.plan.as_ref().map(|p| p.stamp_ns), last_plan.map(|s| s.0));
             prop_assert_eq!(t.age_ns.frame_ns.is_some(), samples.iter().any(|s| s.1 == 1 && s.0 <= t.stamp_ns));
         }

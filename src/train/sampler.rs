@@ -6,11 +6,12 @@
 //! and holds NO fallen tick (`e < onset tick`). Labels: fallen at `e + h`
 //! for each horizon `h` (sticky, from the metadata's fall onset mapped to the
 //! tick grid). Classes are balanced at the balance horizon (default: the
-//! middle one, index `(K - 1) / 2`) by rejection sampling: each episode is
-//! given the class the epoch has fewer of so far (a coin flip on a tie), and
-//! end ticks are drawn uniformly until one has that class; an episode that
-//! cannot give it (a non-falling episode has no positive window) gives the
-//! other. Deterministic for a seed (`StdRng`, ChaCha12).
+//! middle one, index `(K - 1) / 2`) by rejection sampling: episodes that can
+//! give only one class (a non-falling episode has no positive window) are
+//! drawn first, then each episode that can give both is given the class the
+//! epoch has fewer of so far (a coin flip on a tie), and its end tick is
+//! drawn uniformly until one has that class. The epoch's picks are then
+//! shuffled. Deterministic for a seed (`StdRng`, ChaCha12).
 //!
 //! A non-falling episode's windows need `e + hK` inside the recording (the
 //! label must be known); a falling episode's labels are known past its end
@@ -187,9 +188,20 @@ impl WindowSampler {
             .collect();
         order.shuffle(&mut self.rng);
         let h_bal = self.cfg.horizons_ticks[self.cfg.balance_horizon_index] as i64;
+        // Episodes that can give only one class go first, so that the ones
+        // that can give both make up the difference.
+        let can_both = |span: &EpisodeSpan| {
+            span.fall_onset_tick.is_some_and(|o| {
+                let p = (o - h_bal).max(span.first_end_tick);
+                p > span.first_end_tick && p <= span.last_end_tick
+            })
+        };
+        let (flexible, forced): (Vec<usize>, Vec<usize>) = order
+            .into_iter()
+            .partition(|&i| self.spans[i].as_ref().is_some_and(can_both));
         let (mut positives, mut negatives) = (0usize, 0usize);
-        let mut picks = Vec::with_capacity(order.len());
-        for episode in order {
+        let mut picks = Vec::with_capacity(flexible.len() + forced.len());
+        for episode in forced.into_iter().chain(flexible) {
             let Some(span) = self.spans[episode] else {
                 continue;
             };
@@ -241,6 +253,7 @@ impl WindowSampler {
                 labels,
             });
         }
+        picks.shuffle(&mut self.rng);
         tracing::debug!(positives, negatives, "epoch drawn");
         picks
     }
