@@ -178,18 +178,14 @@ impl FusedConv<5> {
     /// `[B, C_in, T, H, W]` -> `[B, C_out, T, H, W]`, "same" padding.
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
         let p = self.kernel / 2;
-        self.forward_time_padded(x, (p, p))
+        conv3d(x, self.weight.clone(), Some(self.bias.clone()), ConvOptions::new([1, 1, 1], [p, p, p], [1, 1, 1], 1))
     }
 
-    /// As [`forward`](Self::forward) but with the given `(before, after)` padding
-    /// in time: the streaming encoder pads only where the window really ends.
-    pub fn forward_time_padded(&self, x: Tensor<5>, time_pad: (usize, usize)) -> Tensor<5> {
+    /// As [`forward`](Self::forward) but without padding in time ("valid"):
+    /// the streaming encoder inserts the zero slices itself, only where the
+    /// window really ends.
+    pub fn forward_valid_time(&self, x: Tensor<5>) -> Tensor<5> {
         let p = self.kernel / 2;
-        conv3d(
-            x,
-            self.weight.clone(),
-            Some(self.bias.clone()),
-            ConvOptions::new_with_padding([1, 1, 1], [time_pad, (p, p), (p, p)], [1, 1, 1], 1),
-        )
+        conv3d(x, self.weight.clone(), Some(self.bias.clone()), ConvOptions::new([1, 1, 1], [0, p, p], [1, 1, 1], 1))
     }
 }

@@ -224,19 +224,22 @@ impl StreamingForecaster {
                 let j1 = j - 1;
                 let lo = j0.saturating_sub(1);
                 let hi = (j1 + 1).min(t_len - 1);
-                let pad = ((j0 == 0) as usize, (j1 == t_len - 1) as usize);
-                let span = hi - lo + 1;
+                // Zero slices stand for the "same" padding where the window ends
+                // (the kernel reaches one slice each way).
+                let (pad_lo, pad_hi) = ((j0 == 0) as usize, (j1 == t_len - 1) as usize);
+                let span = pad_lo + (hi - lo + 1) + pad_hi;
                 // Gather [1, C_in, span, hw, hw] from per-slice [C_in, hw, hw].
                 let plane = hw * hw;
                 let mut buf = vec![0.0f32; c_in * span * plane];
                 for (ti, s) in slices[lo..=hi].iter().enumerate() {
+                    let ti = ti + pad_lo;
                     for ch in 0..c_in {
                         buf[(ch * span + ti) * plane..(ch * span + ti + 1) * plane]
                             .copy_from_slice(&s.data[ch * plane..(ch + 1) * plane]);
                     }
                 }
                 let x = Tensor::<5>::from_data(TensorData::new(buf, [1, c_in, span, hw, hw]), &device);
-                let y = spatial_pool(relu(layer.forward_time_padded(x, pad)));
+                let y = spatial_pool(relu(layer.forward_valid_time(x)));
                 let runs = j1 - j0 + 1;
                 debug_assert_eq!(y.dims()[2], runs);
                 let y: Vec<f32> = y.into_data().try_to_vec::<f32>().map_err(|e| ModelError::Input(format!("vision output: {e:?}")))?;
