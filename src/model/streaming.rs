@@ -23,8 +23,7 @@ use burn::prelude::*;
 use burn::tensor::activation::relu;
 
 use super::file::{probabilities, LoadedModel, ModelError};
-use super::spectral::{lowpass_matrix, lowpass_plane};
-use super::vision::spatial_pool;
+use super::vision::{lowpass_frames, spatial_pool};
 use super::EmpInput;
 
 /// One time slice of one vision layer: `[channels, h, w]` row-major.
@@ -49,7 +48,6 @@ struct TickState {
 #[derive(Debug)]
 pub struct StreamingForecaster {
     model: LoadedModel,
-    lowpass: Vec<f32>,
     ticks: VecDeque<TickState>,
     plan_std: Option<Vec<f32>>,
     /// Per vision layer: stable slice (after conv, ReLU, spatial pool) by key.
@@ -62,7 +60,6 @@ impl StreamingForecaster {
         let cfg = &model.meta.config;
         let layers = cfg.vision_channels.len();
         StreamingForecaster {
-            lowpass: lowpass_matrix(cfg.lowpass_a, cfg.frame_size),
             model: model.clone(),
             ticks: VecDeque::with_capacity(cfg.n_ticks + 1),
             plan_std: None,
@@ -120,11 +117,12 @@ impl StreamingForecaster {
             if f.iter().any(|v| !v.is_finite()) {
                 return Err(ModelError::Input(format!("tick {tick}: frame is not finite")));
             }
-            let o = cfg.lowpassed_size();
-            let mut out = vec![0.0f32; 3 * o * o];
-            for ch in 0..3 {
-                lowpass_plane(&self.lowpass, cfg.lowpass_a, s, &f[ch * s * s..(ch + 1) * s * s], &mut out[ch * o * o..(ch + 1) * o * o]);
-            }
+            // P · x · Pᵀ per channel with the same tensor code as the whole-window path.
+            let raw = Tensor::<5>::from_data(TensorData::new(f.to_vec(), [1, 3, 1, s, s]), &self.model.device);
+            let out: Vec<f32> = lowpass_frames(raw, cfg.lowpass_a)
+                .into_data()
+                .try_to_vec::<f32>()
+                .map_err(|e| ModelError::Input(format!("tick {tick}: low-pass output: {e:?}")))?;
             Some(Arc::new(out))
         } else {
             None

@@ -223,3 +223,25 @@ fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
     }
     Ok(4.0 * steps as f64 / elapsed)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The reference benchmark, run by hand:
+    /// `cargo test --lib reference_benchmark -- --ignored --nocapture`
+    /// (`FALL_GUARD_BENCH_JSON=path` writes the JSON report).
+    #[test]
+    #[ignore = "benchmark, not a test: run by hand"]
+    fn reference_benchmark() {
+        let args = BenchArgs {
+            model: None,
+            config: std::env::var("FALL_GUARD_BENCH_CONFIG").unwrap_or_else(|_| "lite".into()),
+            json: std::env::var("FALL_GUARD_BENCH_JSON").ok().map(PathBuf::from),
+            ticks: 300,
+            train_steps: 5,
+        };
+        let report = run_bench(&args).unwrap();
+        println!("{}", serde_json::to_string_pretty(&report).unwrap());
+    }
+}

@@ -192,7 +192,13 @@ pub fn evaluate_loss(model: &Emp, meta: &ModelMeta, windows: &[LabeledWindow], b
 
 /// Trains `meta.ablation` on `source`. `meta` carries the config and input
 /// description; its standardisation is computed from the first training epoch.
+///
+/// burn's random generator (initialisation, dropout) is global to the
+/// process, so one training at a time holds it: two `fit` calls in one process
+/// run one after the other, each deterministic for its seed.
 pub fn fit(mut meta: ModelMeta, source: &mut dyn EpochSource, opts: &FitOptions) -> Result<(ModelMeta, Emp), TrainError> {
+    static RNG_OWNER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _rng = RNG_OWNER.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     let device = cpu_device().autodiff();
     device.seed(opts.seed);
     let cfg: ModelConfig = meta.config.clone();
