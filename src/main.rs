@@ -3,7 +3,11 @@
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "fall-guard", version, about = "Forecasts falls of a walking Poppy Humanoid (EMP)")]
+#[command(
+    name = "fall-guard",
+    version,
+    about = "Forecasts falls of a walking Poppy Humanoid (EMP)"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -56,7 +56,9 @@ impl FromStr for Ablation {
             "MP" => Ok(Ablation::MP),
             "EP" => Ok(Ablation::EP),
             "EMP" => Ok(Ablation::EMP),
-            other => Err(format!("unknown ablation {other:?}: expected P, MP, EP or EMP")),
+            other => Err(format!(
+                "unknown ablation {other:?}: expected P, MP, EP or EMP"
+            )),
         }
     }
 }
@@ -100,7 +102,12 @@ pub struct ModelConfig {
 
 impl ModelConfig {
     /// The onboard default (`inc_dim = 64`, `num_kernels = 3`).
-    pub fn lite(n_ticks: usize, n_joints: usize, horizons_ticks: Vec<usize>, frame_size: usize) -> Self {
+    pub fn lite(
+        n_ticks: usize,
+        n_joints: usize,
+        horizons_ticks: Vec<usize>,
+        frame_size: usize,
+    ) -> Self {
         ModelConfig {
             name: "lite".into(),
             n_ticks,
@@ -122,7 +129,12 @@ impl ModelConfig {
     }
 
     /// TimesNet's defaults (`inc_dim = 256`, `num_kernels = 6`).
-    pub fn paper(n_ticks: usize, n_joints: usize, horizons_ticks: Vec<usize>, frame_size: usize) -> Self {
+    pub fn paper(
+        n_ticks: usize,
+        n_joints: usize,
+        horizons_ticks: Vec<usize>,
+        frame_size: usize,
+    ) -> Self {
         ModelConfig {
             name: "paper".into(),
             inc_dim: 256,
@@ -132,11 +144,19 @@ impl ModelConfig {
     }
 
     /// By name: `lite` or `paper`.
-    pub fn named(name: &str, n_ticks: usize, n_joints: usize, horizons_ticks: Vec<usize>, frame_size: usize) -> Result<Self, String> {
+    pub fn named(
+        name: &str,
+        n_ticks: usize,
+        n_joints: usize,
+        horizons_ticks: Vec<usize>,
+        frame_size: usize,
+    ) -> Result<Self, String> {
         match name {
             "lite" => Ok(Self::lite(n_ticks, n_joints, horizons_ticks, frame_size)),
             "paper" => Ok(Self::paper(n_ticks, n_joints, horizons_ticks, frame_size)),
-            other => Err(format!("unknown model config {other:?}: expected lite or paper")),
+            other => Err(format!(
+                "unknown model config {other:?}: expected lite or paper"
+            )),
         }
     }
 
@@ -179,17 +199,31 @@ impl ModelConfig {
             return Err("n_ticks >= 2, n_joints >= 1 and at least one horizon are needed".into());
         }
         if self.horizons_ticks.windows(2).any(|w| w[0] >= w[1]) || self.horizons_ticks[0] == 0 {
-            return Err(format!("horizons must be positive and increasing: {:?}", self.horizons_ticks));
+            return Err(format!(
+                "horizons must be positive and increasing: {:?}",
+                self.horizons_ticks
+            ));
         }
-        if self.vision_channels.len() != self.vision_time_pool.len() || self.vision_channels.is_empty() {
-            return Err("vision_channels and vision_time_pool must have the same, non-zero length".into());
+        if self.vision_channels.len() != self.vision_time_pool.len()
+            || self.vision_channels.is_empty()
+        {
+            return Err(
+                "vision_channels and vision_time_pool must have the same, non-zero length".into(),
+            );
         }
         if 2 * self.lowpass_a > self.frame_size {
-            return Err(format!("low-pass a = {} needs frames of at least {} px", self.lowpass_a, 2 * self.lowpass_a));
+            return Err(format!(
+                "low-pass a = {} needs frames of at least {} px",
+                self.lowpass_a,
+                2 * self.lowpass_a
+            ));
         }
         let [_, t, hw, _] = self.vision_out_shape();
         if t == 0 || hw == 0 {
-            return Err("the vision encoder pools the window away: more ticks or larger frames needed".into());
+            return Err(
+                "the vision encoder pools the window away: more ticks or larger frames needed"
+                    .into(),
+            );
         }
         if self.num_kernels == 0 || self.top_k == 0 {
             return Err("num_kernels and top_k must be positive".into());

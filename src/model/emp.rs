@@ -46,7 +46,9 @@ impl Classifier {
 
     /// `[B, F]` -> monotone logits `[B, K]`.
     pub fn forward(&self, features: Tensor<2>) -> Tensor<2> {
-        let a = self.out.forward(self.dropout.forward(gelu(self.hidden.forward(features))));
+        let a = self
+            .out
+            .forward(self.dropout.forward(gelu(self.hidden.forward(features))));
         monotone_logits(a)
     }
 }
@@ -140,7 +142,11 @@ impl EmpInference {
     }
 
     /// Forward with the vision features already computed (the streaming path).
-    pub fn forward_with_vision(&self, input: EmpInput, vision_features: Option<Tensor<2>>) -> Tensor<2> {
+    pub fn forward_with_vision(
+        &self,
+        input: EmpInput,
+        vision_features: Option<Tensor<2>>,
+    ) -> Tensor<2> {
         let m = &self.model;
         let mut feats = vec![m.motion.forward(input.joints)];
         if let (Some(p), Some(plan)) = (&m.plan, input.plan) {

@@ -120,7 +120,12 @@ pub struct ModelMeta {
 
 impl ModelMeta {
     /// Metadata for an untrained model with identity standardisation.
-    pub fn new(config: ModelConfig, ablation: Ablation, rate_hz: f64, joint_names: Vec<String>) -> Self {
+    pub fn new(
+        config: ModelConfig,
+        ablation: Ablation,
+        rate_hz: f64,
+        joint_names: Vec<String>,
+    ) -> Self {
         let c = config.n_joints;
         ModelMeta {
             ablation,
@@ -167,10 +172,16 @@ impl ModelMeta {
             ));
         }
         if (rate_hz - self.rate_hz).abs() > 1e-6 * self.rate_hz.max(1.0) {
-            diffs.push(format!("tick rate: model {} Hz, input {} Hz", self.rate_hz, rate_hz));
+            diffs.push(format!(
+                "tick rate: model {} Hz, input {} Hz",
+                self.rate_hz, rate_hz
+            ));
         }
         if n_ticks != self.n_ticks {
-            diffs.push(format!("window length N: model {} ticks, input {}", self.n_ticks, n_ticks));
+            diffs.push(format!(
+                "window length N: model {} ticks, input {}",
+                self.n_ticks, n_ticks
+            ));
         }
         let hk = self.config.max_horizon_ticks();
         if max_horizon_ticks < hk {
@@ -179,7 +190,10 @@ impl ModelMeta {
             ));
         }
         if self.ablation.uses_vision() && frame_size != self.frame_size {
-            diffs.push(format!("frame size: model {} px, input {} px", self.frame_size, frame_size));
+            diffs.push(format!(
+                "frame size: model {} px, input {} px",
+                self.frame_size, frame_size
+            ));
         }
         if diffs.is_empty() {
             Ok(())
@@ -192,7 +206,11 @@ impl ModelMeta {
         self.config.validate()?;
         let c = self.config.n_joints;
         if self.joint_names.len() != c {
-            return Err(format!("{} joint names for {} joints", self.joint_names.len(), c));
+            return Err(format!(
+                "{} joint names for {} joints",
+                self.joint_names.len(),
+                c
+            ));
         }
         for (name, v) in [
             ("joint_mean", &self.joint_mean),
@@ -207,13 +225,19 @@ impl ModelMeta {
                 return Err(format!("{name} is not finite"));
             }
         }
-        if self.joint_std.iter().chain(&self.plan_std).any(|&s| s <= 0.0) {
+        if self
+            .joint_std
+            .iter()
+            .chain(&self.plan_std)
+            .any(|&s| s <= 0.0)
+        {
             return Err("a standard deviation is not positive".into());
         }
-        if self.n_ticks != self.config.n_ticks || self.horizons_ticks != self.config.horizons_ticks {
+        if self.n_ticks != self.config.n_ticks || self.horizons_ticks != self.config.horizons_ticks
+        {
             return Err("n_ticks / horizons_ticks disagree with the config".into());
         }
-        if !(self.rate_hz > 0.0) {
+        if self.rate_hz.is_nan() || self.rate_hz <= 0.0 {
             return Err(format!("rate_hz {} is not positive", self.rate_hz));
         }
         Ok(())
@@ -222,14 +246,23 @@ impl ModelMeta {
 
 /// Writes `meta` and the weights of `model` to `path` (one file).
 pub fn save_model(path: &Path, meta: &ModelMeta, model: &Emp) -> Result<(), ModelError> {
-    let io = |source| ModelError::Io { path: path.to_path_buf(), source };
-    let json = serde_json::to_vec(meta).map_err(|e| ModelError::BadMeta { path: path.to_path_buf(), message: e.to_string() })?;
+    let io = |source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let json = serde_json::to_vec(meta).map_err(|e| ModelError::BadMeta {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
     let weights = model
         .clone()
         .valid()
         .into_record()
         .into_bytes()
-        .map_err(|e| ModelError::Weights { path: path.to_path_buf(), message: e.to_string() })?;
+        .map_err(|e| ModelError::Weights {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
     let mut out = Vec::with_capacity(8 + 16 + json.len() + weights.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&(json.len() as u64).to_le_bytes());
@@ -248,11 +281,17 @@ pub fn save_model(path: &Path, meta: &ModelMeta, model: &Emp) -> Result<(), Mode
 
 /// Reads a model file: metadata and the trainable network on `device`.
 pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelError> {
-    let bytes = std::fs::read(path).map_err(|source| ModelError::Io { path: path.to_path_buf(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let p = || path.to_path_buf();
     if bytes.len() < MAGIC.len() {
         return Err(if MAGIC.starts_with(&bytes) && !bytes.is_empty() {
-            ModelError::Truncated { path: p(), what: "magic".into() }
+            ModelError::Truncated {
+                path: p(),
+                what: "magic".into(),
+            }
         } else {
             ModelError::BadMagic { path: p() }
         });
@@ -265,25 +304,40 @@ pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelE
         if bytes.len() - at < n {
             return Err(ModelError::Truncated {
                 path: p(),
-                what: format!("{what}: needs {n} bytes at offset {at}, file has {}", bytes.len()),
+                what: format!(
+                    "{what}: needs {n} bytes at offset {at}, file has {}",
+                    bytes.len()
+                ),
             });
         }
         let s = &bytes[at..at + n];
         at += n;
         Ok(s)
     };
-    let json_len = u64::from_le_bytes(take(8, "metadata length")?.try_into().expect("8 bytes")) as usize;
+    let json_len =
+        u64::from_le_bytes(take(8, "metadata length")?.try_into().expect("8 bytes")) as usize;
     let json = take(json_len, "metadata")?;
-    let meta: ModelMeta =
-        serde_json::from_slice(json).map_err(|e| ModelError::BadMeta { path: p(), message: e.to_string() })?;
-    meta.validate().map_err(|message| ModelError::BadMeta { path: p(), message })?;
-    let w_len = u64::from_le_bytes(take(8, "weights length")?.try_into().expect("8 bytes")) as usize;
+    let meta: ModelMeta = serde_json::from_slice(json).map_err(|e| ModelError::BadMeta {
+        path: p(),
+        message: e.to_string(),
+    })?;
+    meta.validate()
+        .map_err(|message| ModelError::BadMeta { path: p(), message })?;
+    let w_len =
+        u64::from_le_bytes(take(8, "weights length")?.try_into().expect("8 bytes")) as usize;
     let weights = take(w_len, "weights")?.to_vec();
-    let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(weights))
-        .map_err(|e| ModelError::Weights { path: p(), message: e.to_string() })?;
+    let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(weights)).map_err(|e| {
+        ModelError::Weights {
+            path: p(),
+            message: e.to_string(),
+        }
+    })?;
     let model = Emp::new(&meta.config, meta.ablation, device)
         .try_load_record(record)
-        .map_err(|e| ModelError::Weights { path: p(), message: e.to_string() })?;
+        .map_err(|e| ModelError::Weights {
+            path: p(),
+            message: e.to_string(),
+        })?;
     Ok((meta, model))
 }
 
@@ -312,7 +366,12 @@ impl LoadedModel {
 
     /// Wraps an in-memory network (tests, training).
     pub fn from_parts(meta: ModelMeta, emp: &Emp, device: Device, path: PathBuf) -> Self {
-        LoadedModel { network: emp.to_inference(), meta, device, path }
+        LoadedModel {
+            network: emp.to_inference(),
+            meta,
+            device,
+            path,
+        }
     }
 
     /// Whole-window forecast: `K` probabilities, non-decreasing in the horizon.
@@ -320,14 +379,24 @@ impl LoadedModel {
     /// `joints` `[N, C]` and `plan` `[N + h_K, C]` in radians, `frames`
     /// `[3, N, S, S]` in `[0, 1]` (row-major, as `window::Window` holds them).
     /// Inputs the ablation does not use are ignored (may be empty).
-    pub fn forecast_arrays(&self, joints: &[f32], plan: &[f32], frames: &[f32]) -> Result<Vec<f32>, ModelError> {
+    pub fn forecast_arrays(
+        &self,
+        joints: &[f32],
+        plan: &[f32],
+        frames: &[f32],
+    ) -> Result<Vec<f32>, ModelError> {
         let input = self.batch_input(&[joints], &[plan], &[frames])?;
         let logits = self.network.forward(input);
         probabilities(logits)
     }
 
     /// Builds a standardised, low-passed batch from raw windows.
-    pub fn batch_input(&self, joints: &[&[f32]], plan: &[&[f32]], frames: &[&[f32]]) -> Result<EmpInput, ModelError> {
+    pub fn batch_input(
+        &self,
+        joints: &[&[f32]],
+        plan: &[&[f32]],
+        frames: &[&[f32]],
+    ) -> Result<EmpInput, ModelError> {
         build_input(&self.meta, joints, plan, frames, &self.device)
     }
 }
@@ -367,26 +436,44 @@ pub fn build_input(
                     return Err(ModelError::Input(format!(
                         "{name} of window {w} is not finite at tick {} joint {} ({v})",
                         i / c,
-                        meta.joint_names.get(i % c).map(String::as_str).unwrap_or("?")
+                        meta.joint_names
+                            .get(i % c)
+                            .map(String::as_str)
+                            .unwrap_or("?")
                     )));
                 }
                 out.push((v - mean[i % c]) / std[i % c]);
             }
         }
-        Ok(Tensor::<3>::from_data(TensorData::new(out, [b, rows, c]), device))
+        Ok(Tensor::<3>::from_data(
+            TensorData::new(out, [b, rows, c]),
+            device,
+        ))
     };
     let joints_t = standardise("joints", n, joints, &meta.joint_mean, &meta.joint_std)?;
     let plan_t = if meta.ablation.uses_plan() {
         if plan.len() != b {
-            return Err(ModelError::Input(format!("{} plans for {b} windows", plan.len())));
+            return Err(ModelError::Input(format!(
+                "{} plans for {b} windows",
+                plan.len()
+            )));
         }
-        Some(standardise("plan", l, plan, &meta.plan_mean, &meta.plan_std)?)
+        Some(standardise(
+            "plan",
+            l,
+            plan,
+            &meta.plan_mean,
+            &meta.plan_std,
+        )?)
     } else {
         None
     };
     let frames_t = if meta.ablation.uses_vision() {
         if frames.len() != b {
-            return Err(ModelError::Input(format!("{} frame stacks for {b} windows", frames.len())));
+            return Err(ModelError::Input(format!(
+                "{} frame stacks for {b} windows",
+                frames.len()
+            )));
         }
         let mut all = Vec::with_capacity(b * 3 * n * s * s);
         for (w, f) in frames.iter().enumerate() {
@@ -409,5 +496,9 @@ pub fn build_input(
     } else {
         None
     };
-    Ok(EmpInput { joints: joints_t, plan: plan_t, frames: frames_t })
+    Ok(EmpInput {
+        joints: joints_t,
+        plan: plan_t,
+        frames: frames_t,
+    })
 }

@@ -25,7 +25,12 @@ pub struct Inception3d {
 
 impl Inception2d {
     /// `channels_in -> channels_out`, kernels `1, 3, ..., 2·num_kernels − 1`.
-    pub fn new(channels_in: usize, channels_out: usize, num_kernels: usize, device: &Device) -> Self {
+    pub fn new(
+        channels_in: usize,
+        channels_out: usize,
+        num_kernels: usize,
+        device: &Device,
+    ) -> Self {
         let branches = (0..num_kernels)
             .map(|i| {
                 let k = 2 * i + 1;
@@ -53,7 +58,8 @@ impl Inception2d {
                 Some(a) => a + y,
             });
         }
-        acc.expect("an Inception block has at least one branch").div_scalar(n)
+        acc.expect("an Inception block has at least one branch")
+            .div_scalar(n)
     }
 
     /// The single equivalent convolution.
@@ -94,7 +100,8 @@ impl Inception3d {
                 Some(a) => a + y,
             });
         }
-        acc.expect("an Inception block has at least one branch").div_scalar(n)
+        acc.expect("an Inception block has at least one branch")
+            .div_scalar(n)
     }
 
     /// The single equivalent convolution.
@@ -133,7 +140,11 @@ fn fuse_branches<const D: usize>(branches: &[(Tensor<D>, Option<Tensor<1>>)]) ->
     for (w, b) in branches {
         let k = w.dims()[2];
         let off = (kmax - k) / 2;
-        let data: Vec<f32> = w.clone().into_data().try_to_vec::<f32>().expect("f32 weights");
+        let data: Vec<f32> = w
+            .clone()
+            .into_data()
+            .try_to_vec::<f32>()
+            .expect("f32 weights");
         let kv = k.pow(spatial as u32);
         for oc in 0..c_out * c_in {
             for idx in 0..kv {
@@ -170,7 +181,12 @@ impl FusedConv<4> {
     /// `[B, C_in, H, W]` -> `[B, C_out, H, W]`, "same" padding.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let p = self.kernel / 2;
-        conv2d(x, self.weight.clone(), Some(self.bias.clone()), ConvOptions::new([1, 1], [p, p], [1, 1], 1))
+        conv2d(
+            x,
+            self.weight.clone(),
+            Some(self.bias.clone()),
+            ConvOptions::new([1, 1], [p, p], [1, 1], 1),
+        )
     }
 }
 
@@ -178,7 +194,12 @@ impl FusedConv<5> {
     /// `[B, C_in, T, H, W]` -> `[B, C_out, T, H, W]`, "same" padding.
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
         let p = self.kernel / 2;
-        conv3d(x, self.weight.clone(), Some(self.bias.clone()), ConvOptions::new([1, 1, 1], [p, p, p], [1, 1, 1], 1))
+        conv3d(
+            x,
+            self.weight.clone(),
+            Some(self.bias.clone()),
+            ConvOptions::new([1, 1, 1], [p, p, p], [1, 1, 1], 1),
+        )
     }
 
     /// As [`forward`](Self::forward) but without padding in time ("valid"):
@@ -186,6 +207,11 @@ impl FusedConv<5> {
     /// window really ends.
     pub fn forward_valid_time(&self, x: Tensor<5>) -> Tensor<5> {
         let p = self.kernel / 2;
-        conv3d(x, self.weight.clone(), Some(self.bias.clone()), ConvOptions::new([1, 1, 1], [0, p, p], [1, 1, 1], 1))
+        conv3d(
+            x,
+            self.weight.clone(),
+            Some(self.bias.clone()),
+            ConvOptions::new([1, 1, 1], [0, p, p], [1, 1, 1], 1),
+        )
     }
 }

@@ -62,7 +62,10 @@ impl MotionEncoder {
         x = self.norm_in.forward(self.spatial_in.forward(x));
         for block in &self.temporal {
             // U · X over time: put time last, apply the N -> N linear, put it back.
-            let u = block.time.forward(x.clone().swap_dims(1, 2)).swap_dims(1, 2);
+            let u = block
+                .time
+                .forward(x.clone().swap_dims(1, 2))
+                .swap_dims(1, 2);
             x = x + block.norm.forward(u);
         }
         x = self.norm_out.forward(self.spatial_out.forward(x));

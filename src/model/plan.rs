@@ -87,10 +87,17 @@ impl PlanEncoder {
             let xt = x.clone().swap_dims(1, 2); // [B, d, L]
             let re = xt.clone().matmul(cos_t.clone());
             let im = xt.matmul(sin_t.clone());
-            let amp = (re.powi_scalar(2) + im.powi_scalar(2)).add_scalar(1e-12).sqrt();
+            let amp = (re.powi_scalar(2) + im.powi_scalar(2))
+                .add_scalar(1e-12)
+                .sqrt();
             let amp = amp.mean_dim(1).reshape([b, nf]); // [B, F]
-            // Top-k frequencies per sample (not differentiated).
-            let amp_host: Vec<f32> = amp.clone().detach().into_data().try_to_vec::<f32>().expect("f32 amplitudes");
+                                                        // Top-k frequencies per sample (not differentiated).
+            let amp_host: Vec<f32> = amp
+                .clone()
+                .detach()
+                .into_data()
+                .try_to_vec::<f32>()
+                .expect("f32 amplitudes");
             let k = self.top_k.min(nf.saturating_sub(1)).max(1);
             let mut onehot = vec![0.0f32; b * nf * k];
             let mut periods = vec![Vec::with_capacity(k); b];
@@ -121,7 +128,10 @@ impl PlanEncoder {
                         Some(f) => f.blocks[bi][1].forward(gelu(f.blocks[bi][0].forward(grid))),
                         None => block.conv_out.forward(gelu(block.conv_in.forward(grid))),
                     };
-                    let y = y.permute([0, 2, 3, 1]).reshape([1, lp, d]).slice([0..1, 0..l, 0..d]);
+                    let y = y
+                        .permute([0, 2, 3, 1])
+                        .reshape([1, lp, d])
+                        .slice([0..1, 0..l, 0..d]);
                     let w = weights.clone().slice([s..s + 1, 0..1, i..i + 1]); // [1,1,1]
                     let y = y * w;
                     acc = Some(match acc {

@@ -139,7 +139,8 @@ mod tests {
         let fwd = planner.plan_fft_forward(s);
         let inv = planner.plan_fft_inverse(s);
         let mut g: Vec<Complex<f64>> = x.iter().map(|&v| Complex::new(v as f64, 0.0)).collect();
-        let transform = |g: &mut Vec<Complex<f64>>, plan: &std::sync::Arc<dyn rustfft::Fft<f64>>| {
+        let transform = |g: &mut Vec<Complex<f64>>,
+                         plan: &std::sync::Arc<dyn rustfft::Fft<f64>>| {
             for r in 0..s {
                 plan.process(&mut g[r * s..(r + 1) * s]);
             }
@@ -155,7 +156,13 @@ mod tests {
             }
         };
         transform(&mut g, &fwd);
-        let freq = |i: usize| if i <= s / 2 { i as i64 } else { i as i64 - s as i64 };
+        let freq = |i: usize| {
+            if i <= s / 2 {
+                i as i64
+            } else {
+                i as i64 - s as i64
+            }
+        };
         for r in 0..s {
             for c in 0..s {
                 if freq(r).unsigned_abs() as usize >= a || freq(c).unsigned_abs() as usize >= a {
@@ -171,7 +178,9 @@ mod tests {
         let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1);
         (0..s * s)
             .map(|_| {
-                state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
                 ((state >> 33) as f32) / (1u64 << 31) as f32
             })
             .collect()
@@ -192,7 +201,10 @@ mod tests {
                 for n in 0..2 * a {
                     let want = full[(m * step) * s + n * step];
                     let got = y[m * 2 * a + n];
-                    assert!((want - got).abs() < 1e-5, "({m},{n}): fft {want} matrix {got}");
+                    assert!(
+                        (want - got).abs() < 1e-5,
+                        "({m},{n}): fft {want} matrix {got}"
+                    );
                 }
             }
         }
@@ -219,10 +231,14 @@ mod tests {
         let (c, s) = dft_matrices(l);
         let x: Vec<f32> = (0..l).map(|i| ((i * 7 % 11) as f32).sin()).collect();
         let mut buf: Vec<Complex<f64>> = x.iter().map(|&v| Complex::new(v as f64, 0.0)).collect();
-        FftPlanner::<f64>::new().plan_fft_forward(l).process(&mut buf);
+        FftPlanner::<f64>::new()
+            .plan_fft_forward(l)
+            .process(&mut buf);
         for f in 0..l / 2 + 1 {
             let re: f64 = (0..l).map(|n| c[f * l + n] as f64 * x[n] as f64).sum();
-            let im: f64 = -(0..l).map(|n| s[f * l + n] as f64 * x[n] as f64).sum::<f64>();
+            let im: f64 = -(0..l)
+                .map(|n| s[f * l + n] as f64 * x[n] as f64)
+                .sum::<f64>();
             assert!((re - buf[f].re).abs() < 1e-4 && (im - buf[f].im).abs() < 1e-4);
         }
     }

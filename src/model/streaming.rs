@@ -99,26 +99,45 @@ impl StreamingForecaster {
         let cfg = &meta.config;
         let c = cfg.n_joints;
         if joints_rad.len() != c {
-            return Err(ModelError::Input(format!("tick {tick}: {} joint angles, the model needs {c}", joints_rad.len())));
+            return Err(ModelError::Input(format!(
+                "tick {tick}: {} joint angles, the model needs {c}",
+                joints_rad.len()
+            )));
         }
         let mut joints_std = Vec::with_capacity(c);
         for (j, &v) in joints_rad.iter().enumerate() {
             if !v.is_finite() {
-                return Err(ModelError::Input(format!("tick {tick}: joint {} is not finite ({v})", meta.joint_names[j])));
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: joint {} is not finite ({v})",
+                    meta.joint_names[j]
+                )));
             }
             joints_std.push((v - meta.joint_mean[j]) / meta.joint_std[j]);
         }
         let frame_lp = if meta.ablation.uses_vision() {
             let s = cfg.frame_size;
-            let f = frame.ok_or_else(|| ModelError::Input(format!("tick {tick}: no camera frame, the {} model needs one", meta.ablation)))?;
+            let f = frame.ok_or_else(|| {
+                ModelError::Input(format!(
+                    "tick {tick}: no camera frame, the {} model needs one",
+                    meta.ablation
+                ))
+            })?;
             if f.len() != 3 * s * s {
-                return Err(ModelError::Input(format!("tick {tick}: frame has {} values, expected 3 x {s} x {s}", f.len())));
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: frame has {} values, expected 3 x {s} x {s}",
+                    f.len()
+                )));
             }
             if f.iter().any(|v| !v.is_finite()) {
-                return Err(ModelError::Input(format!("tick {tick}: frame is not finite")));
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: frame is not finite"
+                )));
             }
             // P · x · Pᵀ per channel with the same tensor code as the whole-window path.
-            let raw = Tensor::<5>::from_data(TensorData::new(f.to_vec(), [1, 3, 1, s, s]), &self.model.device);
+            let raw = Tensor::<5>::from_data(
+                TensorData::new(f.to_vec(), [1, 3, 1, s, s]),
+                &self.model.device,
+            );
             let out: Vec<f32> = lowpass_frames(raw, cfg.lowpass_a)
                 .into_data()
                 .try_to_vec::<f32>()
@@ -129,14 +148,26 @@ impl StreamingForecaster {
         };
         if meta.ablation.uses_plan() {
             let l = cfg.plan_len();
-            let p = plan_rad.ok_or_else(|| ModelError::Input(format!("tick {tick}: no plan, the {} model needs one", meta.ablation)))?;
+            let p = plan_rad.ok_or_else(|| {
+                ModelError::Input(format!(
+                    "tick {tick}: no plan, the {} model needs one",
+                    meta.ablation
+                ))
+            })?;
             if p.len() != l * c {
-                return Err(ModelError::Input(format!("tick {tick}: plan window has {} values, expected {l} ticks x {c} joints", p.len())));
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: plan window has {} values, expected {l} ticks x {c} joints",
+                    p.len()
+                )));
             }
             let mut std = Vec::with_capacity(l * c);
             for (i, &v) in p.iter().enumerate() {
                 if !v.is_finite() {
-                    return Err(ModelError::Input(format!("tick {tick}: plan not finite at offset {} joint {}", i / c, meta.joint_names[i % c])));
+                    return Err(ModelError::Input(format!(
+                        "tick {tick}: plan not finite at offset {} joint {}",
+                        i / c,
+                        meta.joint_names[i % c]
+                    )));
                 }
                 std.push((v - meta.plan_mean[i % c]) / meta.plan_std[i % c]);
             }
@@ -149,7 +180,11 @@ impl StreamingForecaster {
                 self.cache.iter_mut().for_each(HashMap::clear);
             }
         }
-        self.ticks.push_back(TickState { tick, joints_std, frame_lp });
+        self.ticks.push_back(TickState {
+            tick,
+            joints_std,
+            frame_lp,
+        });
         if self.ticks.len() > cfg.n_ticks {
             self.ticks.pop_front();
         }
@@ -162,17 +197,38 @@ impl StreamingForecaster {
         let cfg = &meta.config;
         let (n, c) = (cfg.n_ticks, cfg.n_joints);
         if !self.is_full() {
-            return Err(ModelError::Input(format!("window not full: {} of {n} ticks", self.ticks.len())));
+            return Err(ModelError::Input(format!(
+                "window not full: {} of {n} ticks",
+                self.ticks.len()
+            )));
         }
         let device = self.model.device.clone();
-        let joints: Vec<f32> = self.ticks.iter().flat_map(|t| t.joints_std.iter().copied()).collect();
+        let joints: Vec<f32> = self
+            .ticks
+            .iter()
+            .flat_map(|t| t.joints_std.iter().copied())
+            .collect();
         let joints = Tensor::<3>::from_data(TensorData::new(joints, [1, n, c]), &device);
         let plan = match &self.plan_std {
-            Some(p) if meta.ablation.uses_plan() => Some(Tensor::<3>::from_data(TensorData::new(p.clone(), [1, cfg.plan_len(), c]), &device)),
+            Some(p) if meta.ablation.uses_plan() => Some(Tensor::<3>::from_data(
+                TensorData::new(p.clone(), [1, cfg.plan_len(), c]),
+                &device,
+            )),
             _ => None,
         };
-        let vision = if meta.ablation.uses_vision() { Some(self.vision_features()?) } else { None };
-        let logits = self.model.network.forward_with_vision(EmpInput { joints, plan, frames: None }, vision);
+        let vision = if meta.ablation.uses_vision() {
+            Some(self.vision_features()?)
+        } else {
+            None
+        };
+        let logits = self.model.network.forward_with_vision(
+            EmpInput {
+                joints,
+                plan,
+                frames: None,
+            },
+            vision,
+        );
         probabilities(logits)
     }
 
@@ -180,17 +236,22 @@ impl StreamingForecaster {
     fn vision_features(&mut self) -> Result<Tensor<2>, ModelError> {
         let cfg = self.model.meta.config.clone();
         let device = self.model.device.clone();
-        let fused = self
-            .model
-            .network
-            .vision_fused
-            .clone()
-            .ok_or_else(|| ModelError::Input("vision ablation without vision weights".into()))?;
+        let fused =
+            self.model.network.vision_fused.clone().ok_or_else(|| {
+                ModelError::Input("vision ablation without vision weights".into())
+            })?;
         let window_start = self.ticks.front().map(|t| t.tick).unwrap_or(0);
         let mut slices: Vec<Slice> = Vec::with_capacity(cfg.n_ticks);
         for t in &self.ticks {
-            let data = t.frame_lp.clone().ok_or_else(|| ModelError::Input(format!("tick {}: no frame", t.tick)))?;
-            slices.push(Slice { key: t.tick, stable: true, data });
+            let data = t
+                .frame_lp
+                .clone()
+                .ok_or_else(|| ModelError::Input(format!("tick {}: no frame", t.tick)))?;
+            slices.push(Slice {
+                key: t.tick,
+                stable: true,
+                data,
+            });
         }
         let mut c_in = 3usize;
         let mut hw = cfg.lowpassed_size();
@@ -201,10 +262,15 @@ impl StreamingForecaster {
             let out_len = c_out * ho * wo;
             let mut out: Vec<Option<Slice>> = vec![None; t_len];
             for j in 0..t_len {
-                let stable = j >= 1 && j + 1 < t_len && slices[j - 1..=j + 1].iter().all(|s| s.stable);
+                let stable =
+                    j >= 1 && j + 1 < t_len && slices[j - 1..=j + 1].iter().all(|s| s.stable);
                 if stable {
                     if let Some(d) = self.cache[li].get(&slices[j].key) {
-                        out[j] = Some(Slice { key: slices[j].key, stable, data: d.clone() });
+                        out[j] = Some(Slice {
+                            key: slices[j].key,
+                            stable,
+                            data: d.clone(),
+                        });
                     }
                 }
             }
@@ -236,34 +302,55 @@ impl StreamingForecaster {
                             .copy_from_slice(&s.data[ch * plane..(ch + 1) * plane]);
                     }
                 }
-                let x = Tensor::<5>::from_data(TensorData::new(buf, [1, c_in, span, hw, hw]), &device);
+                let x =
+                    Tensor::<5>::from_data(TensorData::new(buf, [1, c_in, span, hw, hw]), &device);
                 let y = spatial_pool(relu(layer.forward_valid_time(x)));
                 let runs = j1 - j0 + 1;
                 debug_assert_eq!(y.dims()[2], runs);
-                let y: Vec<f32> = y.into_data().try_to_vec::<f32>().map_err(|e| ModelError::Input(format!("vision output: {e:?}")))?;
+                let y: Vec<f32> = y
+                    .into_data()
+                    .try_to_vec::<f32>()
+                    .map_err(|e| ModelError::Input(format!("vision output: {e:?}")))?;
                 let oplane = ho * wo;
                 for r in 0..runs {
                     let pos = j0 + r;
                     let mut d = vec![0.0f32; out_len];
                     for ch in 0..c_out {
-                        d[ch * oplane..(ch + 1) * oplane]
-                            .copy_from_slice(&y[(ch * runs + r) * oplane..(ch * runs + r + 1) * oplane]);
+                        d[ch * oplane..(ch + 1) * oplane].copy_from_slice(
+                            &y[(ch * runs + r) * oplane..(ch * runs + r + 1) * oplane],
+                        );
                     }
-                    let stable = pos >= 1 && pos + 1 < t_len && slices[pos - 1..=pos + 1].iter().all(|s| s.stable);
+                    let stable = pos >= 1
+                        && pos + 1 < t_len
+                        && slices[pos - 1..=pos + 1].iter().all(|s| s.stable);
                     let data = Arc::new(d);
                     if stable {
                         self.cache[li].insert(slices[pos].key, data.clone());
                     }
-                    out[pos] = Some(Slice { key: slices[pos].key, stable, data });
+                    out[pos] = Some(Slice {
+                        key: slices[pos].key,
+                        stable,
+                        data,
+                    });
                 }
             }
-            let out: Vec<Slice> = out.into_iter().map(|s| s.expect("every position computed")).collect();
+            let out: Vec<Slice> = out
+                .into_iter()
+                .map(|s| s.expect("every position computed"))
+                .collect();
             slices = if fused.time_pool[li] {
                 out.chunks_exact(2)
                     .map(|pair| Slice {
                         key: pair[0].key,
                         stable: pair[0].stable && pair[1].stable,
-                        data: Arc::new(pair[0].data.iter().zip(pair[1].data.iter()).map(|(a, b)| a.max(*b)).collect()),
+                        data: Arc::new(
+                            pair[0]
+                                .data
+                                .iter()
+                                .zip(pair[1].data.iter())
+                                .map(|(a, b)| a.max(*b))
+                                .collect(),
+                        ),
                     })
                     .collect()
             } else {
@@ -285,6 +372,9 @@ impl StreamingForecaster {
             }
         }
         let f = c_in * t_len * plane;
-        Ok(Tensor::<2>::from_data(TensorData::new(feats, [1, f]), &device))
+        Ok(Tensor::<2>::from_data(
+            TensorData::new(feats, [1, f]),
+            &device,
+        ))
     }
 }

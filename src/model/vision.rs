@@ -44,7 +44,10 @@ impl VisionEncoder {
                 l
             })
             .collect();
-        VisionEncoder { layers, time_pool: cfg.vision_time_pool.clone() }
+        VisionEncoder {
+            layers,
+            time_pool: cfg.vision_time_pool.clone(),
+        }
     }
 
     /// Number of features per sample.
@@ -103,8 +106,14 @@ pub fn spatial_pool(x: Tensor<5>) -> Tensor<5> {
 pub fn time_pool(x: Tensor<5>) -> Tensor<5> {
     let [b, c, t, h, w] = x.dims();
     let t2 = t / 2;
-    let x = if t % 2 == 1 { x.slice([0..b, 0..c, 0..2 * t2, 0..h, 0..w]) } else { x };
-    x.reshape([b * c * t2, 2, h * w]).max_dim(1).reshape([b, c, t2, h, w])
+    let x = if t % 2 == 1 {
+        x.slice([0..b, 0..c, 0..2 * t2, 0..h, 0..w])
+    } else {
+        x
+    };
+    x.reshape([b * c * t2, 2, h * w])
+        .max_dim(1)
+        .reshape([b, c, t2, h, w])
 }
 
 /// Low-pass + decimation of raw frames: `[B, 3, N, S, S]` in `[0, 1]` ->
@@ -117,8 +126,16 @@ pub fn lowpass_frames(frames: Tensor<5>, a: usize) -> Tensor<5> {
     let p = Tensor::<2>::from_data(TensorData::new(lowpass_matrix(a, s), [o, s]), &device);
     let planes = b * c * t;
     // x · Pᵀ over width: [planes·S, S] · [S, o] -> [planes, S, o]
-    let y = frames.reshape([planes * s, s]).matmul(p.clone().transpose());
+    let y = frames
+        .reshape([planes * s, s])
+        .matmul(p.clone().transpose());
     // then over height: transpose to [planes, o, S], times Pᵀ -> [planes, o(w), o(h)]
-    let y = y.reshape([planes, s, o]).swap_dims(1, 2).reshape([planes * o, s]).matmul(p.transpose());
-    y.reshape([planes, o, o]).swap_dims(1, 2).reshape([b, c, t, o, o])
+    let y = y
+        .reshape([planes, s, o])
+        .swap_dims(1, 2)
+        .reshape([planes * o, s])
+        .matmul(p.transpose());
+    y.reshape([planes, o, o])
+        .swap_dims(1, 2)
+        .reshape([b, c, t, o, o])
 }

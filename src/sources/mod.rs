@@ -1,2 +1,1 @@
 //! Input streams, each behind one small interface (to be written).
-

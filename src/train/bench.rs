@@ -9,7 +9,9 @@ use serde::Serialize;
 
 use super::fit::{bce_with_logits, LabeledWindow};
 use crate::model::file::build_input;
-use crate::model::{cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster};
+use crate::model::{
+    cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster,
+};
 
 /// Arguments of `fall-guard bench`.
 #[derive(Debug, Clone, clap::Args)]
@@ -120,7 +122,8 @@ fn noise(len: usize, seed: u64) -> Vec<f32> {
 pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
     let cfg = match &args.model {
         Some(p) => LoadedModel::load(p)?.meta.config,
-        None => ModelConfig::named(&args.config, 60, 25, vec![15, 30, 45, 60], 64).map_err(anyhow::Error::msg)?,
+        None => ModelConfig::named(&args.config, 60, 25, vec![15, 30, 45, 60], 64)
+            .map_err(anyhow::Error::msg)?,
     };
     let device = cpu_device();
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
@@ -164,11 +167,18 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
         };
         eprintln!(
             "{:>3}: per tick median {:.2} ms p99 {:.2} ms | whole window median {:.2} ms",
-            b.ablation, b.streaming_per_tick.median_ms, b.streaming_per_tick.p99_ms, b.whole_window.median_ms
+            b.ablation,
+            b.streaming_per_tick.median_ms,
+            b.streaming_per_tick.p99_ms,
+            b.whole_window.median_ms
         );
         ablations.push(b);
     }
-    let train_samples_per_s = if args.train_steps > 0 { Some(train_throughput(&cfg, args.train_steps)?) } else { None };
+    let train_samples_per_s = if args.train_steps > 0 {
+        Some(train_throughput(&cfg, args.train_steps)?)
+    } else {
+        None
+    };
     if let Some(t) = train_samples_per_s {
         eprintln!("training (EMP, batch 4): {t:.1} samples/s");
     }
@@ -196,7 +206,13 @@ fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
     let meta = ModelMeta::new(cfg.clone(), Ablation::EMP, 30.0, names);
     let mut model = Emp::new(cfg, Ablation::EMP, &device);
     let mut opt = AdamConfig::new().init();
-    let (n, c, s, l, k) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len(), cfg.k());
+    let (n, c, s, l, k) = (
+        cfg.n_ticks,
+        cfg.n_joints,
+        cfg.frame_size,
+        cfg.plan_len(),
+        cfg.k(),
+    );
     let batch: Vec<LabeledWindow> = (0..4)
         .map(|i| LabeledWindow {
             joints: noise(n * c, 40 + i),
@@ -212,8 +228,14 @@ fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
         let p: Vec<&[f32]> = batch.iter().map(|w| w.plan.as_slice()).collect();
         let f: Vec<&[f32]> = batch.iter().map(|w| w.frames.as_slice()).collect();
         let input = build_input(&meta, &j, &p, &f, &device)?;
-        let labels: Vec<f32> = batch.iter().flat_map(|w| w.labels.iter().copied()).collect();
-        let labels = burn::prelude::Tensor::<2>::from_data(burn::prelude::TensorData::new(labels, [4, k]), &device);
+        let labels: Vec<f32> = batch
+            .iter()
+            .flat_map(|w| w.labels.iter().copied())
+            .collect();
+        let labels = burn::prelude::Tensor::<2>::from_data(
+            burn::prelude::TensorData::new(labels, [4, k]),
+            &device,
+        );
         let loss = bce_with_logits(model.forward(input), labels);
         let grads = GradientsParams::from_grads(loss.backward(), &model);
         model = opt.step(1e-4, model, grads);
@@ -237,7 +259,9 @@ mod tests {
         let args = BenchArgs {
             model: None,
             config: std::env::var("FALL_GUARD_BENCH_CONFIG").unwrap_or_else(|_| "lite".into()),
-            json: std::env::var("FALL_GUARD_BENCH_JSON").ok().map(PathBuf::from),
+            json: std::env::var("FALL_GUARD_BENCH_JSON")
+                .ok()
+                .map(PathBuf::from),
             ticks: 300,
             train_steps: 5,
         };

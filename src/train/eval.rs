@@ -33,11 +33,17 @@ pub struct MeanStd {
 fn mean_std(v: &[f64]) -> MeanStd {
     let v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
     if v.is_empty() {
-        return MeanStd { mean: f64::NAN, std: f64::NAN };
+        return MeanStd {
+            mean: f64::NAN,
+            std: f64::NAN,
+        };
     }
     let m = v.iter().sum::<f64>() / v.len() as f64;
     let var = v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / v.len() as f64;
-    MeanStd { mean: m, std: var.sqrt() }
+    MeanStd {
+        mean: m,
+        std: var.sqrt(),
+    }
 }
 
 /// Aggregated metrics of one horizon.
@@ -86,7 +92,10 @@ pub fn predict(model: &LoadedModel, windows: &[LabeledWindow]) -> Result<Predict
     for w in windows {
         probabilities.push(model.forecast_arrays(&w.joints, &w.plan, &w.frames)?);
     }
-    Ok(Predictions { model: model.path.display().to_string(), probabilities })
+    Ok(Predictions {
+        model: model.path.display().to_string(),
+        probabilities,
+    })
 }
 
 /// Scores predictions of several models (seeds) against the windows' labels.
@@ -110,7 +119,8 @@ pub fn report(
                     metrics(&pk, &y)
                 })
                 .collect();
-            let col = |f: fn(&Metrics) -> f64| mean_std(&per_model.iter().map(f).collect::<Vec<_>>());
+            let col =
+                |f: fn(&Metrics) -> f64| mean_std(&per_model.iter().map(f).collect::<Vec<_>>());
             HorizonReport {
                 horizon_ticks: h,
                 horizon_ms: h as f64 * 1000.0 / rate_hz,
@@ -144,7 +154,9 @@ impl EvalReport {
             self.windows,
             self.models.len()
         );
-        s.push_str("| horizon | accuracy | F1 | precision | recall | ECE | ROC-AUC | positives |\n");
+        s.push_str(
+            "| horizon | accuracy | F1 | precision | recall | ECE | ROC-AUC | positives |\n",
+        );
         s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- |\n");
         let f = |m: MeanStd| format!("{:.3} ± {:.3}", m.mean, m.std);
         for h in &self.horizons {
@@ -171,7 +183,10 @@ impl EvalReport {
     /// Writes `metrics.json` and `metrics.md` into `dir`.
     pub fn write(&self, dir: &Path) -> std::io::Result<()> {
         std::fs::create_dir_all(dir)?;
-        std::fs::write(dir.join("metrics.json"), serde_json::to_string_pretty(self).map_err(std::io::Error::other)?)?;
+        std::fs::write(
+            dir.join("metrics.json"),
+            serde_json::to_string_pretty(self).map_err(std::io::Error::other)?,
+        )?;
         std::fs::write(dir.join("metrics.md"), self.markdown())
     }
 }

@@ -72,20 +72,44 @@ impl EncoderRates {
     /// SimP column (simulation, 30 Hz).
     pub fn sim() -> Self {
         EncoderRates {
-            motion: Rate { lr: 1e-4, weight_decay: 1e-5 },
-            trajectory: Rate { lr: 1e-3, weight_decay: 1e-4 },
-            vision: Rate { lr: 1e-6, weight_decay: 1e-6 },
-            classifier: Rate { lr: 1e-3, weight_decay: 1e-4 },
+            motion: Rate {
+                lr: 1e-4,
+                weight_decay: 1e-5,
+            },
+            trajectory: Rate {
+                lr: 1e-3,
+                weight_decay: 1e-4,
+            },
+            vision: Rate {
+                lr: 1e-6,
+                weight_decay: 1e-6,
+            },
+            classifier: Rate {
+                lr: 1e-3,
+                weight_decay: 1e-4,
+            },
         }
     }
 
     /// RP column (real robot, ~10 Hz).
     pub fn robot() -> Self {
         EncoderRates {
-            motion: Rate { lr: 5e-4, weight_decay: 1e-4 },
-            trajectory: Rate { lr: 1e-4, weight_decay: 1e-4 },
-            vision: Rate { lr: 1e-5, weight_decay: 5e-4 },
-            classifier: Rate { lr: 1e-4, weight_decay: 1e-4 },
+            motion: Rate {
+                lr: 5e-4,
+                weight_decay: 1e-4,
+            },
+            trajectory: Rate {
+                lr: 1e-4,
+                weight_decay: 1e-4,
+            },
+            vision: Rate {
+                lr: 1e-5,
+                weight_decay: 5e-4,
+            },
+            classifier: Rate {
+                lr: 1e-4,
+                weight_decay: 1e-4,
+            },
         }
     }
 }
@@ -109,7 +133,14 @@ pub struct FitOptions {
 
 impl Default for FitOptions {
     fn default() -> Self {
-        FitOptions { seed: 1, max_epochs: 10, patience: 3, batch_size: 4, rates: EncoderRates::sim(), progress: true }
+        FitOptions {
+            seed: 1,
+            max_epochs: 10,
+            patience: 3,
+            batch_size: 4,
+            rates: EncoderRates::sim(),
+            progress: true,
+        }
     }
 }
 
@@ -149,18 +180,32 @@ pub fn bce_with_logits(logits: Tensor<2>, labels: Tensor<2>) -> Tensor<1> {
     (pos - logits * labels + log_term).mean()
 }
 
-fn labels_tensor(windows: &[LabeledWindow], k: usize, device: &Device) -> Result<Tensor<2>, TrainError> {
+fn labels_tensor(
+    windows: &[LabeledWindow],
+    k: usize,
+    device: &Device,
+) -> Result<Tensor<2>, TrainError> {
     let mut v = Vec::with_capacity(windows.len() * k);
     for w in windows {
         if w.labels.len() != k {
-            return Err(TrainError::Data(format!("a window has {} labels, the model has {k} horizons", w.labels.len())));
+            return Err(TrainError::Data(format!(
+                "a window has {} labels, the model has {k} horizons",
+                w.labels.len()
+            )));
         }
         v.extend_from_slice(&w.labels);
     }
-    Ok(Tensor::<2>::from_data(TensorData::new(v, [windows.len(), k]), device))
+    Ok(Tensor::<2>::from_data(
+        TensorData::new(v, [windows.len(), k]),
+        device,
+    ))
 }
 
-fn input_for(meta: &ModelMeta, batch: &[LabeledWindow], device: &Device) -> Result<crate::model::EmpInput, TrainError> {
+fn input_for(
+    meta: &ModelMeta,
+    batch: &[LabeledWindow],
+    device: &Device,
+) -> Result<crate::model::EmpInput, TrainError> {
     let joints: Vec<&[f32]> = batch.iter().map(|w| w.joints.as_slice()).collect();
     let plan: Vec<&[f32]> = batch.iter().map(|w| w.plan.as_slice()).collect();
     let frames: Vec<&[f32]> = batch.iter().map(|w| w.frames.as_slice()).collect();
@@ -168,7 +213,12 @@ fn input_for(meta: &ModelMeta, batch: &[LabeledWindow], device: &Device) -> Resu
 }
 
 /// Validation loss and mean accuracy of `model` (evaluated without autodiff).
-pub fn evaluate_loss(model: &Emp, meta: &ModelMeta, windows: &[LabeledWindow], batch_size: usize) -> Result<(f64, f64), TrainError> {
+pub fn evaluate_loss(
+    model: &Emp,
+    meta: &ModelMeta,
+    windows: &[LabeledWindow],
+    batch_size: usize,
+) -> Result<(f64, f64), TrainError> {
     let device = cpu_device();
     let model = model.valid();
     let k = meta.config.k();
@@ -178,7 +228,10 @@ pub fn evaluate_loss(model: &Emp, meta: &ModelMeta, windows: &[LabeledWindow], b
         let labels = labels_tensor(batch, k, &device)?;
         let loss: f32 = bce_with_logits(logits.clone(), labels).into_scalar();
         loss_sum += loss as f64 * batch.len() as f64;
-        let z: Vec<f32> = logits.into_data().try_to_vec::<f32>().map_err(|e| TrainError::Data(format!("{e:?}")))?;
+        let z: Vec<f32> = logits
+            .into_data()
+            .try_to_vec::<f32>()
+            .map_err(|e| TrainError::Data(format!("{e:?}")))?;
         for (w, row) in batch.iter().zip(z.chunks(k)) {
             for (y, zv) in w.labels.iter().zip(row) {
                 correct += usize::from((*zv > 0.0) == (*y > 0.5));
@@ -196,9 +249,15 @@ pub fn evaluate_loss(model: &Emp, meta: &ModelMeta, windows: &[LabeledWindow], b
 /// burn's random generator (initialisation, dropout) is global to the
 /// process, so one training at a time holds it: two `fit` calls in one process
 /// run one after the other, each deterministic for its seed.
-pub fn fit(mut meta: ModelMeta, source: &mut dyn EpochSource, opts: &FitOptions) -> Result<(ModelMeta, Emp), TrainError> {
+pub fn fit(
+    mut meta: ModelMeta,
+    source: &mut dyn EpochSource,
+    opts: &FitOptions,
+) -> Result<(ModelMeta, Emp), TrainError> {
     static RNG_OWNER: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    let _rng = RNG_OWNER.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    let _rng = RNG_OWNER
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let device = cpu_device().autodiff();
     device.seed(opts.seed);
     let cfg: ModelConfig = meta.config.clone();
@@ -206,16 +265,25 @@ pub fn fit(mut meta: ModelMeta, source: &mut dyn EpochSource, opts: &FitOptions)
     let k = cfg.k();
     let mut model = Emp::new(&cfg, ablation, &device);
     let adam = |r: Rate| -> ModuleOptimizer {
-        AdamConfig::new().with_weight_decay(Some(WeightDecayConfig::new(r.weight_decay))).init()
+        AdamConfig::new()
+            .with_weight_decay(Some(WeightDecayConfig::new(r.weight_decay)))
+            .init()
     };
     let r = opts.rates;
-    let (mut opt_m, mut opt_t, mut opt_v, mut opt_c) = (adam(r.motion), adam(r.trajectory), adam(r.vision), adam(r.classifier));
+    let (mut opt_m, mut opt_t, mut opt_v, mut opt_c) = (
+        adam(r.motion),
+        adam(r.trajectory),
+        adam(r.vision),
+        adam(r.classifier),
+    );
 
     let validation = source.validation()?;
     let mut first_epoch = Some(source.train_epoch(1)?);
     if let Some(w) = &first_epoch {
         if w.is_empty() {
-            return Err(TrainError::Data("the training split gave no windows".into()));
+            return Err(TrainError::Data(
+                "the training split gave no windows".into(),
+            ));
         }
         standardisation(&mut meta, w);
     }
@@ -223,10 +291,16 @@ pub fn fit(mut meta: ModelMeta, source: &mut dyn EpochSource, opts: &FitOptions)
     meta.history.clear();
     let mut best: Option<(f64, Emp)> = None;
     let mut since_best = 0usize;
-    let bar = if opts.progress { ProgressBar::new(0) } else { ProgressBar::hidden() };
+    let bar = if opts.progress {
+        ProgressBar::new(0)
+    } else {
+        ProgressBar::hidden()
+    };
     bar.set_style(
-        ProgressStyle::with_template("epoch {prefix} [{bar:30}] {pos}/{len} steps  {msg}  eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "epoch {prefix} [{bar:30}] {pos}/{len} steps  {msg}  eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     for epoch in 1..=opts.max_epochs {
         let windows = match first_epoch.take() {
@@ -247,21 +321,42 @@ pub fn fit(mut meta: ModelMeta, source: &mut dyn EpochSource, opts: &FitOptions)
             let mut grads = loss.backward();
             let g_m = GradientsParams::from_module(&mut grads, &model.motion);
             let g_c = GradientsParams::from_module(&mut grads, &model.classifier);
-            let g_t = model.plan.as_ref().map(|p| GradientsParams::from_module(&mut grads, p));
-            let g_v = model.vision.as_ref().map(|v| GradientsParams::from_module(&mut grads, v));
-            let Emp { motion, plan, vision, classifier } = model;
+            let g_t = model
+                .plan
+                .as_ref()
+                .map(|p| GradientsParams::from_module(&mut grads, p));
+            let g_v = model
+                .vision
+                .as_ref()
+                .map(|v| GradientsParams::from_module(&mut grads, v));
+            let Emp {
+                motion,
+                plan,
+                vision,
+                classifier,
+            } = model;
             model = Emp {
                 motion: opt_m.step(r.motion.lr, motion, g_m),
-                plan: plan.zip(g_t).map(|(p, g)| opt_t.step(r.trajectory.lr, p, g)),
+                plan: plan
+                    .zip(g_t)
+                    .map(|(p, g)| opt_t.step(r.trajectory.lr, p, g)),
                 vision: vision.zip(g_v).map(|(v, g)| opt_v.step(r.vision.lr, v, g)),
                 classifier: opt_c.step(r.classifier.lr, classifier, g_c),
             };
             bar.set_position(step as u64 + 1);
-            bar.set_message(format!("loss {:.4}", loss_sum / ((step + 1) * opts.batch_size).min(windows.len()) as f64));
+            bar.set_message(format!(
+                "loss {:.4}",
+                loss_sum / ((step + 1) * opts.batch_size).min(windows.len()) as f64
+            ));
         }
         let train_loss = loss_sum / windows.len().max(1) as f64;
         let (val_loss, val_accuracy) = evaluate_loss(&model, &meta, &validation, 16)?;
-        meta.history.push(EpochRecord { epoch, train_loss, val_loss, val_accuracy });
+        meta.history.push(EpochRecord {
+            epoch,
+            train_loss,
+            val_loss,
+            val_accuracy,
+        });
         bar.println(format!(
             "epoch {epoch}: train loss {train_loss:.4}, val loss {val_loss:.4}, val acc {val_accuracy:.3}"
         ));
@@ -273,12 +368,16 @@ pub fn fit(mut meta: ModelMeta, source: &mut dyn EpochSource, opts: &FitOptions)
         } else {
             since_best += 1;
             if since_best >= opts.patience {
-                bar.println(format!("early stop: no better validation loss for {} epochs", opts.patience));
+                bar.println(format!(
+                    "early stop: no better validation loss for {} epochs",
+                    opts.patience
+                ));
                 break;
             }
         }
     }
     bar.finish_and_clear();
-    let (_, best_model) = best.ok_or_else(|| TrainError::Data("no epoch ran (max_epochs = 0)".into()))?;
+    let (_, best_model) =
+        best.ok_or_else(|| TrainError::Data("no epoch ran (max_epochs = 0)".into()))?;
     Ok((meta, best_model))
 }

@@ -53,23 +53,30 @@ impl LogRegModel {
         n_ticks: usize,
         joint_names: Vec<String>,
     ) -> Result<LogRegModel, TrainError> {
-        let first = windows.first().ok_or_else(|| TrainError::Data("no training windows".into()))?;
+        let first = windows
+            .first()
+            .ok_or_else(|| TrainError::Data("no training windows".into()))?;
         let d = first.joints.len() + first.plan.len();
         let mut x = Array2::<f64>::zeros((windows.len(), d));
         for (i, w) in windows.iter().enumerate() {
             if w.joints.len() + w.plan.len() != d {
-                return Err(TrainError::Data(format!("window {i} has {} features, the first has {d}", w.joints.len() + w.plan.len())));
+                return Err(TrainError::Data(format!(
+                    "window {i} has {} features, the first has {d}",
+                    w.joints.len() + w.plan.len()
+                )));
             }
             for (j, v) in features(w).enumerate() {
                 x[[i, j]] = v;
             }
         }
-        let mean = x.mean_axis(ndarray::Axis(0)).unwrap_or_else(|| Array1::zeros(d));
+        let mean = x
+            .mean_axis(ndarray::Axis(0))
+            .unwrap_or_else(|| Array1::zeros(d));
         let std = x.std_axis(ndarray::Axis(0), 0.0).mapv(|s| s.max(1e-6));
         let xs = (&x - &mean) / &std;
         let mut weights = Vec::new();
         let mut intercepts = Vec::new();
-        for k in 0..horizons_ticks.len() {
+        for (k, &horizon) in horizons_ticks.iter().enumerate() {
             let y: Array1<bool> = windows.iter().map(|w| w.labels[k] > 0.5).collect();
             let positives = y.iter().filter(|&&v| v).count();
             if positives == 0 || positives == y.len() {
@@ -83,9 +90,13 @@ impl LogRegModel {
                 .alpha(1.0)
                 .max_iterations(200)
                 .fit(&ds)
-                .map_err(|e| TrainError::Data(format!("logistic regression at horizon {}: {e}", horizons_ticks[k])))?;
-            weights.push(fitted.params().to_vec());
-            intercepts.push(fitted.intercept());
+                .map_err(|e| {
+                    TrainError::Data(format!("logistic regression at horizon {}: {e}", horizon))
+                })?;
+            // linfa's probabilities are of its "positive" class; make them P(fallen).
+            let sign = if fitted.labels().pos.class { 1.0 } else { -1.0 };
+            weights.push(fitted.params().iter().map(|w| sign * w).collect());
+            intercepts.push(sign * fitted.intercept());
         }
         Ok(LogRegModel {
             format: FORMAT.into(),
@@ -106,9 +117,17 @@ impl LogRegModel {
         let d = self.feature_mean.len();
         let xs: Vec<f64> = features(w).collect();
         if xs.len() != d {
-            return Err(TrainError::Data(format!("window has {} features, the baseline needs {d}", xs.len())));
+            return Err(TrainError::Data(format!(
+                "window has {} features, the baseline needs {d}",
+                xs.len()
+            )));
         }
-        let z: Vec<f64> = xs.iter().zip(&self.feature_mean).zip(&self.feature_std).map(|((x, m), s)| (x - m) / s).collect();
+        let z: Vec<f64> = xs
+            .iter()
+            .zip(&self.feature_mean)
+            .zip(&self.feature_std)
+            .map(|((x, m), s)| (x - m) / s)
+            .collect();
         Ok(self
             .weights
             .iter()
@@ -123,18 +142,25 @@ impl LogRegModel {
     /// Writes the model as JSON.
     pub fn save(&self, path: &Path) -> Result<(), TrainError> {
         let s = serde_json::to_string(self).map_err(|e| TrainError::Data(e.to_string()))?;
-        std::fs::write(path, s).map_err(|e| TrainError::Data(format!("writing {}: {e}", path.display())))
+        std::fs::write(path, s)
+            .map_err(|e| TrainError::Data(format!("writing {}: {e}", path.display())))
     }
 
     /// Reads a model written by [`save`](Self::save); `None` if the file is not one.
     pub fn load(path: &Path) -> Result<Option<LogRegModel>, TrainError> {
-        let bytes = std::fs::read(path).map_err(|e| TrainError::Data(format!("reading {}: {e}", path.display())))?;
+        let bytes = std::fs::read(path)
+            .map_err(|e| TrainError::Data(format!("reading {}: {e}", path.display())))?;
         if !bytes.starts_with(b"{") {
             return Ok(None);
         }
-        let m: LogRegModel = serde_json::from_slice(&bytes).map_err(|e| TrainError::Data(format!("{}: {e}", path.display())))?;
+        let m: LogRegModel = serde_json::from_slice(&bytes)
+            .map_err(|e| TrainError::Data(format!("{}: {e}", path.display())))?;
         if m.format != FORMAT {
-            return Err(TrainError::Data(format!("{}: format {:?}, expected {FORMAT}", path.display(), m.format)));
+            return Err(TrainError::Data(format!(
+                "{}: format {:?}, expected {FORMAT}",
+                path.display(),
+                m.format
+            )));
         }
         Ok(Some(m))
     }

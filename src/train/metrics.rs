@@ -40,7 +40,11 @@ pub fn metrics(p: &[f32], y: &[bool]) -> Metrics {
     let ratio = |a: usize, b: usize| if b == 0 { 0.0 } else { a as f64 / b as f64 };
     let precision = ratio(tp, tp + fp);
     let recall = ratio(tp, tp + fneg);
-    let f1 = if precision + recall == 0.0 { 0.0 } else { 2.0 * precision * recall / (precision + recall) };
+    let f1 = if precision + recall == 0.0 {
+        0.0
+    } else {
+        2.0 * precision * recall / (precision + recall)
+    };
     Metrics {
         accuracy: (tp + tn) as f64 / n,
         f1,
@@ -93,7 +97,12 @@ pub fn roc_auc(p: &[f32], y: &[bool]) -> f64 {
     if n_pos == 0.0 || n_neg == 0.0 {
         return f64::NAN;
     }
-    let sum_pos: f64 = ranks.iter().zip(y).filter(|(_, &v)| v).map(|(r, _)| r).sum();
+    let sum_pos: f64 = ranks
+        .iter()
+        .zip(y)
+        .filter(|(_, &v)| v)
+        .map(|(r, _)| r)
+        .sum();
     (sum_pos - n_pos * (n_pos + 1.0) / 2.0) / (n_pos * n_neg)
 }
 
@@ -134,7 +143,13 @@ pub fn reliability(p: &[f32], y: &[bool], bins: usize) -> Vec<(f64, f64, usize)>
     }
     (0..bins)
         .filter(|&b| count[b] > 0)
-        .map(|b| (conf[b] / count[b] as f64, pos[b] / count[b] as f64, count[b]))
+        .map(|b| {
+            (
+                conf[b] / count[b] as f64,
+                pos[b] / count[b] as f64,
+                count[b],
+            )
+        })
         .collect()
 }
 
@@ -147,7 +162,10 @@ mod tests {
         let p = [0.1f32, 0.2, 0.8, 0.9];
         let y = [false, false, true, true];
         let m = metrics(&p, &y);
-        assert_eq!((m.accuracy, m.f1, m.precision, m.recall, m.roc_auc), (1.0, 1.0, 1.0, 1.0, 1.0));
+        assert_eq!(
+            (m.accuracy, m.f1, m.precision, m.recall, m.roc_auc),
+            (1.0, 1.0, 1.0, 1.0, 1.0)
+        );
         let inv = [true, true, false, false];
         assert_eq!(roc_auc(&p, &inv), 0.0);
         assert_eq!(metrics(&p, &inv).accuracy, 0.0);

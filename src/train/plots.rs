@@ -34,7 +34,10 @@ pub struct PlotError {
 }
 
 fn err(path: &Path) -> impl Fn(String) -> PlotError + '_ {
-    move |message| PlotError { path: path.display().to_string(), message }
+    move |message| PlotError {
+        path: path.display().to_string(),
+        message,
+    }
 }
 
 /// One series per horizon: label, probabilities, labels.
@@ -60,7 +63,10 @@ pub fn roc_plot(path: &Path, series: &[HorizonSeries<'_>]) -> Result<(), PlotErr
         .draw()
         .map_err(|x| e(x.to_string()))?;
     chart
-        .draw_series(LineSeries::new(vec![(0.0, 0.0), (1.0, 1.0)], BLACK.mix(0.3)))
+        .draw_series(LineSeries::new(
+            vec![(0.0, 0.0), (1.0, 1.0)],
+            BLACK.mix(0.3),
+        ))
         .map_err(|x| e(x.to_string()))?;
     for (i, (label, p, y)) in series.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
@@ -68,7 +74,9 @@ pub fn roc_plot(path: &Path, series: &[HorizonSeries<'_>]) -> Result<(), PlotErr
             .draw_series(LineSeries::new(roc_curve(p, y), color.stroke_width(2)))
             .map_err(|x| e(x.to_string()))?
             .label(label.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
     }
     chart
         .configure_series_labels()
@@ -100,18 +108,29 @@ pub fn reliability_plot(path: &Path, series: &[HorizonSeries<'_>]) -> Result<(),
         .draw()
         .map_err(|x| e(x.to_string()))?;
     chart
-        .draw_series(LineSeries::new(vec![(0.0, 0.0), (1.0, 1.0)], BLACK.mix(0.3)))
+        .draw_series(LineSeries::new(
+            vec![(0.0, 0.0), (1.0, 1.0)],
+            BLACK.mix(0.3),
+        ))
         .map_err(|x| e(x.to_string()))?;
     for (i, (label, p, y)) in series.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
-        let pts: Vec<(f64, f64)> = reliability(p, y, 15).iter().map(|&(c, f, _)| (c, f)).collect();
+        let pts: Vec<(f64, f64)> = reliability(p, y, 15)
+            .iter()
+            .map(|&(c, f, _)| (c, f))
+            .collect();
         chart
             .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
             .map_err(|x| e(x.to_string()))?
             .label(label.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
         chart
-            .draw_series(pts.iter().map(|&(x, y)| Circle::new((x, y), 3, color.filled())))
+            .draw_series(
+                pts.iter()
+                    .map(|&(x, y)| Circle::new((x, y), 3, color.filled())),
+            )
             .map_err(|x| e(x.to_string()))?;
     }
     chart
@@ -149,7 +168,8 @@ pub fn training_plot(path: &Path, history: &[EpochRecord]) -> Result<(), PlotErr
         .y_desc("loss / accuracy")
         .draw()
         .map_err(|x| e(x.to_string()))?;
-    let lines: [(&str, RGBColor, fn(&EpochRecord) -> f64); 3] = [
+    type Curve = (&'static str, RGBColor, fn(&EpochRecord) -> f64);
+    let lines: [Curve; 3] = [
         ("train loss", BLUE, |h| h.train_loss),
         ("validation loss", RED, |h| h.val_loss),
         ("validation accuracy", GREEN, |h| h.val_accuracy),
@@ -160,7 +180,9 @@ pub fn training_plot(path: &Path, history: &[EpochRecord]) -> Result<(), PlotErr
             .draw_series(LineSeries::new(pts, color.stroke_width(2)))
             .map_err(|x| e(x.to_string()))?
             .label(label)
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
     }
     chart
         .configure_series_labels()

@@ -29,7 +29,7 @@ impl RampEpisodes {
             .map(|i| {
                 let falls = i % 2 == 0;
                 let d = 1 + (rng_next(&mut st) * (ramp as f32)) as usize; // onset, ticks after window end
-                let phase = rng_next(&mut st) * 6.28;
+                let phase = rng_next(&mut st) * std::f32::consts::TAU;
                 let mut joints = vec![0.0f32; n * c];
                 for t in 0..n {
                     for j in 0..c {
@@ -43,10 +43,25 @@ impl RampEpisodes {
                         }
                     }
                 }
-                let plan: Vec<f32> = (0..l * c).map(|k| 0.3 * ((k / c) as f32 * 0.4 + phase + (k % c) as f32).sin()).collect();
-                let frames = if cfg.n_ticks * s > 0 { vec![0.5f32; 3 * n * s * s] } else { vec![] };
-                let labels = cfg.horizons_ticks.iter().map(|&h| f32::from(u8::from(falls && d <= h))).collect();
-                LabeledWindow { joints, plan, frames, labels }
+                let plan: Vec<f32> = (0..l * c)
+                    .map(|k| 0.3 * ((k / c) as f32 * 0.4 + phase + (k % c) as f32).sin())
+                    .collect();
+                let frames = if cfg.n_ticks * s > 0 {
+                    vec![0.5f32; 3 * n * s * s]
+                } else {
+                    vec![]
+                };
+                let labels = cfg
+                    .horizons_ticks
+                    .iter()
+                    .map(|&h| f32::from(u8::from(falls && d <= h)))
+                    .collect();
+                LabeledWindow {
+                    joints,
+                    plan,
+                    frames,
+                    labels,
+                }
             })
             .collect()
     }
@@ -74,8 +89,16 @@ fn learns_a_learnable_fall_task_and_the_file_reproduces_it() {
     let cfg = small_cfg();
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let meta = ModelMeta::new(cfg.clone(), Ablation::P, 30.0, names);
-    let mut source = RampEpisodes { cfg: cfg.clone(), per_epoch: 400, seed: 1 };
-    let opts = FitOptions { seed: 1, progress: false, ..FitOptions::default() };
+    let mut source = RampEpisodes {
+        cfg: cfg.clone(),
+        per_epoch: 400,
+        seed: 1,
+    };
+    let opts = FitOptions {
+        seed: 1,
+        progress: false,
+        ..FitOptions::default()
+    };
     let (meta, model) = fit(meta, &mut source, &opts).unwrap();
     assert!(meta.best_epoch >= 1 && !meta.history.is_empty());
     let dir = tempfile::tempdir().unwrap();
@@ -85,14 +108,20 @@ fn learns_a_learnable_fall_task_and_the_file_reproduces_it() {
     let test = source.windows(200, 999);
     let (mut correct, mut total) = (0usize, 0usize);
     for w in &test {
-        let p = loaded.forecast_arrays(&w.joints, &w.plan, &w.frames).unwrap();
+        let p = loaded
+            .forecast_arrays(&w.joints, &w.plan, &w.frames)
+            .unwrap();
         for (pi, yi) in p.iter().zip(&w.labels) {
             correct += usize::from((*pi >= 0.5) == (*yi > 0.5));
             total += 1;
         }
     }
     let acc = correct as f64 / total as f64;
-    assert!(acc > 0.9, "test accuracy {acc:.3}; history {:?}", meta.history);
+    assert!(
+        acc > 0.9,
+        "test accuracy {acc:.3}; history {:?}",
+        meta.history
+    );
 }
 
 #[test]
@@ -101,9 +130,46 @@ fn training_is_deterministic_for_a_seed() {
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let run = || {
         let meta = ModelMeta::new(cfg.clone(), Ablation::MP, 30.0, names.clone());
-        let mut source = RampEpisodes { cfg: cfg.clone(), per_epoch: 16, seed: 3 };
-        let opts = FitOptions { seed: 7, max_epochs: 2, progress: false, ..FitOptions::default() };
+        let mut source = RampEpisodes {
+            cfg: cfg.clone(),
+            per_epoch: 16,
+            seed: 3,
+        };
+        let opts = FitOptions {
+            seed: 7,
+            max_epochs: 2,
+            progress: false,
+            ..FitOptions::default()
+        };
         fit(meta, &mut source, &opts).unwrap().0.history
     };
     assert_eq!(run(), run());
+}
+
+#[test]
+fn logistic_baseline_learns_the_ramp_task_and_round_trips() {
+    use super::logreg::LogRegModel;
+    let cfg = small_cfg();
+    let source = RampEpisodes {
+        cfg: cfg.clone(),
+        per_epoch: 0,
+        seed: 5,
+    };
+    let train = source.windows(300, 1);
+    let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
+    let m = LogRegModel::fit(&train, cfg.horizons_ticks.clone(), 30.0, cfg.n_ticks, names).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("logreg.json");
+    m.save(&path).unwrap();
+    let m = LogRegModel::load(&path).unwrap().expect("a logreg file");
+    let test = source.windows(200, 2);
+    let (mut correct, mut total) = (0usize, 0usize);
+    for w in &test {
+        for (p, y) in m.predict(w).unwrap().iter().zip(&w.labels) {
+            correct += usize::from((*p >= 0.5) == (*y > 0.5));
+            total += 1;
+        }
+    }
+    let acc = correct as f64 / total as f64;
+    assert!(acc > 0.8, "baseline accuracy {acc:.3}");
 }
