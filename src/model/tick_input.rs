@@ -65,3 +65,17 @@ impl StreamingForecaster {
         self.push_parts(tick, joints, frame.as_deref(), plan.as_deref())
     }
 }
+
+impl super::file::ModelMeta {
+    /// Refuses a window spec the model was not trained for, saying what differs.
+    pub fn check_compatible(&self, spec: &WindowSpec) -> Result<(), ModelError> {
+        self.check_compatible_with(&spec.joint_names, spec.rate_hz, spec.n_ticks, spec.max_horizon_ticks, spec.frame_size)
+    }
+}
+
+impl super::file::LoadedModel {
+    /// Whole-window forecast of a `Window` built by `window.rs`: `K` probabilities.
+    pub fn forecast_window(&self, window: &crate::window::Window) -> Result<Vec<f32>, ModelError> {
+        self.forecast_arrays(&window.joints, &window.plan, &window.frames)
+    }
+}
