@@ -12,6 +12,7 @@ pub mod motion;
 pub mod plan;
 pub mod spectral;
 pub mod streaming;
+pub mod tick_input;
 pub mod vision;
 
 pub use config::{Ablation, ModelConfig};
