@@ -1,1 +1,3 @@
 //! Input streams, each behind one small interface (to be written).
+
+pub mod dynamixel;
