@@ -173,3 +173,80 @@ fn logistic_baseline_learns_the_ramp_task_and_round_trips() {
     let acc = correct as f64 / total as f64;
     assert!(acc > 0.8, "baseline accuracy {acc:.3}");
 }
+
+/// Recordings written by the data plane's synthetic writer, trained on and
+/// evaluated by the real commands; the offline per-tick forecast (streaming,
+/// as the daemon runs it) equals the whole-window forecast of the windows
+/// `window.rs` builds from the same recording.
+#[test]
+fn train_and_eval_commands_on_synthetic_recordings() {
+    use super::cli::{per_tick_forecast, run_eval, run_train, spec_of, EvalArgs, TrainArgs};
+    use crate::recording::synthetic::{joint_names, learnable_episode, write_dataset};
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let names = joint_names(4);
+    let (rate, ticks, size) = (10.0, 70usize, 32u32);
+    let eps = |from: u64, count: u64| -> Vec<_> {
+        (from..from + count).map(|s| learnable_episode(s, s % 2 == 0, ticks, &names, rate, size)).collect()
+    };
+    write_dataset(&data, &eps(0, 80), &eps(1000, 16), &eps(2000, 24)).unwrap();
+    let model_path = dir.path().join("models/emp.bpk");
+    let args = TrainArgs {
+        data: data.clone(),
+        ablation: "EMP".into(),
+        config: "lite".into(),
+        seed: 1,
+        out: model_path.clone(),
+        epochs: 10,
+        patience: 3,
+        batch: 4,
+        rates: "sim".into(),
+        n_ticks: 12,
+        horizons: vec![3, 6, 9, 12],
+        rate_hz: rate,
+        frame_size: size,
+        joint_names: Some(names.clone()),
+        trained_on: "synthetic".into(),
+        quiet: true,
+    };
+    run_train(&args).unwrap();
+    let out = dir.path().join("eval");
+    let eval = EvalArgs {
+        model: model_path.clone(),
+        seeds: vec![],
+        data: Some(data.clone()),
+        split: "test".into(),
+        out: Some(out.clone()),
+        sample_seed: 3,
+        draws: 4,
+        recording: None,
+        per_tick_out: None,
+    };
+    run_eval(&eval).unwrap();
+    let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
+    for f in ["metrics.md", "roc.png", "reliability.png", "training.png"] {
+        assert!(out.join(f).metadata().unwrap().len() > 100, "{f}");
+    }
+    let acc: Vec<f64> = metrics["horizons"].as_array().unwrap().iter().map(|h| h["accuracy"]["mean"].as_f64().unwrap()).collect();
+    let mean_acc = acc.iter().sum::<f64>() / acc.len() as f64;
+    assert!(mean_acc > 0.9, "test accuracy per horizon {acc:?}");
+
+    // Streaming per tick == window.rs windows through the whole-window forward.
+    let model = LoadedModel::load(&model_path).unwrap();
+    let rec = data.join("episode_0096.mcap");
+    let jsonl = dir.path().join("per_tick.jsonl");
+    let lines = per_tick_forecast(&model, &rec, &jsonl).unwrap();
+    assert!(lines > 20);
+    let spec = spec_of(&model.meta);
+    let needs = super::cli::needs_of(Some(model.meta.ablation));
+    let episode = crate::train::dataset::load_episode(&rec, &spec, needs).unwrap();
+    for line in std::fs::read_to_string(&jsonl).unwrap().lines() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        let tick = v["tick"].as_i64().unwrap();
+        let window = episode.window_ending_at(tick, &spec, needs).unwrap();
+        let want = model.forecast_window(&window).unwrap();
+        for (g, w) in v["probabilities"].as_array().unwrap().iter().zip(&want) {
+            assert!((g.as_f64().unwrap() - *w as f64).abs() < 1e-5, "tick {tick}: {v} vs {want:?}");
+        }
+    }
+}
