@@ -15,6 +15,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Train a model (or the logistic baseline) on a data set.
+    Train(fall_guard::train::cli::TrainArgs),
+    /// Evaluate model files on a split; or forecast one recording per tick.
+    Eval(fall_guard::train::cli::EvalArgs),
     /// Per-tick latency and training throughput of the network.
     Bench(fall_guard::train::bench::BenchArgs),
 }
@@ -25,6 +29,8 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
+        Command::Train(args) => fall_guard::train::cli::run_train(&args)?,
+        Command::Eval(args) => fall_guard::train::cli::run_eval(&args)?,
         Command::Bench(args) => {
             fall_guard::train::bench::run_bench(&args)?;
         }

@@ -39,7 +39,10 @@ impl StreamingForecaster {
                 .as_ref()
                 .ok_or_else(|| ModelError::Input(format!("tick {tick}: no camera frame yet")))?;
             if f.width as usize != s || f.height as usize != s {
-                return Err(ModelError::Input(format!("tick {tick}: frame is {}x{}, the model needs {s}x{s}", f.width, f.height)));
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: frame is {}x{}, the model needs {s}x{s}",
+                    f.width, f.height
+                )));
             }
             let mut chw = vec![0.0f32; 3 * s * s];
             f.write_chw(&mut chw, s * s);
@@ -52,7 +55,9 @@ impl StreamingForecaster {
                 .plan
                 .as_ref()
                 .ok_or_else(|| ModelError::Input(format!("tick {tick}: no plan yet")))?;
-            let grid = spec.grid().map_err(|e| ModelError::Input(format!("tick grid: {e}")))?;
+            let grid = spec
+                .grid()
+                .map_err(|e| ModelError::Input(format!("tick grid: {e}")))?;
             let first_tick = tick - n as i64 + 1;
             let mut out = vec![0.0f32; spec.plan_len() * c];
             for (i, row) in out.chunks_exact_mut(c).enumerate() {
@@ -69,7 +74,13 @@ impl StreamingForecaster {
 impl super::file::ModelMeta {
     /// Refuses a window spec the model was not trained for, saying what differs.
     pub fn check_compatible(&self, spec: &WindowSpec) -> Result<(), ModelError> {
-        self.check_compatible_with(&spec.joint_names, spec.rate_hz, spec.n_ticks, spec.max_horizon_ticks, spec.frame_size)
+        self.check_compatible_with(
+            &spec.joint_names,
+            spec.rate_hz,
+            spec.n_ticks,
+            spec.max_horizon_ticks,
+            spec.frame_size,
+        )
     }
 }
 

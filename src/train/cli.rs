@@ -10,7 +10,9 @@ use super::eval::{predict, report, Predictions};
 use super::fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
 use super::logreg::LogRegModel;
 use super::plots;
-use crate::model::{save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster};
+use crate::model::{
+    save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster,
+};
 use crate::train::dataset::{Dataset, Split};
 use crate::train::sampler::{SamplerConfig, WindowSampler};
 use crate::window::{EpisodeTicks, Streams, WindowSpec};
@@ -114,9 +116,17 @@ pub fn spec_of(meta: &ModelMeta) -> WindowSpec {
 /// The streams an ablation reads.
 pub fn needs_of(ablation: Option<Ablation>) -> Streams {
     match ablation {
-        Some(a) => Streams { joints: true, plan: a.uses_plan(), frames: a.uses_vision() },
+        Some(a) => Streams {
+            joints: true,
+            plan: a.uses_plan(),
+            frames: a.uses_vision(),
+        },
         // logreg: joints + plan
-        None => Streams { joints: true, plan: true, frames: false },
+        None => Streams {
+            joints: true,
+            plan: true,
+            frames: false,
+        },
     }
 }
 
@@ -130,15 +140,28 @@ pub struct SplitWindows {
 
 impl SplitWindows {
     /// Loads `split` of `dataset` for `spec`.
-    pub fn load(dataset: &Dataset, split: Split, spec: &WindowSpec, needs: Streams, horizons: &[usize], seed: u64) -> Result<Self, TrainError> {
-        let episodes = dataset
-            .load_split(split, spec, needs)
-            .map_err(|e| TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display())))?;
+    pub fn load(
+        dataset: &Dataset,
+        split: Split,
+        spec: &WindowSpec,
+        needs: Streams,
+        horizons: &[usize],
+        seed: u64,
+    ) -> Result<Self, TrainError> {
+        let episodes = dataset.load_split(split, spec, needs).map_err(|e| {
+            TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display()))
+        })?;
         let mut cfg = SamplerConfig::new(spec.n_ticks, horizons.to_vec());
         cfg.needs = needs;
-        let sampler = WindowSampler::new(&episodes, cfg, seed)
-            .map_err(|e| TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display())))?;
-        Ok(SplitWindows { episodes, sampler, spec: spec.clone(), needs })
+        let sampler = WindowSampler::new(&episodes, cfg, seed).map_err(|e| {
+            TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display()))
+        })?;
+        Ok(SplitWindows {
+            episodes,
+            sampler,
+            spec: spec.clone(),
+            needs,
+        })
     }
 
     /// The next epoch of windows (one per usable episode).
@@ -149,12 +172,22 @@ impl SplitWindows {
             let ep = &self.episodes[pick.episode];
             let w = ep
                 .window_ending_at(pick.end_tick, &self.spec, self.needs)
-                .map_err(|e| TrainError::Data(format!("{} at tick {}: {e}", ep.path.display(), pick.end_tick)))?;
+                .map_err(|e| {
+                    TrainError::Data(format!(
+                        "{} at tick {}: {e}",
+                        ep.path.display(),
+                        pick.end_tick
+                    ))
+                })?;
             out.push(LabeledWindow {
                 joints: w.joints,
                 plan: w.plan,
                 frames: w.frames,
-                labels: pick.labels.iter().map(|&b| f32::from(u8::from(b))).collect(),
+                labels: pick
+                    .labels
+                    .iter()
+                    .map(|&b| f32::from(u8::from(b)))
+                    .collect(),
             });
         }
         Ok(out)
@@ -181,12 +214,23 @@ fn default_joint_names() -> Vec<String> {
 
 /// Runs `fall-guard train`.
 pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
-    let dataset = Dataset::open(&args.data).with_context(|| format!("opening data set {}", args.data.display()))?;
+    let dataset = Dataset::open(&args.data)
+        .with_context(|| format!("opening data set {}", args.data.display()))?;
     let joint_names = args.joint_names.clone().unwrap_or_else(default_joint_names);
     let logreg = args.ablation.eq_ignore_ascii_case("logreg");
-    let ablation: Option<Ablation> = if logreg { None } else { Some(args.ablation.parse().map_err(anyhow::Error::msg)?) };
-    let cfg = ModelConfig::named(&args.config, args.n_ticks, joint_names.len(), args.horizons.clone(), args.frame_size as usize)
-        .map_err(anyhow::Error::msg)?;
+    let ablation: Option<Ablation> = if logreg {
+        None
+    } else {
+        Some(args.ablation.parse().map_err(anyhow::Error::msg)?)
+    };
+    let cfg = ModelConfig::named(
+        &args.config,
+        args.n_ticks,
+        joint_names.len(),
+        args.horizons.clone(),
+        args.frame_size as usize,
+    )
+    .map_err(anyhow::Error::msg)?;
     cfg.validate().map_err(anyhow::Error::msg)?;
     let spec = WindowSpec {
         n_ticks: cfg.n_ticks,
@@ -196,18 +240,43 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
         frame_size: args.frame_size,
     };
     let needs = needs_of(ablation);
-    let mut train = SplitWindows::load(&dataset, Split::Train, &spec, needs, &cfg.horizons_ticks, args.seed)?;
-    let validation = SplitWindows::load(&dataset, Split::Validation, &spec, needs, &cfg.horizons_ticks, args.seed ^ 0x5EED)?.epoch()?;
+    let mut train = SplitWindows::load(
+        &dataset,
+        Split::Train,
+        &spec,
+        needs,
+        &cfg.horizons_ticks,
+        args.seed,
+    )?;
+    let validation = SplitWindows::load(
+        &dataset,
+        Split::Validation,
+        &spec,
+        needs,
+        &cfg.horizons_ticks,
+        args.seed ^ 0x5EED,
+    )?
+    .epoch()?;
     if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("creating {}", parent.display()))?;
     }
     match ablation {
         None => {
             let windows = train.epoch()?;
-            let mut m = LogRegModel::fit(&windows, cfg.horizons_ticks.clone(), args.rate_hz, cfg.n_ticks, joint_names)?;
+            let mut m = LogRegModel::fit(
+                &windows,
+                cfg.horizons_ticks.clone(),
+                args.rate_hz,
+                cfg.n_ticks,
+                joint_names,
+            )?;
             m.trained_on = args.trained_on.clone();
             m.save(&args.out)?;
-            eprintln!("logistic-regression baseline written to {}", args.out.display());
+            eprintln!(
+                "logistic-regression baseline written to {}",
+                args.out.display()
+            );
         }
         Some(ablation) => {
             let mut meta = ModelMeta::new(cfg, ablation, args.rate_hz, joint_names);
@@ -233,7 +302,10 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
                 ablation,
                 args.out.display(),
                 meta.best_epoch,
-                meta.history.get(meta.best_epoch.saturating_sub(1)).map(|h| h.val_loss).unwrap_or(f64::NAN)
+                meta.history
+                    .get(meta.best_epoch.saturating_sub(1))
+                    .map(|h| h.val_loss)
+                    .unwrap_or(f64::NAN)
             );
         }
     }
@@ -255,7 +327,10 @@ fn load_any(path: &Path) -> anyhow::Result<AnyModel> {
 /// Runs `fall-guard eval`.
 pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     if let Some(rec) = &args.recording {
-        let out = args.per_tick_out.as_ref().context("--recording needs --per-tick-out FILE")?;
+        let out = args
+            .per_tick_out
+            .as_ref()
+            .context("--recording needs --per-tick-out FILE")?;
         let model = LoadedModel::load(&args.model)?;
         let n = per_tick_forecast(&model, rec, out)?;
         eprintln!("{n} per-tick forecasts written to {}", out.display());
@@ -263,13 +338,23 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
             return Ok(());
         }
     }
-    let data = args.data.as_ref().context("--data DIR is needed to evaluate on a split")?;
-    let out_dir = args.out.as_ref().context("--out DIR is needed to evaluate on a split")?;
+    let data = args
+        .data
+        .as_ref()
+        .context("--data DIR is needed to evaluate on a split")?;
+    let out_dir = args
+        .out
+        .as_ref()
+        .context("--out DIR is needed to evaluate on a split")?;
     let split: Split = args.split.parse().map_err(anyhow::Error::msg)?;
-    let dataset = Dataset::open(data).with_context(|| format!("opening data set {}", data.display()))?;
+    let dataset =
+        Dataset::open(data).with_context(|| format!("opening data set {}", data.display()))?;
     let mut paths = vec![args.model.clone()];
     paths.extend(args.seeds.iter().cloned());
-    let models: Vec<AnyModel> = paths.iter().map(|p| load_any(p)).collect::<anyhow::Result<_>>()?;
+    let models: Vec<AnyModel> = paths
+        .iter()
+        .map(|p| load_any(p))
+        .collect::<anyhow::Result<_>>()?;
     // Windows come from the first model's description; the others must agree.
     let (spec, needs, horizons, rate_hz, ablation_name, history) = match &models[0] {
         AnyModel::Network(m) => (
@@ -297,10 +382,17 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     };
     for m in &models[1..] {
         if let AnyModel::Network(m) = m {
-            m.meta.check_compatible_with(&spec.joint_names, spec.rate_hz, spec.n_ticks, spec.max_horizon_ticks, spec.frame_size)?;
+            m.meta.check_compatible_with(
+                &spec.joint_names,
+                spec.rate_hz,
+                spec.n_ticks,
+                spec.max_horizon_ticks,
+                spec.frame_size,
+            )?;
         }
     }
-    let mut split_windows = SplitWindows::load(&dataset, split, &spec, needs, &horizons, args.sample_seed)?;
+    let mut split_windows =
+        SplitWindows::load(&dataset, split, &spec, needs, &horizons, args.sample_seed)?;
     let mut windows = Vec::new();
     for _ in 0..args.draws.max(1) {
         windows.extend(split_windows.epoch()?);
@@ -311,19 +403,40 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
             AnyModel::Network(m) => predict(m, &windows),
             AnyModel::LogReg(m, p) => Ok(Predictions {
                 model: p.display().to_string(),
-                probabilities: windows.iter().map(|w| m.predict(w)).collect::<Result<_, _>>()?,
+                probabilities: windows
+                    .iter()
+                    .map(|w| m.predict(w))
+                    .collect::<Result<_, _>>()?,
             }),
         })
         .collect::<Result<_, TrainError>>()?;
-    let rep = report(&preds, &windows, &horizons, rate_hz, &ablation_name, split.name());
-    rep.write(out_dir).with_context(|| format!("writing to {}", out_dir.display()))?;
+    let rep = report(
+        &preds,
+        &windows,
+        &horizons,
+        rate_hz,
+        &ablation_name,
+        split.name(),
+    );
+    rep.write(out_dir)
+        .with_context(|| format!("writing to {}", out_dir.display()))?;
     // Plots of the first model.
-    let labels: Vec<Vec<bool>> = (0..horizons.len()).map(|k| windows.iter().map(|w| w.labels[k] > 0.5).collect()).collect();
-    let probs: Vec<Vec<f32>> = (0..horizons.len()).map(|k| preds[0].probabilities.iter().map(|r| r[k]).collect()).collect();
+    let labels: Vec<Vec<bool>> = (0..horizons.len())
+        .map(|k| windows.iter().map(|w| w.labels[k] > 0.5).collect())
+        .collect();
+    let probs: Vec<Vec<f32>> = (0..horizons.len())
+        .map(|k| preds[0].probabilities.iter().map(|r| r[k]).collect())
+        .collect();
     let series: Vec<plots::HorizonSeries<'_>> = horizons
         .iter()
         .enumerate()
-        .map(|(k, h)| (format!("{:.0} ms", *h as f64 * 1000.0 / rate_hz), probs[k].as_slice(), labels[k].as_slice()))
+        .map(|(k, h)| {
+            (
+                format!("{:.0} ms", *h as f64 * 1000.0 / rate_hz),
+                probs[k].as_slice(),
+                labels[k].as_slice(),
+            )
+        })
         .collect();
     plots::roc_plot(&out_dir.join("roc.png"), &series)?;
     plots::reliability_plot(&out_dir.join("reliability.png"), &series)?;
@@ -337,7 +450,11 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
 /// Replays a recording tick by tick through the streaming forecaster, as the
 /// daemon would, and writes one JSON line per tick once the window is full:
 /// `{"tick", "stamp_ns", "probabilities"}`. Returns the number of lines.
-pub fn per_tick_forecast(model: &LoadedModel, recording: &Path, out: &Path) -> anyhow::Result<usize> {
+pub fn per_tick_forecast(
+    model: &LoadedModel,
+    recording: &Path,
+    out: &Path,
+) -> anyhow::Result<usize> {
     use std::io::Write;
     let spec = spec_of(&model.meta);
     let needs = needs_of(Some(model.meta.ablation));
@@ -354,7 +471,10 @@ pub fn per_tick_forecast(model: &LoadedModel, recording: &Path, out: &Path) -> a
         stream.push(tick)?;
         if stream.is_full() {
             let p = stream.forecast()?;
-            serde_json::to_writer(&mut w, &serde_json::json!({"tick": tick.tick, "stamp_ns": tick.stamp_ns, "probabilities": p}))?;
+            serde_json::to_writer(
+                &mut w,
+                &serde_json::json!({"tick": tick.tick, "stamp_ns": tick.stamp_ns, "probabilities": p}),
+            )?;
             w.write_all(b"\n")?;
             lines += 1;
         }

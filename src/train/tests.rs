@@ -187,7 +187,9 @@ fn train_and_eval_commands_on_synthetic_recordings() {
     let names = joint_names(4);
     let (rate, ticks, size) = (10.0, 70usize, 32u32);
     let eps = |from: u64, count: u64| -> Vec<_> {
-        (from..from + count).map(|s| learnable_episode(s, s % 2 == 0, ticks, &names, rate, size)).collect()
+        (from..from + count)
+            .map(|s| learnable_episode(s, s % 2 == 0, ticks, &names, rate, size))
+            .collect()
     };
     write_dataset(&data, &eps(0, 80), &eps(1000, 16), &eps(2000, 24)).unwrap();
     let model_path = dir.path().join("models/emp.bpk");
@@ -223,11 +225,17 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         per_tick_out: None,
     };
     run_eval(&eval).unwrap();
-    let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
     for f in ["metrics.md", "roc.png", "reliability.png", "training.png"] {
         assert!(out.join(f).metadata().unwrap().len() > 100, "{f}");
     }
-    let acc: Vec<f64> = metrics["horizons"].as_array().unwrap().iter().map(|h| h["accuracy"]["mean"].as_f64().unwrap()).collect();
+    let acc: Vec<f64> = metrics["horizons"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|h| h["accuracy"]["mean"].as_f64().unwrap())
+        .collect();
     let mean_acc = acc.iter().sum::<f64>() / acc.len() as f64;
     assert!(mean_acc > 0.9, "test accuracy per horizon {acc:?}");
 
@@ -246,7 +254,10 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         let window = episode.window_ending_at(tick, &spec, needs).unwrap();
         let want = model.forecast_window(&window).unwrap();
         for (g, w) in v["probabilities"].as_array().unwrap().iter().zip(&want) {
-            assert!((g.as_f64().unwrap() - *w as f64).abs() < 1e-5, "tick {tick}: {v} vs {want:?}");
+            assert!(
+                (g.as_f64().unwrap() - *w as f64).abs() < 1e-5,
+                "tick {tick}: {v} vs {want:?}"
+            );
         }
     }
 }
