@@ -314,12 +314,12 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
 
 enum AnyModel {
     Network(LoadedModel),
-    LogReg(LogRegModel, PathBuf),
+    LogReg(Box<LogRegModel>, PathBuf),
 }
 
 fn load_any(path: &Path) -> anyhow::Result<AnyModel> {
     if let Some(m) = LogRegModel::load(path)? {
-        return Ok(AnyModel::LogReg(m, path.to_path_buf()));
+        return Ok(AnyModel::LogReg(Box::new(m), path.to_path_buf()));
     }
     Ok(AnyModel::Network(LoadedModel::load(path)?))
 }
