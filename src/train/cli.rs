@@ -313,7 +313,7 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
 }
 
 enum AnyModel {
-    Network(LoadedModel),
+    Network(Box<LoadedModel>),
     LogReg(Box<LogRegModel>, PathBuf),
 }
 
@@ -321,7 +321,7 @@ fn load_any(path: &Path) -> anyhow::Result<AnyModel> {
     if let Some(m) = LogRegModel::load(path)? {
         return Ok(AnyModel::LogReg(Box::new(m), path.to_path_buf()));
     }
-    Ok(AnyModel::Network(LoadedModel::load(path)?))
+    Ok(AnyModel::Network(Box::new(LoadedModel::load(path)?)))
 }
 
 /// Runs `fall-guard eval`.
