@@ -19,6 +19,7 @@
 //!   one [`StatusEntry`] per input stream and one for the model.
 
 pub mod latch;
+pub mod recorder;
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
