@@ -1,2 +1,1 @@
 //! The EMP network (to be written).
-

@@ -22,6 +22,7 @@ use std::time::Instant;
 use tokio::sync::watch;
 
 pub mod camera;
+pub mod dynamixel;
 pub mod replay;
 
 /// The three input streams of the model.

@@ -1,2 +1,1 @@
 //! Training and evaluation (to be written).
-

@@ -1,0 +1,475 @@
+//! The Dynamixel servo source: joint angles read straight off the Poppy
+//! Humanoid's serial buses.
+//!
+//! Data enters as Present Position registers (address 36, 2 bytes) read over
+//! Dynamixel protocol 1.0, one port per bus (Poppy: `lower` and `upper`, a
+//! USB2AX adapter each, 1 Mbaud): one USB2AX SYNC_READ (0x84) per bus and
+//! cycle, or one rustypot READ_DATA per motor when sync read is off or the
+//! adapter never answers 0x84. It leaves as a [`JointReading`] per cycle
+//! (radians in pypot's convention, model order, `None` for a motor that gave
+//! nothing) on a `tokio::sync::watch` channel, and as counters in
+//! [`ServoStats`] for `/diagnostics`.
+//!
+//! Faults never stop the reader: a timeout, a bad checksum, garbage bytes
+//! (skipped up to the next `FF FF`), a servo error bit or a position out of
+//! range is counted, logged at warn the first time per kind and bus, and that
+//! motor (or bus) is left out of the cycle. A port that fails (adapter
+//! unplugged) is closed and reopened with exponential backoff
+//! (`reopen_backoff_ms`, doubling up to `reopen_backoff_max_ms`) while the
+//! other bus keeps being read.
+//!
+//! Use [`DynamixelSource::spawn`] in the daemon (a blocking thread of its
+//! own), or [`ServoReader`] to run cycles yourself (tests, benchmarks).
+//!
+//! Config (TOML, unknown keys rejected), e.g. under `[sources.dynamixel]`:
+//!
+//! ```toml
+//! rate_hz = 50                      # read cycles per second (default 50, as pypot)
+//! [buses.lower]
+//! port = "/dev/serial/by-id/usb-Xevel_USB2AX_..."   # required
+//! baud = 1000000                    # default 1000000
+//! # ids = [11, 12, 13]              # default: the joint table's motors on bus "lower"
+//! sync_read = true                  # default true (USB2AX 0x84)
+//! timeout_ms = 20                   # default 20, per transaction
+//! reopen_backoff_ms = 100           # default 100, first reopen delay
+//! reopen_backoff_max_ms = 5000      # default 5000, backoff ceiling
+//! [buses.upper]
+//! port = "/dev/serial/by-id/usb-Xevel_USB2AX_..."
+//! ```
+
+mod bus;
+pub mod emulator;
+pub mod protocol;
+mod stats;
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use serde::Deserialize;
+use thiserror::Error;
+use tokio::sync::watch;
+use tracing::{info, warn};
+
+use crate::robot::JointTable;
+use bus::{BusMotor, BusReader};
+pub use stats::{BusStats, BusStatsSnapshot, ServoErrorKind, ServoStats, ServoStatsSnapshot};
+
+fn default_rate_hz() -> f64 {
+    50.0
+}
+fn default_baud() -> u32 {
+    1_000_000
+}
+fn default_true() -> bool {
+    true
+}
+fn default_timeout_ms() -> u64 {
+    20
+}
+fn default_backoff_ms() -> u64 {
+    100
+}
+fn default_backoff_max_ms() -> u64 {
+    5_000
+}
+
+/// The servo source's config section.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DynamixelConfig {
+    /// Read cycles per second (all buses once per cycle). Default 50.
+    #[serde(default = "default_rate_hz")]
+    pub rate_hz: f64,
+    /// The buses by name; a name is also the joint table's bus name used
+    /// when `ids` is left out (`lower`, `upper` on Poppy).
+    pub buses: BTreeMap<String, BusConfig>,
+}
+
+/// One serial bus.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BusConfig {
+    /// Serial device path (a `/dev/serial/by-id/...` link survives replugging).
+    pub port: String,
+    /// Baud rate. Default 1000000.
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    /// Motor ids on this bus; default: the joint table's motors whose bus
+    /// has this bus's name. Each must be a joint of the table.
+    #[serde(default)]
+    pub ids: Option<Vec<u8>>,
+    /// Use the USB2AX SYNC_READ (0x84). Default true. When the adapter never
+    /// answers it, the reader falls back to READ_DATA per motor by itself.
+    #[serde(default = "default_true")]
+    pub sync_read: bool,
+    /// How long one transaction may wait for its answer. Default 20 ms.
+    #[serde(default = "default_timeout_ms")]
+    pub timeout_ms: u64,
+    /// First delay before reopening a lost port. Default 100 ms.
+    #[serde(default = "default_backoff_ms")]
+    pub reopen_backoff_ms: u64,
+    /// Ceiling of the doubling reopen delay. Default 5000 ms.
+    #[serde(default = "default_backoff_max_ms")]
+    pub reopen_backoff_max_ms: u64,
+}
+
+impl BusConfig {
+    /// A bus on `port` with every default.
+    pub fn new(port: impl Into<String>) -> BusConfig {
+        BusConfig {
+            port: port.into(),
+            baud: default_baud(),
+            ids: None,
+            sync_read: true,
+            timeout_ms: default_timeout_ms(),
+            reopen_backoff_ms: default_backoff_ms(),
+            reopen_backoff_max_ms: default_backoff_max_ms(),
+        }
+    }
+
+    fn timeout(&self) -> Duration {
+        Duration::from_millis(self.timeout_ms)
+    }
+
+    fn reopen_backoff(&self) -> Duration {
+        Duration::from_millis(self.reopen_backoff_ms)
+    }
+
+    fn reopen_backoff_max(&self) -> Duration {
+        Duration::from_millis(self.reopen_backoff_max_ms)
+    }
+}
+
+impl DynamixelConfig {
+    /// Both Poppy buses on the given ports, every other key at its default.
+    pub fn poppy(lower_port: impl Into<String>, upper_port: impl Into<String>) -> DynamixelConfig {
+        let mut buses = BTreeMap::new();
+        buses.insert("lower".to_string(), BusConfig::new(lower_port));
+        buses.insert("upper".to_string(), BusConfig::new(upper_port));
+        DynamixelConfig {
+            rate_hz: default_rate_hz(),
+            buses,
+        }
+    }
+}
+
+/// A config the servo source cannot run with. `key` is the path inside the
+/// servo source's section (`buses.lower.ids`).
+#[derive(Debug, Error)]
+pub enum DynamixelError {
+    /// A bad config value.
+    #[error("{key}: {message}")]
+    Config {
+        /// Key path inside the section.
+        key: String,
+        /// What is wrong and what to do.
+        message: String,
+    },
+    /// The reader thread could not be started.
+    #[error("cannot start the servo reader thread: {0}")]
+    Thread(#[from] std::io::Error),
+}
+
+fn config_error(key: impl Into<String>, message: impl Into<String>) -> DynamixelError {
+    DynamixelError::Config {
+        key: key.into(),
+        message: message.into(),
+    }
+}
+
+/// One read cycle of all buses.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointReading {
+    /// Clock at the start of the cycle (before the first request), ns. The
+    /// clock is [`system_clock_ns`] unless given to
+    /// [`DynamixelSource::spawn_with_clock`].
+    pub stamp_ns: i64,
+    /// Joint angles in radians (pypot convention), model order
+    /// ([`JointTable::names`]); `None`: not read this cycle.
+    pub positions_rad: Vec<Option<f32>>,
+}
+
+impl JointReading {
+    /// Whether every joint has a position.
+    pub fn is_complete(&self) -> bool {
+        self.positions_rad.iter().all(Option::is_some)
+    }
+}
+
+/// The clock that stamps readings, in ns.
+pub type Clock = Arc<dyn Fn() -> i64 + Send + Sync>;
+
+/// Nanoseconds since the UNIX epoch (the stamp ROS 2 messages carry).
+pub fn system_clock_ns() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
+        .unwrap_or(0)
+}
+
+/// Reads all buses, one cycle per call, on the caller's thread.
+pub struct ServoReader {
+    buses: Vec<BusReader>,
+    stats: Arc<ServoStats>,
+    n_joints: usize,
+    n_configured: usize,
+}
+
+impl ServoReader {
+    /// Check `config` against `table` and prepare the buses (ports are
+    /// opened on the first cycle, so a missing adapter is not an error here).
+    pub fn new(
+        config: &DynamixelConfig,
+        table: &JointTable,
+    ) -> Result<ServoReader, DynamixelError> {
+        if !(config.rate_hz.is_finite() && config.rate_hz > 0.0 && config.rate_hz <= 1000.0) {
+            return Err(config_error(
+                "rate_hz",
+                format!("{} is not a rate in (0, 1000] Hz", config.rate_hz),
+            ));
+        }
+        if config.buses.is_empty() {
+            return Err(config_error(
+                "buses",
+                "no bus configured; add [buses.<name>] with a port",
+            ));
+        }
+        let mut seen: BTreeMap<u8, String> = BTreeMap::new();
+        let mut buses = Vec::new();
+        let mut bus_stats = Vec::new();
+        for (name, bus) in &config.buses {
+            let key = |field: &str| format!("buses.{name}.{field}");
+            if bus.port.trim().is_empty() {
+                return Err(config_error(key("port"), "empty serial port path"));
+            }
+            if bus.baud == 0 {
+                return Err(config_error(key("baud"), "baud rate must be positive"));
+            }
+            if bus.timeout_ms == 0 || bus.timeout_ms > 10_000 {
+                return Err(config_error(
+                    key("timeout_ms"),
+                    format!("{} is not in 1..=10000", bus.timeout_ms),
+                ));
+            }
+            if bus.reopen_backoff_ms == 0 {
+                return Err(config_error(key("reopen_backoff_ms"), "must be at least 1"));
+            }
+            if bus.reopen_backoff_max_ms < bus.reopen_backoff_ms {
+                return Err(config_error(
+                    key("reopen_backoff_max_ms"),
+                    format!(
+                        "{} is below reopen_backoff_ms ({})",
+                        bus.reopen_backoff_max_ms, bus.reopen_backoff_ms
+                    ),
+                ));
+            }
+            let ids = match &bus.ids {
+                Some(ids) => ids.clone(),
+                None => {
+                    let ids = table.ids_on_bus(name);
+                    if ids.is_empty() {
+                        return Err(config_error(
+                            key("ids"),
+                            format!(
+                                "the joint table has no bus named '{name}' (it has {:?}); set ids or rename the bus",
+                                table.bus_names()
+                            ),
+                        ));
+                    }
+                    ids
+                }
+            };
+            if ids.is_empty() {
+                return Err(config_error(key("ids"), "empty id list"));
+            }
+            if bus.sync_read && ids.len() > protocol::USB2AX_MAX_SYNC_IDS {
+                return Err(config_error(
+                    key("ids"),
+                    format!(
+                        "{} ids, but a USB2AX sync read covers {} at most; split the bus or set sync_read = false",
+                        ids.len(),
+                        protocol::USB2AX_MAX_SYNC_IDS
+                    ),
+                ));
+            }
+            let mut motors = Vec::new();
+            for &id in &ids {
+                let Some(index) = table.index_of_id(id) else {
+                    return Err(config_error(
+                        key("ids"),
+                        format!("id {id} is not a joint of the robot's joint table"),
+                    ));
+                };
+                if let Some(other) = seen.insert(id, name.clone()) {
+                    return Err(config_error(
+                        key("ids"),
+                        format!("id {id} is also on bus '{other}'"),
+                    ));
+                }
+                let joint = table.joints()[index].clone();
+                motors.push(BusMotor { index, joint });
+            }
+            bus_stats.push(BusStats::new(name, &bus.port, bus.sync_read));
+            buses.push(BusReader::new(name, bus.clone(), motors));
+        }
+        let unread: Vec<String> = table
+            .joints()
+            .iter()
+            .filter(|j| !seen.contains_key(&j.id))
+            .map(|j| j.name.clone())
+            .collect();
+        if !unread.is_empty() {
+            warn!(joints = ?unread, "these joints are on no configured servo bus and will always be missing");
+        }
+        Ok(ServoReader {
+            buses,
+            stats: Arc::new(ServoStats::new(bus_stats)),
+            n_joints: table.len(),
+            n_configured: seen.len(),
+        })
+    }
+
+    /// The shared counters.
+    pub fn stats(&self) -> Arc<ServoStats> {
+        Arc::clone(&self.stats)
+    }
+
+    /// Read every bus once (sequentially, in config order) and return what
+    /// came back, stamped `stamp_ns`. Never fails: faults are counted.
+    pub fn read_cycle(&mut self, stamp_ns: i64) -> JointReading {
+        self.read_cycle_until(stamp_ns, &|| false)
+    }
+
+    fn read_cycle_until(&mut self, stamp_ns: i64, stop: &dyn Fn() -> bool) -> JointReading {
+        let mut positions_rad = vec![None; self.n_joints];
+        for (i, bus) in self.buses.iter_mut().enumerate() {
+            bus.read_cycle(self.stats.bus(i), &mut positions_rad, stamp_ns, stop);
+        }
+        let read = positions_rad.iter().filter(|p| p.is_some()).count();
+        self.stats.end_cycle(read == self.n_configured, stamp_ns);
+        JointReading {
+            stamp_ns,
+            positions_rad,
+        }
+    }
+
+    /// Model-order indices of the joints this reader covers.
+    pub fn joint_indices(&self) -> Vec<usize> {
+        let mut indices: Vec<usize> = self
+            .buses
+            .iter()
+            .flat_map(|b| b.motors().iter().map(|m| m.index))
+            .collect();
+        indices.sort_unstable();
+        indices
+    }
+}
+
+/// The running servo source: a blocking thread that reads all buses at
+/// `rate_hz` and publishes each cycle that read at least one motor.
+///
+/// ```no_run
+/// # use fall_guard::robot::JointTable;
+/// # use fall_guard::sources::dynamixel::{DynamixelConfig, DynamixelSource};
+/// let (shutdown_tx, shutdown_rx) = tokio::sync::watch::channel(false);
+/// let config = DynamixelConfig::poppy("/dev/ttyACM0", "/dev/ttyACM1");
+/// let source = DynamixelSource::spawn(&config, &JointTable::poppy_humanoid(), shutdown_rx)?;
+/// let mut readings = source.readings.clone();   // await readings.changed() in a task
+/// let stats = source.stats.snapshot();          // for /diagnostics
+/// shutdown_tx.send(true).ok();
+/// source.join();
+/// # Ok::<(), fall_guard::sources::dynamixel::DynamixelError>(())
+/// ```
+pub struct DynamixelSource {
+    /// Latest reading; `None` until a cycle has read at least one motor.
+    /// Cycles that read nothing (all ports gone) are not published, so the
+    /// value's `stamp_ns` ages and staleness shows.
+    pub readings: watch::Receiver<Option<JointReading>>,
+    /// Counters for `/diagnostics`.
+    pub stats: Arc<ServoStats>,
+    thread: JoinHandle<()>,
+}
+
+impl DynamixelSource {
+    /// Validate `config` against `table` and start the reader thread, stamping
+    /// readings with [`system_clock_ns`]. The thread stops when `shutdown`
+    /// becomes true, when its sender is dropped, or when every receiver of
+    /// `readings` is dropped.
+    pub fn spawn(
+        config: &DynamixelConfig,
+        table: &JointTable,
+        shutdown: watch::Receiver<bool>,
+    ) -> Result<DynamixelSource, DynamixelError> {
+        Self::spawn_with_clock(config, table, shutdown, Arc::new(system_clock_ns))
+    }
+
+    /// [`DynamixelSource::spawn`] with the daemon's own clock.
+    pub fn spawn_with_clock(
+        config: &DynamixelConfig,
+        table: &JointTable,
+        shutdown: watch::Receiver<bool>,
+        clock: Clock,
+    ) -> Result<DynamixelSource, DynamixelError> {
+        let mut reader = ServoReader::new(config, table)?;
+        let stats = reader.stats();
+        let (tx, rx) = watch::channel(None);
+        let period = Duration::from_secs_f64(1.0 / config.rate_hz);
+        let thread_stats = Arc::clone(&stats);
+        let thread = std::thread::Builder::new()
+            .name("servo-reader".into())
+            .spawn(move || {
+                info!(
+                    period_ms = period.as_secs_f64() * 1e3,
+                    "servo reader started"
+                );
+                let stop = || {
+                    // Err: the shutdown sender is gone, which means stop too.
+                    shutdown.has_changed().is_err() || *shutdown.borrow() || tx.is_closed()
+                };
+                let mut next = Instant::now();
+                while !stop() {
+                    let reading = reader.read_cycle_until(clock(), &stop);
+                    if reading.positions_rad.iter().any(Option::is_some) {
+                        tx.send_replace(Some(reading));
+                    }
+                    next += period;
+                    let now = Instant::now();
+                    if next <= now {
+                        // Overran (timeouts): start the next cycle now, do not
+                        // try to catch up.
+                        next = now;
+                        continue;
+                    }
+                    while !stop() {
+                        let left = next.saturating_duration_since(Instant::now());
+                        if left.is_zero() {
+                            break;
+                        }
+                        std::thread::sleep(left.min(Duration::from_millis(20)));
+                    }
+                }
+                thread_stats.set_stopped();
+                info!("servo reader stopped");
+            })?;
+        Ok(DynamixelSource {
+            readings: rx,
+            stats,
+            thread,
+        })
+    }
+
+    /// Wait for the reader thread to end (after shutdown). Ports are closed
+    /// when it returns.
+    pub fn join(self) {
+        if self.thread.join().is_err() {
+            warn!("servo reader thread panicked");
+        }
+    }
+
+    /// Whether the reader thread has ended.
+    pub fn is_finished(&self) -> bool {
+        self.thread.is_finished()
+    }
+}
