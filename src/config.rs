@@ -362,13 +362,15 @@ impl Config {
             let inner = e.inner();
             let message = inner.message().trim().to_string();
             // An unknown key is reported at its table: name the key itself.
-            let key = match message
+            let field = message
                 .strip_prefix("unknown field `")
                 .and_then(|m| m.split_once('`'))
-            {
-                Some((field, _)) if path == "." || path.is_empty() => field.to_string(),
-                Some((field, _)) => format!("{}.{field}", format_key(&path)),
-                None => format_key(&path),
+                .map(|(field, _)| field);
+            let key = match field {
+                Some(field) if path == "." || path.is_empty() => field.to_string(),
+                // The path may stop at the table or already name the key.
+                Some(field) if !path.ends_with(field) => format!("{}.{field}", format_key(&path)),
+                _ => format_key(&path),
             };
             syntax(line_of(inner.span()), key, message)
         })?;
@@ -461,15 +463,6 @@ impl Config {
                     format!("YUYV needs an even width, got {}", c.width),
                 ));
             }
-        }
-        let needs_ros = s.joints == JointsSource::Ros
-            || s.camera == CameraSource::Ros
-            || s.plan == PlanSource::Ros;
-        if needs_ros && !self.ros.enabled {
-            return Err(self.value_error(
-                "[ros].enabled",
-                "is false, but a stream in [streams] reads from ROS 2",
-            ));
         }
         if !self.ros.namespace.starts_with('/') {
             return Err(self.value_error(

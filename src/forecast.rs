@@ -560,8 +560,9 @@ impl<'m> StreamingRunner<'m> {
         };
         let plan = need.plan.then_some(window.plan.as_slice());
         let plane = (spec.frame_size * spec.frame_size) as usize;
+        let pushed_before = *last_pushed;
         let result = (|| {
-            for t in ticks.iter().filter(|t| last_pushed.is_none_or(|last| t.tick > last)) {
+            for t in ticks.iter().filter(|t| pushed_before.is_none_or(|last| t.tick > last)) {
                 let joints = t
                     .joints_rad
                     .as_deref()

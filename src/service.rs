@@ -343,7 +343,7 @@ fn source_names(config: &Config) -> [(String, bool); 3] {
             let ports: Vec<String> = config
                 .dynamixel
                 .as_ref()
-                .map(|d| d.bus.iter().map(|b| b.port.display().to_string()).collect())
+                .map(|d| d.buses.values().map(|b| b.port.clone()).collect())
                 .unwrap_or_default();
             format!("dynamixel {}", ports.join(" "))
         }
