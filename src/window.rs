@@ -1,1 +1,899 @@
-//! (to be written: see docs/contracts.md)
+//! The tick grid, the resampling of input streams onto it, the ring of the
+//! last N ticks and the `Window` arrays the network reads.
+//!
+//! This is the one place where windows are made. The daemon (live and replay)
+//! and training both turn messages into [`Sample`]s with the functions here,
+//! feed them to a [`Resampler`], which emits one [`TickInput`] per tick, and
+//! cut windows with [`Window::from_ticks`] (through [`Ring::window`] live, or
+//! [`EpisodeTicks::window_ending_at`] in training). Same samples in, same
+//! bytes out.
+//!
+//! Conventions (fixed here, used everywhere):
+//! - **Tick grid**: tick `k` is at `stamp_ns(k) = ceil(k * 1e12 / rate_mHz)`
+//!   nanoseconds on the stream clock: the grid is anchored at clock zero,
+//!   not at the first sample, so every process that sees the same clock
+//!   agrees on tick numbers. (At 30 Hz tick 1 is at 33_333_334 ns; the
+//!   rounding up means a sample stamped `k / rate` seconds, however the writer
+//!   rounded it to ns, is at or before tick `k`.) The first tick a
+//!   [`Resampler`] emits is the first grid tick at or after the first time it
+//!   is given (a sample's stamp or an `advance_to` time).
+//! - **Resampling**: zero-order hold for every stream: a tick sees the last
+//!   sample whose stamp is at or before the tick's stamp. Joints are not
+//!   interpolated.
+//! - **Plan**: the latest plan message at tick `t` is evaluated at the stamps
+//!   of ticks `t-N+1 ..= t+hK` by linear interpolation between its points
+//!   (point time = `header.stamp + time_from_start`), holding the first and
+//!   last point outside their span; computed in `f64`, stored as `f32`.
+//! - **Joints** are reordered by name into the model's order
+//!   ([`WindowSpec::joint_names`]); a joint missing from a message is an error.
+//! - **Frames** are decoded and resized to S x S once, when they arrive
+//!   ([`crate::frame::decode_compressed`]), and enter the window as
+//!   `value / 255`.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use crate::frame::{decode_compressed, Frame, FrameError};
+use crate::msgs::{CompressedImage, JointState, JointTrajectory};
+use crate::recording::{topics, Recording};
+
+/// A resampler that sees no sample for longer than this restarts its grid at
+/// the next sample instead of emitting every tick of the gap.
+pub const MAX_GAP_TICKS: i64 = 1_000_000;
+
+/// Why a sample, tick or window could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum WindowError {
+    #[error(
+        "tick rate must be a positive, finite number of Hz with at most 3 decimals (got {rate_hz})"
+    )]
+    BadRate { rate_hz: f64 },
+    #[error("bad window spec: {reason}")]
+    BadSpec { reason: String },
+    #[error("{topic}: joint {joint:?} (needed by the model) is missing from the message")]
+    MissingJoint { topic: &'static str, joint: String },
+    #[error("{topic}: {what}")]
+    BadMessage { topic: &'static str, what: String },
+    #[error("{topic}: joint {joint:?} is {value} (not finite)")]
+    NonFinite {
+        topic: &'static str,
+        joint: String,
+        value: f64,
+    },
+    #[error("{topic}: frame: {source}")]
+    Frame {
+        topic: &'static str,
+        source: FrameError,
+    },
+    #[error("window ending at tick {end_tick} needs {need} consecutive ticks, has {have}")]
+    NotFull {
+        end_tick: i64,
+        have: usize,
+        need: usize,
+    },
+    #[error("window ending at tick {end_tick}: no {stream} sample yet at tick {tick}")]
+    MissingStream {
+        end_tick: i64,
+        stream: &'static str,
+        tick: i64,
+    },
+    #[error("tick {tick} is outside the episode's ticks {first} ..= {last}")]
+    TickOutOfRange { tick: i64, first: i64, last: i64 },
+    #[error("{}: {topic} message at log time {log_time_ns} ns: {source}", path.display())]
+    InRecording {
+        path: PathBuf,
+        topic: &'static str,
+        log_time_ns: i64,
+        source: Box<WindowError>,
+    },
+    #[error("{}: recording has no messages on {topic} (needed)", path.display())]
+    NoSamples { path: PathBuf, topic: &'static str },
+}
+
+/// What the model's input windows are made of. Comes from the model file
+/// (`ModelMeta`) or the training config.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WindowSpec {
+    /// `N`: ticks of past input, ending at the current tick.
+    pub n_ticks: usize,
+    /// `hK`: the longest horizon; the plan runs this many ticks past `t`.
+    pub max_horizon_ticks: usize,
+    pub rate_hz: f64,
+    /// `C` joint names, in model order.
+    pub joint_names: Vec<String>,
+    /// `S`: frames are S x S.
+    pub frame_size: u32,
+}
+
+impl WindowSpec {
+    /// Checks the spec and returns its tick grid.
+    pub fn grid(&self) -> Result<TickGrid, WindowError> {
+        if self.n_ticks == 0 {
+            return Err(WindowError::BadSpec {
+                reason: "n_ticks must be at least 1".into(),
+            });
+        }
+        if self.joint_names.is_empty() {
+            return Err(WindowError::BadSpec {
+                reason: "joint_names is empty".into(),
+            });
+        }
+        if self.frame_size == 0 {
+            return Err(WindowError::BadSpec {
+                reason: "frame_size must be at least 1".into(),
+            });
+        }
+        TickGrid::new(self.rate_hz)
+    }
+
+    /// `N + hK`: plan ticks per window.
+    pub fn plan_len(&self) -> usize {
+        self.n_ticks + self.max_horizon_ticks
+    }
+
+    /// `C`.
+    pub fn n_joints(&self) -> usize {
+        self.joint_names.len()
+    }
+}
+
+/// The tick grid: tick `k` at `ceil(k * 1e12 / rate_mHz)` ns (see module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TickGrid {
+    rate_mhz: i64,
+}
+
+impl TickGrid {
+    /// A grid at `rate_hz` (a whole number of mHz, e.g. 30 or 29.97).
+    pub fn new(rate_hz: f64) -> Result<TickGrid, WindowError> {
+        let mhz = (rate_hz * 1000.0).round();
+        if !rate_hz.is_finite()
+            || rate_hz <= 0.0
+            || mhz < 1.0
+            || mhz > 1e9
+            || ((mhz / 1000.0) - rate_hz).abs() > 1e-9 * rate_hz.max(1.0)
+        {
+            return Err(WindowError::BadRate { rate_hz });
+        }
+        Ok(TickGrid {
+            rate_mhz: mhz as i64,
+        })
+    }
+
+    pub fn rate_hz(&self) -> f64 {
+        self.rate_mhz as f64 / 1000.0
+    }
+
+    /// Stamp of tick `tick`, ns.
+    pub fn stamp_ns(&self, tick: i64) -> i64 {
+        let num = i128::from(tick) * 1_000_000_000_000;
+        let den = i128::from(self.rate_mhz);
+        (-((-num).div_euclid(den))) as i64
+    }
+
+    /// The first tick whose stamp is at or after `stamp_ns`.
+    pub fn first_tick_at_or_after(&self, stamp_ns: i64) -> i64 {
+        let num = (i128::from(stamp_ns) - 1) * i128::from(self.rate_mhz);
+        (num.div_euclid(1_000_000_000_000) + 1) as i64
+    }
+
+    /// The last tick whose stamp is at or before `stamp_ns`.
+    pub fn last_tick_at_or_before(&self, stamp_ns: i64) -> i64 {
+        self.first_tick_at_or_after(stamp_ns + 1) - 1
+    }
+}
+
+/// A planned trajectory, joints in model order, ready to be evaluated at any time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plan {
+    /// `header.stamp` of the message, ns.
+    pub stamp_ns: i64,
+    /// Absolute time of each point, ns, strictly increasing.
+    pub times_ns: Vec<i64>,
+    /// `[P, C]` positions, radians, model joint order.
+    pub positions_rad: Vec<f64>,
+    /// `C`.
+    pub n_joints: usize,
+}
+
+impl Plan {
+    /// Reorders a `JointTrajectory` into model order and checks it.
+    pub fn from_msg(msg: &JointTrajectory, joint_names: &[String]) -> Result<Plan, WindowError> {
+        const TOPIC: &str = topics::PLANNED_TRAJECTORY;
+        let index = joint_indices(&msg.joint_names, joint_names, TOPIC)?;
+        if msg.points.is_empty() {
+            return Err(WindowError::BadMessage {
+                topic: TOPIC,
+                what: "trajectory has no points".into(),
+            });
+        }
+        let stamp_ns = msg.header.stamp.to_ns();
+        let mut times_ns = Vec::with_capacity(msg.points.len());
+        let mut positions_rad = Vec::with_capacity(msg.points.len() * joint_names.len());
+        for (p, point) in msg.points.iter().enumerate() {
+            if point.positions.len() != msg.joint_names.len() {
+                return Err(WindowError::BadMessage {
+                    topic: TOPIC,
+                    what: format!(
+                        "point {p} has {} positions for {} joint names",
+                        point.positions.len(),
+                        msg.joint_names.len()
+                    ),
+                });
+            }
+            let t = stamp_ns + point.time_from_start.to_ns();
+            if let Some(&prev) = times_ns.last() {
+                if t <= prev {
+                    return Err(WindowError::BadMessage {
+                        topic: TOPIC,
+                        what: format!("point {p}: time_from_start does not increase"),
+                    });
+                }
+            }
+            times_ns.push(t);
+            for (j, &i) in index.iter().enumerate() {
+                let v = point.positions[i];
+                if !v.is_finite() {
+                    return Err(WindowError::NonFinite {
+                        topic: TOPIC,
+                        joint: joint_names[j].clone(),
+                        value: v,
+                    });
+                }
+                positions_rad.push(v);
+            }
+        }
+        Ok(Plan {
+            stamp_ns,
+            times_ns,
+            positions_rad,
+            n_joints: joint_names.len(),
+        })
+    }
+
+    /// The planned positions at `t_ns` (linear between points, first/last
+    /// point held outside), written as `f32` into `out[..C]`.
+    pub fn sample_into(&self, t_ns: i64, out: &mut [f32]) {
+        let c = self.n_joints;
+        let last = self.times_ns.len() - 1;
+        let row = |i: usize| &self.positions_rad[i * c..(i + 1) * c];
+        if t_ns <= self.times_ns[0] {
+            for (o, &v) in out.iter_mut().zip(row(0)) {
+                *o = v as f32;
+            }
+            return;
+        }
+        if t_ns >= self.times_ns[last] {
+            for (o, &v) in out.iter_mut().zip(row(last)) {
+                *o = v as f32;
+            }
+            return;
+        }
+        // times[i] <= t < times[i + 1]
+        let i = self.times_ns.partition_point(|&x| x <= t_ns) - 1;
+        let (t0, t1) = (self.times_ns[i], self.times_ns[i + 1]);
+        let w = (t_ns - t0) as f64 / (t1 - t0) as f64;
+        for ((o, &a), &b) in out.iter_mut().zip(row(i)).zip(row(i + 1)) {
+            *o = (a + (b - a) * w) as f32;
+        }
+    }
+}
+
+/// Joint positions of a `JointState` in model order, radians.
+pub fn joints_from_msg(msg: &JointState, joint_names: &[String]) -> Result<Vec<f32>, WindowError> {
+    const TOPIC: &str = topics::JOINT_STATES;
+    if msg.position.len() != msg.name.len() {
+        return Err(WindowError::BadMessage {
+            topic: TOPIC,
+            what: format!(
+                "{} positions for {} joint names",
+                msg.position.len(),
+                msg.name.len()
+            ),
+        });
+    }
+    let index = joint_indices(&msg.name, joint_names, TOPIC)?;
+    index
+        .iter()
+        .zip(joint_names)
+        .map(|(&i, name)| {
+            let v = msg.position[i];
+            if v.is_finite() {
+                Ok(v as f32)
+            } else {
+                Err(WindowError::NonFinite {
+                    topic: TOPIC,
+                    joint: name.clone(),
+                    value: v,
+                })
+            }
+        })
+        .collect()
+}
+
+/// A `CompressedImage` decoded and resized to `size x size`.
+pub fn frame_from_msg(msg: &CompressedImage, size: u32) -> Result<Frame, WindowError> {
+    decode_compressed(&msg.format, &msg.data, size).map_err(|source| WindowError::Frame {
+        topic: topics::HEAD_CAMERA,
+        source,
+    })
+}
+
+/// For each model joint, its index in `names`.
+fn joint_indices(
+    names: &[String],
+    model_names: &[String],
+    topic: &'static str,
+) -> Result<Vec<usize>, WindowError> {
+    model_names
+        .iter()
+        .map(|joint| {
+            names
+                .iter()
+                .position(|n| n == joint)
+                .ok_or_else(|| WindowError::MissingJoint {
+                    topic,
+                    joint: joint.clone(),
+                })
+        })
+        .collect()
+}
+
+/// One timestamped input, already in model form.
+#[derive(Debug, Clone)]
+pub enum Sample {
+    /// Joint positions, radians, model order.
+    Joints {
+        stamp_ns: i64,
+        positions_rad: Vec<f32>,
+    },
+    /// A frame, already S x S.
+    Frame { stamp_ns: i64, frame: Arc<Frame> },
+    /// A new plan.
+    Plan { stamp_ns: i64, plan: Arc<Plan> },
+}
+
+impl Sample {
+    pub fn stamp_ns(&self) -> i64 {
+        match self {
+            Sample::Joints { stamp_ns, .. }
+            | Sample::Frame { stamp_ns, .. }
+            | Sample::Plan { stamp_ns, .. } => *stamp_ns,
+        }
+    }
+}
+
+/// Per stream, ns from the last sample to the tick (`None`: no sample yet).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct StreamAges {
+    pub joints_ns: Option<i64>,
+    pub frame_ns: Option<i64>,
+    pub plan_ns: Option<i64>,
+}
+
+/// One tick of resampled inputs (zero-order hold: last sample at or before the tick).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TickInput {
+    pub tick: i64,
+    pub stamp_ns: i64,
+    /// `C` values in model order; `None` until the first sample.
+    pub joints_rad: Option<Vec<f32>>,
+    /// Latest frame, already S x S.
+    pub frame: Option<Arc<Frame>>,
+    /// Latest plan.
+    pub plan: Option<Arc<Plan>>,
+    pub age_ns: StreamAges,
+}
+
+/// Which streams a window must hold (an ablation without vision does not need frames).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Streams {
+    pub joints: bool,
+    pub plan: bool,
+    pub frames: bool,
+}
+
+impl Streams {
+    pub const ALL: Streams = Streams {
+        joints: true,
+        plan: true,
+        frames: true,
+    };
+
+    /// Whether `tick` has every stream needed here.
+    pub fn present_in(&self, tick: &TickInput) -> bool {
+        (!self.joints || tick.joints_rad.is_some())
+            && (!self.plan || tick.plan.is_some())
+            && (!self.frames || tick.frame.is_some())
+    }
+}
+
+/// Turns time-ordered samples into one [`TickInput`] per grid tick.
+///
+/// [`push`](Self::push) a sample: every tick strictly before its stamp is
+/// final and is emitted, then the sample becomes its stream's latest value.
+/// [`advance_to`](Self::advance_to) a time: every tick at or before it is
+/// emitted (the caller promises no sample at or before that time will come).
+/// The ticks emitted depend only on the samples and the final time, not on
+/// how the calls interleave, provided each sample is pushed before any
+/// `advance_to` past its stamp. A sample older than its stream's latest is
+/// dropped and counted ([`dropped_out_of_order`](Self::dropped_out_of_order)).
+#[derive(Debug, Clone)]
+pub struct Resampler {
+    grid: TickGrid,
+    next_tick: Option<i64>,
+    joints: Option<(i64, Vec<f32>)>,
+    frame: Option<(i64, Arc<Frame>)>,
+    plan: Option<(i64, Arc<Plan>)>,
+    dropped: u64,
+}
+
+impl Resampler {
+    pub fn new(spec: &WindowSpec) -> Result<Resampler, WindowError> {
+        Ok(Resampler {
+            grid: spec.grid()?,
+            next_tick: None,
+            joints: None,
+            frame: None,
+            plan: None,
+            dropped: 0,
+        })
+    }
+
+    pub fn grid(&self) -> TickGrid {
+        self.grid
+    }
+
+    /// The next tick that will be emitted (`None` before the first call).
+    pub fn next_tick(&self) -> Option<i64> {
+        self.next_tick
+    }
+
+    /// Samples dropped because they were older than their stream's latest.
+    pub fn dropped_out_of_order(&self) -> u64 {
+        self.dropped
+    }
+
+    /// Feed one sample; ticks that became final are appended to `out`.
+    pub fn push(&mut self, sample: Sample, out: &mut Vec<TickInput>) {
+        let stamp_ns = sample.stamp_ns();
+        self.start_or_jump(stamp_ns);
+        // Ticks strictly before this sample can no longer change.
+        self.emit_while(out, |stamp| stamp < stamp_ns);
+        let newer = |latest: Option<i64>| latest.is_none_or(|t| stamp_ns >= t);
+        match sample {
+            Sample::Joints {
+                stamp_ns,
+                positions_rad,
+            } => {
+                if newer(self.joints.as_ref().map(|x| x.0)) {
+                    self.joints = Some((stamp_ns, positions_rad));
+                } else {
+                    self.dropped += 1;
+                }
+            }
+            Sample::Frame { stamp_ns, frame } => {
+                if newer(self.frame.as_ref().map(|x| x.0)) {
+                    self.frame = Some((stamp_ns, frame));
+                } else {
+                    self.dropped += 1;
+                }
+            }
+            Sample::Plan { stamp_ns, plan } => {
+                if newer(self.plan.as_ref().map(|x| x.0)) {
+                    self.plan = Some((stamp_ns, plan));
+                } else {
+                    self.dropped += 1;
+                }
+            }
+        }
+    }
+
+    /// Emit every tick whose stamp is at or before `now_ns`.
+    pub fn advance_to(&mut self, now_ns: i64, out: &mut Vec<TickInput>) {
+        self.start_or_jump(now_ns);
+        self.emit_while(out, |stamp| stamp <= now_ns);
+    }
+
+    fn start_or_jump(&mut self, t_ns: i64) {
+        let first = self.grid.first_tick_at_or_after(t_ns);
+        match self.next_tick {
+            None => self.next_tick = Some(first),
+            Some(next) if first - next > MAX_GAP_TICKS => {
+                tracing::warn!(
+                    from_tick = next,
+                    to_tick = first,
+                    "input gap longer than {MAX_GAP_TICKS} ticks: tick grid restarts"
+                );
+                self.next_tick = Some(first);
+            }
+            Some(_) => {}
+        }
+    }
+
+    fn emit_while(&mut self, out: &mut Vec<TickInput>, keep_going: impl Fn(i64) -> bool) {
+        let Some(mut tick) = self.next_tick else {
+            return;
+        };
+        loop {
+            let stamp_ns = self.grid.stamp_ns(tick);
+            if !keep_going(stamp_ns) {
+                break;
+            }
+            out.push(TickInput {
+                tick,
+                stamp_ns,
+                joints_rad: self.joints.as_ref().map(|(_, j)| j.clone()),
+                frame: self.frame.as_ref().map(|(_, f)| Arc::clone(f)),
+                plan: self.plan.as_ref().map(|(_, p)| Arc::clone(p)),
+                age_ns: StreamAges {
+                    joints_ns: self.joints.as_ref().map(|(t, _)| stamp_ns - t),
+                    frame_ns: self.frame.as_ref().map(|(t, _)| stamp_ns - t),
+                    plan_ns: self.plan.as_ref().map(|(t, _)| stamp_ns - t),
+                },
+            });
+            tick += 1;
+        }
+        self.next_tick = Some(tick);
+    }
+}
+
+/// The network's input for the window ending at `end_tick` (row-major arrays).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Window {
+    pub end_tick: i64,
+    /// `[N, C]` radians (empty when joints were not asked for).
+    pub joints: Vec<f32>,
+    /// `[N + hK, C]` radians (empty when the plan was not asked for).
+    pub plan: Vec<f32>,
+    /// `[3, N, S, S]` in `[0, 1]` (empty when frames were not asked for).
+    pub frames: Vec<f32>,
+}
+
+impl Window {
+    /// Builds the window from `N` consecutive ticks, oldest first. The one
+    /// function that makes windows; the plan comes from the last tick.
+    pub fn from_ticks<'a, I>(
+        ticks: I,
+        spec: &WindowSpec,
+        needs: Streams,
+    ) -> Result<Window, WindowError>
+    where
+        I: IntoIterator<Item = &'a TickInput>,
+        I::IntoIter: ExactSizeIterator + Clone,
+    {
+        let grid = spec.grid()?;
+        let ticks = ticks.into_iter();
+        let (n, c, s) = (spec.n_ticks, spec.n_joints(), spec.frame_size as usize);
+        let Some(last) = ticks.clone().last() else {
+            return Err(WindowError::NotFull {
+                end_tick: 0,
+                have: 0,
+                need: n,
+            });
+        };
+        let end_tick = last.tick;
+        let consecutive = ticks
+            .clone()
+            .enumerate()
+            .all(|(i, t)| t.tick == end_tick - (ticks.len() - 1 - i) as i64);
+        if ticks.len() != n || !consecutive {
+            return Err(WindowError::NotFull {
+                end_tick,
+                have: if consecutive { ticks.len() } else { 0 },
+                need: n,
+            });
+        }
+        let missing = |stream, tick| WindowError::MissingStream {
+            end_tick,
+            stream,
+            tick,
+        };
+        let mut joints = Vec::new();
+        if needs.joints {
+            joints.reserve_exact(n * c);
+            for t in ticks.clone() {
+                let j = t
+                    .joints_rad
+                    .as_ref()
+                    .ok_or_else(|| missing("joints", t.tick))?;
+                if j.len() != c {
+                    return Err(WindowError::BadSpec {
+                        reason: format!("tick {} has {} joints, spec has {c}", t.tick, j.len()),
+                    });
+                }
+                joints.extend_from_slice(j);
+            }
+        }
+        let mut plan_out = Vec::new();
+        if needs.plan {
+            let plan = last
+                .plan
+                .as_ref()
+                .ok_or_else(|| missing("plan", end_tick))?;
+            if plan.n_joints != c {
+                return Err(WindowError::BadSpec {
+                    reason: format!("plan has {} joints, spec has {c}", plan.n_joints),
+                });
+            }
+            let first_tick = end_tick - n as i64 + 1;
+            plan_out = vec![0f32; spec.plan_len() * c];
+            for (i, row) in plan_out.chunks_exact_mut(c).enumerate() {
+                plan.sample_into(grid.stamp_ns(first_tick + i as i64), row);
+            }
+        }
+        let mut frames = Vec::new();
+        if needs.frames {
+            let plane = s * s;
+            frames = vec![0f32; 3 * n * plane];
+            for (i, t) in ticks.clone().enumerate() {
+                let f = t.frame.as_ref().ok_or_else(|| missing("frames", t.tick))?;
+                if f.width as usize != s || f.height as usize != s {
+                    return Err(WindowError::BadSpec {
+                        reason: format!(
+                            "tick {} has a {}x{} frame, spec wants {s}x{s}",
+                            t.tick, f.width, f.height
+                        ),
+                    });
+                }
+                // channel c of tick i starts at (c * N + i) * S * S
+                f.write_chw(&mut frames[i * plane..], n * plane);
+            }
+        }
+        Ok(Window {
+            end_tick,
+            joints,
+            plan: plan_out,
+            frames,
+        })
+    }
+}
+
+/// The last `N` ticks, as the daemon keeps them.
+#[derive(Debug, Clone)]
+pub struct Ring {
+    capacity: usize,
+    ticks: VecDeque<TickInput>,
+}
+
+impl Ring {
+    pub fn new(n_ticks: usize) -> Ring {
+        Ring {
+            capacity: n_ticks.max(1),
+            ticks: VecDeque::with_capacity(n_ticks.max(1)),
+        }
+    }
+
+    /// Adds the next tick. A tick that does not follow the previous one
+    /// (a gap, or time going back) empties the ring first: a window is
+    /// always `N` consecutive ticks.
+    pub fn push(&mut self, tick: TickInput) {
+        if let Some(last) = self.ticks.back() {
+            if tick.tick != last.tick + 1 {
+                tracing::debug!(
+                    last = last.tick,
+                    next = tick.tick,
+                    "tick gap: ring restarts"
+                );
+                self.ticks.clear();
+            }
+        }
+        if self.ticks.len() == self.capacity {
+            self.ticks.pop_front();
+        }
+        self.ticks.push_back(tick);
+    }
+
+    pub fn is_full(&self) -> bool {
+        self.ticks.len() == self.capacity
+    }
+
+    pub fn len(&self) -> usize {
+        self.ticks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.ticks.is_empty()
+    }
+
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    pub fn latest(&self) -> Option<&TickInput> {
+        self.ticks.back()
+    }
+
+    /// Oldest first.
+    pub fn iter(&self) -> impl ExactSizeIterator<Item = &TickInput> + Clone {
+        self.ticks.iter()
+    }
+
+    pub fn clear(&mut self) {
+        self.ticks.clear();
+    }
+
+    /// The full window (all streams), or `None` until the ring is full and
+    /// every stream has a sample in every tick of it.
+    pub fn window(&self, spec: &WindowSpec) -> Option<Window> {
+        self.try_window(spec, Streams::ALL).ok()
+    }
+
+    /// The window with the streams in `needs`, or why not.
+    pub fn try_window(&self, spec: &WindowSpec, needs: Streams) -> Result<Window, WindowError> {
+        Window::from_ticks(self.ticks.iter(), spec, needs)
+    }
+}
+
+/// Every tick of one recording, as the daemon would have seen them replaying it.
+#[derive(Debug, Clone)]
+pub struct EpisodeTicks {
+    pub path: PathBuf,
+    pub grid: TickGrid,
+    /// Consecutive ticks, `ticks[i].tick == first_tick() + i`.
+    pub ticks: Vec<TickInput>,
+    /// First tick at or after the recorded fall onset (`None`: no fall).
+    pub fall_onset_tick: Option<i64>,
+}
+
+impl EpisodeTicks {
+    /// Resamples a recording: its messages become samples (in log-time
+    /// order, ties in file order) fed to a [`Resampler`], advanced to the
+    /// last message's log time. Needs `/joint_states`; the fall onset comes
+    /// from the episode metadata (absent metadata = no fall).
+    pub fn from_recording(rec: &Recording, spec: &WindowSpec) -> Result<EpisodeTicks, WindowError> {
+        let samples = samples_from_recording(rec, spec)?;
+        let end_ns = rec.end_ns().ok_or_else(|| WindowError::NoSamples {
+            path: rec.path.clone(),
+            topic: topics::JOINT_STATES,
+        })?;
+        let onset = rec.episode.as_ref().and_then(|m| m.fall_onset_ns);
+        Self::from_samples(&rec.path, samples, end_ns, onset, spec)
+    }
+
+    /// Resamples time-ordered samples up to `end_ns`.
+    pub fn from_samples(
+        path: &Path,
+        samples: Vec<Sample>,
+        end_ns: i64,
+        fall_onset_ns: Option<i64>,
+        spec: &WindowSpec,
+    ) -> Result<EpisodeTicks, WindowError> {
+        let mut resampler = Resampler::new(spec)?;
+        let mut ticks = Vec::new();
+        for sample in samples {
+            resampler.push(sample, &mut ticks);
+        }
+        resampler.advance_to(end_ns, &mut ticks);
+        let grid = resampler.grid();
+        // A restarted grid (huge gap) would break tick continuity: keep the last run.
+        if let Some(cut) = ticks.windows(2).rposition(|w| w[1].tick != w[0].tick + 1) {
+            ticks.drain(..=cut);
+        }
+        Ok(EpisodeTicks {
+            path: path.to_path_buf(),
+            grid,
+            ticks,
+            fall_onset_tick: fall_onset_ns.map(|t| grid.first_tick_at_or_after(t)),
+        })
+    }
+
+    pub fn first_tick(&self) -> Option<i64> {
+        self.ticks.first().map(|t| t.tick)
+    }
+
+    pub fn last_tick(&self) -> Option<i64> {
+        self.ticks.last().map(|t| t.tick)
+    }
+
+    pub fn get(&self, tick: i64) -> Option<&TickInput> {
+        let first = self.first_tick()?;
+        usize::try_from(tick - first)
+            .ok()
+            .and_then(|i| self.ticks.get(i))
+    }
+
+    /// Ground truth at `tick` (sticky: fallen from the onset tick on).
+    pub fn is_fallen(&self, tick: i64) -> bool {
+        self.fall_onset_tick.is_some_and(|onset| tick >= onset)
+    }
+
+    /// The first end tick whose window is full and has every stream in `needs`
+    /// (streams never disappear once seen: zero-order hold).
+    pub fn first_complete_end_tick(&self, n_ticks: usize, needs: Streams) -> Option<i64> {
+        let first_present = self.ticks.iter().find(|t| needs.present_in(t))?.tick;
+        let end = first_present.max(self.first_tick()?) + n_ticks as i64 - 1;
+        (end <= self.last_tick()?).then_some(end)
+    }
+
+    /// The window ending at `end_tick`.
+    pub fn window_ending_at(
+        &self,
+        end_tick: i64,
+        spec: &WindowSpec,
+        needs: Streams,
+    ) -> Result<Window, WindowError> {
+        let (Some(first), Some(last)) = (self.first_tick(), self.last_tick()) else {
+            return Err(WindowError::TickOutOfRange {
+                tick: end_tick,
+                first: 0,
+                last: -1,
+            });
+        };
+        let start = end_tick - spec.n_ticks as i64 + 1;
+        if start < first || end_tick > last {
+            return Err(WindowError::TickOutOfRange {
+                tick: if end_tick > last { end_tick } else { start },
+                first,
+                last,
+            });
+        }
+        let from = (start - first) as usize;
+        Window::from_ticks(&self.ticks[from..from + spec.n_ticks], spec, needs)
+    }
+}
+
+/// A recording's messages as samples in model form, sorted by log time (ties
+/// keep file order). The daemon's replay and training both use this.
+pub fn samples_from_recording(
+    rec: &Recording,
+    spec: &WindowSpec,
+) -> Result<Vec<Sample>, WindowError> {
+    if rec.joint_states.is_empty() {
+        return Err(WindowError::NoSamples {
+            path: rec.path.clone(),
+            topic: topics::JOINT_STATES,
+        });
+    }
+    let ctx = |topic: &'static str, log_time_ns: i64| {
+        let path = rec.path.clone();
+        move |e: WindowError| WindowError::InRecording {
+            path,
+            topic,
+            log_time_ns,
+            source: Box::new(e),
+        }
+    };
+    // (stamp, file order, sample)
+    let mut keyed: Vec<(i64, u64, Sample)> =
+        Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
+    for m in &rec.joint_states {
+        let positions_rad = joints_from_msg(&m.msg, &spec.joint_names)
+            .map_err(ctx(topics::JOINT_STATES, m.log_time_ns))?;
+        keyed.push((
+            m.log_time_ns,
+            m.file_order,
+            Sample::Joints {
+                stamp_ns: m.log_time_ns,
+                positions_rad,
+            },
+        ));
+    }
+    for m in &rec.images {
+        let frame = frame_from_msg(&m.msg, spec.frame_size)
+            .map_err(ctx(topics::HEAD_CAMERA, m.log_time_ns))?;
+        keyed.push((
+            m.log_time_ns,
+            m.file_order,
+            Sample::Frame {
+                stamp_ns: m.log_time_ns,
+                frame: Arc::new(frame),
+            },
+        ));
+    }
+    for m in &rec.plans {
+        let plan = Plan::from_msg(&m.msg, &spec.joint_names)
+            .map_err(ctx(topics::PLANNED_TRAJECTORY, m.log_time_ns))?;
+        keyed.push((
+            m.log_time_ns,
+            m.file_order,
+            Sample::Plan {
+                stamp_ns: m.log_time_ns,
+                plan: Arc::new(plan),
+            },
+        ));
+    }
+    keyed.sort_by_key(|(stamp, order, _)| (*stamp, *order));
+    Ok(keyed.into_iter().map(|(_, _, s)| s).collect())
+}

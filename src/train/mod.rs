@@ -1,1 +1,5 @@
-//! Training and evaluation (to be written).
+//! Training and evaluation: data sets of recordings, the i.i.d. window
+//! sampler, and (network side) the training loop, metrics and plots.
+
+pub mod dataset;
+pub mod sampler;

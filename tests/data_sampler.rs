@@ -1,0 +1,223 @@
+//! The i.i.d. window sampler and the data set on disk.
+
+use std::sync::Arc;
+
+use fall_guard::frame::Frame;
+use fall_guard::recording::synthetic::{joint_names, learnable_episode, write_dataset};
+use fall_guard::train::dataset::{Dataset, DatasetError, Split};
+use fall_guard::train::sampler::{labels_at, EpisodeSpan, SamplerConfig, WindowSampler};
+use fall_guard::window::{EpisodeTicks, Plan, Streams, TickGrid, TickInput, WindowSpec};
+use proptest::prelude::*;
+
+/// An in-memory episode of `len` ticks (all streams present from `present_from`).
+fn episode(len: usize, present_from: usize, onset: Option<i64>) -> EpisodeTicks {
+    let grid = TickGrid::new(30.0).unwrap();
+    let plan = Arc::new(Plan {
+        stamp_ns: 0,
+        times_ns: vec![0],
+        positions_rad: vec![0.0; 2],
+        n_joints: 2,
+    });
+    let frame = Arc::new(Frame::solid(2, 2, [1, 2, 3]));
+    let ticks = (0..len)
+        .map(|k| {
+            let has = k >= present_from;
+            TickInput {
+                tick: k as i64,
+                stamp_ns: grid.stamp_ns(k as i64),
+                joints_rad: has.then(|| vec![k as f32; 2]),
+                frame: has.then(|| frame.clone()),
+                plan: has.then(|| plan.clone()),
+                age_ns: Default::default(),
+            }
+        })
+        .collect();
+    EpisodeTicks {
+        path: "mem".into(),
+        grid,
+        ticks,
+        fall_onset_tick: onset,
+    }
+}
+
+fn spec(n: usize, h_max: usize) -> WindowSpec {
+    WindowSpec {
+        n_ticks: n,
+        max_horizon_ticks: h_max,
+        rate_hz: 30.0,
+        joint_names: joint_names(2),
+        frame_size: 2,
+    }
+}
+
+fn arb_episodes() -> impl Strategy<Value = Vec<(usize, usize, Option<usize>)>> {
+    prop::collection::vec(
+        (20usize..200, 0usize..10, prop::option::of(0usize..200)),
+        1..30,
+    )
+}
+
+proptest! {
+    /// No window ever holds a fallen tick; labels are "fallen at end + h";
+    /// every pick is a full window; one pick per usable episode.
+    #[test]
+    fn sampler_never_shows_a_fallen_tick(eps in arb_episodes(), seed in 0u64..1000) {
+        let n = 8;
+        let horizons = vec![3, 6, 9, 12];
+        let episodes: Vec<EpisodeTicks> = eps.iter().map(|&(len, from, onset)| episode(len, from, onset.map(|o| o as i64))).collect();
+        let cfg = SamplerConfig::new(n, horizons.clone());
+        let usable = episodes.iter().filter(|e| EpisodeSpan::of(e, &cfg).is_some()).count();
+        let sampler = WindowSampler::new(&episodes, cfg, seed);
+        if usable == 0 {
+            prop_assert!(sampler.is_err());
+            return Ok(());
+        }
+        let mut sampler = sampler.unwrap();
+        let sp = spec(n, 12);
+        for _epoch in 0..3 {
+            let picks = sampler.epoch();
+            prop_assert_eq!(picks.len(), usable);
+            let mut seen = std::collections::BTreeSet::new();
+            for p in &picks {
+                prop_assert!(seen.insert(p.episode));
+                let e = &episodes[p.episode];
+                let w = e.window_ending_at(p.end_tick, &sp, Streams::ALL);
+                prop_assert!(w.is_ok(), "{:?}", w.err());
+                for t in p.end_tick - n as i64 + 1..=p.end_tick {
+                    prop_assert!(!e.is_fallen(t), "fallen tick {} in window ending {}", t, p.end_tick);
+                }
+                for (k, &h) in horizons.iter().enumerate() {
+                    prop_assert_eq!(p.labels[k], e.is_fallen(p.end_tick + h as i64));
+                }
+                if e.fall_onset_tick.is_none() {
+                    prop_assert!(p.end_tick + 12 <= e.last_tick().unwrap());
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn labels_are_sticky_per_horizon() {
+    assert_eq!(
+        labels_at(Some(100), 90, &[5, 10, 15]),
+        vec![false, true, true]
+    );
+    assert_eq!(labels_at(Some(100), 99, &[1]), vec![true]);
+    assert_eq!(labels_at(None, 90, &[5, 10, 15]), vec![false; 3]);
+}
+
+#[test]
+fn classes_balance_at_the_middle_horizon_and_runs_repeat() {
+    // half the episodes fall: balance is reachable exactly
+    let episodes: Vec<EpisodeTicks> = (0..200)
+        .map(|i| episode(150, 0, (i % 2 == 0).then_some(100 + (i % 40) as i64)))
+        .collect();
+    let cfg = SamplerConfig::new(10, vec![15, 30, 45, 60]);
+    assert_eq!(cfg.balance_horizon_index, 1);
+    let mut a = WindowSampler::new(&episodes, cfg.clone(), 42).unwrap();
+    let mut b = WindowSampler::new(&episodes, cfg.clone(), 42).unwrap();
+    let mut c = WindowSampler::new(&episodes, cfg, 43).unwrap();
+    for _ in 0..3 {
+        let pa = a.epoch();
+        assert_eq!(pa, b.epoch());
+        assert_ne!(pa, c.epoch());
+        let positives = pa.iter().filter(|p| p.labels[1]).count();
+        assert!(
+            (positives as i64 - 100).abs() <= 1,
+            "{positives} positives of 200"
+        );
+        // windows of falling episodes are both positive and negative
+        let fall_negatives = pa
+            .iter()
+            .filter(|p| p.episode % 2 == 0 && !p.labels[1])
+            .count();
+        assert!(fall_negatives > 0);
+    }
+}
+
+#[test]
+fn episodes_that_fall_too_early_are_skipped() {
+    let episodes = vec![episode(100, 0, Some(5)), episode(100, 0, None)];
+    let cfg = SamplerConfig::new(10, vec![5, 10]);
+    assert_eq!(EpisodeSpan::of(&episodes[0], &cfg), None);
+    let mut s = WindowSampler::new(&episodes, cfg.clone(), 1).unwrap();
+    let picks = s.epoch();
+    assert_eq!(picks.len(), 1);
+    assert_eq!(picks[0].episode, 1);
+    assert!(WindowSampler::new(&episodes[..1], cfg.clone(), 1).is_err());
+    let mut bad = cfg;
+    bad.horizons_ticks = vec![10, 5];
+    assert!(WindowSampler::new(&episodes, bad, 1).is_err());
+}
+
+#[test]
+fn dataset_on_disk_loads_and_checks_its_manifest() {
+    let dir = tempfile::tempdir().unwrap();
+    let names = joint_names(4);
+    let make = |seed: u64| learnable_episode(seed, seed % 2 == 0, 100, &names, 30.0, 16);
+    let train: Vec<_> = (0..4).map(make).collect();
+    write_dataset(dir.path(), &train, &[make(10)], &[make(11)]).unwrap();
+    let ds = Dataset::open(dir.path()).unwrap();
+    assert_eq!(ds.manifest.train.len(), 4);
+    assert_eq!(
+        ds.paths(Split::Test),
+        vec![dir.path().join("episode_0005.mcap")]
+    );
+    let sp = WindowSpec {
+        n_ticks: 20,
+        max_horizon_ticks: 10,
+        rate_hz: 30.0,
+        joint_names: names.clone(),
+        frame_size: 8,
+    };
+    let eps = ds.load_split(Split::Train, &sp, Streams::ALL).unwrap();
+    assert_eq!(eps.len(), 4);
+    assert_eq!(
+        eps[0].fall_onset_tick,
+        train[0].fall_onset_tick.map(|o| o as i64)
+    );
+    let mut sampler = WindowSampler::new(&eps, SamplerConfig::new(20, vec![5, 10]), 0).unwrap();
+    for p in sampler.epoch() {
+        eps[p.episode]
+            .window_ending_at(p.end_tick, &sp, Streams::ALL)
+            .unwrap();
+    }
+
+    // a model needing a joint the recordings lack: the error names the joint and file
+    let mut other = sp.clone();
+    other.joint_names[2] = "r_knee_y".into();
+    let err = ds
+        .load_split(Split::Train, &other, Streams::ALL)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("r_knee_y") && err.contains("episode_0000.mcap"),
+        "{err}"
+    );
+
+    // no manifest
+    let empty = tempfile::tempdir().unwrap();
+    let err = Dataset::open(empty.path()).unwrap_err();
+    assert!(matches!(err, DatasetError::NoManifest { .. }));
+    assert!(err
+        .to_string()
+        .contains(&empty.path().display().to_string()));
+
+    // a listed file that is missing
+    std::fs::remove_file(dir.path().join("episode_0004.mcap")).unwrap();
+    let err = Dataset::open(dir.path()).unwrap_err();
+    assert!(
+        err.to_string().contains("episode_0004.mcap") && err.to_string().contains("validation"),
+        "{err}"
+    );
+
+    // an episode in two splits
+    std::fs::write(
+        dir.path().join("manifest.json"),
+        r#"{"train": ["episode_0000.mcap"], "validation": [], "test": ["episode_0000.mcap"]}"#,
+    )
+    .unwrap();
+    let err = Dataset::open(dir.path()).unwrap_err();
+    assert!(matches!(err, DatasetError::SharedEpisode { .. }), "{err}");
+}
