@@ -25,6 +25,8 @@ enum Command {
     Label(service::LabelArgs),
     /// Benchmark the daemon: sensor-to-publish latency and memory while replaying at maximum speed.
     BenchDaemon(fall_guard::daemon_bench::BenchDaemonArgs),
+    /// Per-tick latency and training throughput of the network.
+    Bench(fall_guard::train::bench::BenchArgs),
 }
 
 fn init_logging() {
@@ -70,6 +72,9 @@ fn main() -> Result<()> {
         },
         Command::BenchDaemon(args) => {
             runtime.block_on(fall_guard::daemon_bench::run(args))?;
+        }
+        Command::Bench(args) => {
+            fall_guard::train::bench::run_bench(&args)?;
         }
     }
     Ok(())

@@ -147,6 +147,19 @@ impl Joint {
     }
 }
 
+/// One row of the Poppy table: id, name, model, lower and upper limit (deg),
+/// offset (deg), orientation, bus.
+type PoppyRow = (
+    u8,
+    &'static str,
+    ServoModel,
+    f64,
+    f64,
+    f64,
+    Orientation,
+    &'static str,
+);
+
 /// The joints of a robot in model order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct JointTable {
@@ -160,7 +173,7 @@ impl JointTable {
         use Orientation::{Direct as D, Indirect as I};
         use ServoModel::{Ax12, Mx28, Mx64};
         #[rustfmt::skip]
-        let rows: [(u8, &str, ServoModel, f64, f64, f64, Orientation, &str); 25] = [
+        let rows: [PoppyRow; 25] = [
             (11, "l_hip_x",      Mx28,  -30.0,  28.5,   0.0, D, "lower"),
             (12, "l_hip_z",      Mx28,  -25.0,  90.0,   0.0, I, "lower"),
             (13, "l_hip_y",      Mx64, -104.0,  84.0,   2.0, D, "lower"),

@@ -33,6 +33,9 @@ impl Rig {
         let mut config = self.buses.config();
         for bus in config.buses.values_mut() {
             bus.sync_read = sync_read;
+            // Generous, so that a busy test machine stalling the emulator
+            // thread does not read as a fault.
+            bus.timeout_ms = 100;
             bus.reopen_backoff_ms = 10;
             bus.reopen_backoff_max_ms = 40;
         }
@@ -374,7 +377,7 @@ fn emulator_answers_write_data_and_the_reader_sees_the_new_goal() {
     let rig = rig();
     let dph = rustypot::DynamixelProtocolHandler::v1();
     let mut port = serialport::new(rig.buses.upper.port_path().to_string_lossy(), 1_000_000)
-        .timeout(Duration::from_millis(50))
+        .timeout(Duration::from_millis(500))
         .open()
         .expect("open emulated bus");
     assert!(dph.ping(port.as_mut(), 41).unwrap());

@@ -1,1 +1,43 @@
-//! The EMP network (to be written).
+//! The EMP network (`docs/emp-model.md`) in burn: encoders, classifier, the
+//! model file, fused inference and the per-tick streaming forecaster.
+//!
+//! Training builds an [`Emp`] on an autodiff device; the daemon loads a
+//! [`LoadedModel`] from one file and drives a [`StreamingForecaster`] tick by tick.
+
+pub mod config;
+pub mod emp;
+pub mod file;
+pub mod inception;
+pub mod motion;
+pub mod plan;
+pub mod spectral;
+pub mod streaming;
+pub mod tick_input;
+pub mod vision;
+
+pub use config::{Ablation, ModelConfig};
+pub use emp::{Emp, EmpInference, EmpInput};
+pub use file::{save_model, EpochRecord, LoadedModel, ModelError, ModelMeta};
+pub use streaming::StreamingForecaster;
+
+use burn::prelude::Device;
+
+/// The CPU device inference and training run on: Flex by default, NdArray
+/// with `--no-default-features --features ndarray`.
+pub fn cpu_device() -> Device {
+    #[cfg(feature = "flex")]
+    {
+        Device::flex()
+    }
+    #[cfg(all(not(feature = "flex"), feature = "ndarray"))]
+    {
+        Device::ndarray()
+    }
+    #[cfg(not(any(feature = "flex", feature = "ndarray")))]
+    {
+        Device::default()
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -23,6 +23,7 @@ use tokio::sync::watch;
 
 pub mod camera;
 pub mod dynamixel;
+<<<<<<< HEAD
 pub mod replay;
 
 /// The three input streams of the model.
@@ -279,3 +280,5 @@ mod tests {
         );
     }
 }
+=======
+>>>>>>> model

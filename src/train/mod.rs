@@ -1,5 +1,19 @@
-//! Training and evaluation: data sets of recordings, the i.i.d. window
-//! sampler, and (network side) the training loop, metrics and plots.
+//! Training and evaluation: data sets of recordings and the i.i.d. window
+//! sampler (data plane: `dataset`, `sampler`), and the network side: the
+//! training loop (`fit`), metrics, evaluation, plots, the logistic baseline,
+//! the `train`/`eval` commands (`cli`) and `bench`.
 
+pub mod bench;
+pub mod cli;
 pub mod dataset;
+pub mod eval;
+pub mod fit;
+pub mod logreg;
+pub mod metrics;
+pub mod plots;
 pub mod sampler;
+
+pub use fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
+
+#[cfg(test)]
+mod tests;

@@ -339,7 +339,7 @@ impl BusReader {
         raw: &mut [Option<u16>],
         stop: &dyn Fn() -> bool,
     ) {
-        for i in 0..self.motors.len() {
+        for (i, slot) in raw.iter_mut().enumerate() {
             if stop() {
                 return;
             }
@@ -383,7 +383,7 @@ impl BusReader {
                     }
                     if params.len() == usize::from(PRESENT_POSITION_LEN) {
                         let value = u16::from_le_bytes([params[0], params[1]]);
-                        raw[i] = self.checked(stats, i, value);
+                        *slot = self.checked(stats, i, value);
                     } else {
                         let reason = format!("{} data byte(s) instead of 2", params.len());
                         self.fail(stats, Failure::BadPacket(reason), &what);

@@ -229,7 +229,7 @@ mod tests {
                 end,
                 packet,
             } => {
-                assert_eq!(garbage, 5);
+                assert_eq!(garbage, 6);
                 assert_eq!(end, buf.len());
                 assert_eq!(packet.id, USB2AX_ID);
                 assert_eq!(packet.params, vec![0x00, 0x08, 0xFF, 0xFF]);
@@ -266,5 +266,48 @@ mod tests {
                 len: 4
             }
         );
+    }
+
+    mod properties {
+        use super::super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            #[test]
+            fn scan_never_panics_and_stays_in_bounds(bytes in proptest::collection::vec(any::<u8>(), 0..80)) {
+                match scan(&bytes) {
+                    Scanned::Incomplete { garbage } => prop_assert!(garbage <= bytes.len()),
+                    Scanned::Packet { garbage, end, packet } => {
+                        prop_assert!(garbage < end && end <= bytes.len());
+                        prop_assert_eq!(packet.params.len() + 6, end - garbage);
+                    }
+                    Scanned::BadChecksum { garbage, end, .. } => prop_assert!(garbage < end && end <= bytes.len()),
+                }
+            }
+
+            #[test]
+            fn a_packet_after_ff_free_garbage_is_found_whole_and_only_once_complete(
+                garbage in proptest::collection::vec(0u8..0xFF, 0..20),
+                id in 0u8..0xFF,
+                error in any::<u8>(),
+                params in proptest::collection::vec(any::<u8>(), 0..40),
+            ) {
+                let reply = packet(id, error, &params).unwrap();
+                let mut bytes = garbage.clone();
+                bytes.extend_from_slice(&reply);
+                for cut in 0..bytes.len() {
+                    match scan(&bytes[..cut]) {
+                        Scanned::Incomplete { garbage: skipped } => prop_assert!(skipped <= garbage.len()),
+                        other => prop_assert!(false, "{:?} from a prefix of {} bytes", other, cut),
+                    }
+                }
+                let want = Scanned::Packet {
+                    garbage: garbage.len(),
+                    end: bytes.len(),
+                    packet: Packet { id, byte4: error, params },
+                };
+                prop_assert_eq!(scan(&bytes), want);
+            }
+        }
     }
 }

@@ -1,0 +1,162 @@
+//! The EMP network: encoders switched by the ablation, the classifier, and
+//! the monotone multi-horizon output.
+//!
+//! In: an [`EmpInput`] batch (standardised joints and plan, low-passed frames).
+//! Out: logits `[B, K]` with `z_1 = a_1`, `z_k = z_{k-1} + softplus(a_k)`, so
+//! the probabilities `sigmoid(z)` are non-decreasing in the horizon.
+//! [`Emp`] trains; [`EmpInference`] is the same network with fused kernels and
+//! no autodiff.
+
+use burn::nn::{Dropout, DropoutConfig, Linear, LinearConfig};
+use burn::prelude::*;
+use burn::tensor::activation::{gelu, softplus};
+
+use super::config::{Ablation, ModelConfig};
+use super::motion::MotionEncoder;
+use super::plan::{PlanEncoder, PlanFused};
+use super::vision::{VisionEncoder, VisionFused};
+
+/// One batch of network inputs. Tensors the ablation does not use may be `None`.
+#[derive(Debug, Clone)]
+pub struct EmpInput {
+    /// Standardised joint angles `[B, N, C]`.
+    pub joints: Tensor<3>,
+    /// Standardised plan `[B, N + h_K, C]`.
+    pub plan: Option<Tensor<3>>,
+    /// Low-passed frames `[B, 3, N, 2a, 2a]`.
+    pub frames: Option<Tensor<5>>,
+}
+
+/// Concatenated features -> `d_model` -> GELU -> dropout -> `K`.
+#[derive(Module, Debug)]
+pub struct Classifier {
+    hidden: Linear,
+    dropout: Dropout,
+    out: Linear,
+}
+
+impl Classifier {
+    fn new(in_features: usize, cfg: &ModelConfig, device: &Device) -> Self {
+        Classifier {
+            hidden: LinearConfig::new(in_features, cfg.d_model).init(device),
+            dropout: DropoutConfig::new(cfg.dropout).init(),
+            out: LinearConfig::new(cfg.d_model, cfg.k()).init(device),
+        }
+    }
+
+    /// `[B, F]` -> monotone logits `[B, K]`.
+    pub fn forward(&self, features: Tensor<2>) -> Tensor<2> {
+        let a = self
+            .out
+            .forward(self.dropout.forward(gelu(self.hidden.forward(features))));
+        monotone_logits(a)
+    }
+}
+
+/// `z_1 = a_1`, `z_k = z_{k-1} + softplus(a_k)`.
+pub fn monotone_logits(a: Tensor<2>) -> Tensor<2> {
+    let [b, k] = a.dims();
+    if k == 1 {
+        return a;
+    }
+    let first = a.clone().slice([0..b, 0..1]);
+    let rest = softplus(a.slice([0..b, 1..k]), 1.0);
+    Tensor::cat(vec![first, rest], 1).cumsum(1)
+}
+
+/// The trainable network.
+#[derive(Module, Debug)]
+pub struct Emp {
+    /// Proprioception (always on).
+    pub motion: MotionEncoder,
+    /// Motion plan (MP, EMP).
+    pub plan: Option<PlanEncoder>,
+    /// Egocentric vision (EP, EMP).
+    pub vision: Option<VisionEncoder>,
+    /// Classifier head.
+    pub classifier: Classifier,
+}
+
+impl Emp {
+    /// A freshly initialised network for `ablation`.
+    pub fn new(cfg: &ModelConfig, ablation: Ablation, device: &Device) -> Self {
+        let mut features = MotionEncoder::out_features(cfg);
+        let plan = ablation.uses_plan().then(|| {
+            features += PlanEncoder::out_features(cfg);
+            PlanEncoder::new(cfg, device)
+        });
+        let vision = ablation.uses_vision().then(|| {
+            features += VisionEncoder::out_features(cfg);
+            VisionEncoder::new(cfg, device)
+        });
+        Emp {
+            motion: MotionEncoder::new(cfg, device),
+            plan,
+            vision,
+            classifier: Classifier::new(features, cfg, device),
+        }
+    }
+
+    /// Monotone logits `[B, K]`. Panics only on a programming error (a used input missing).
+    pub fn forward(&self, input: EmpInput) -> Tensor<2> {
+        let mut feats = vec![self.motion.forward(input.joints)];
+        if let Some(p) = &self.plan {
+            feats.push(p.forward(input.plan.expect("plan input for a plan ablation"), None));
+        }
+        if let Some(v) = &self.vision {
+            feats.push(v.forward(input.frames.expect("frames input for a vision ablation")));
+        }
+        self.classifier.forward(Tensor::cat(feats, 1))
+    }
+
+    /// The inference form: no autodiff, fused kernels.
+    pub fn to_inference(&self) -> EmpInference {
+        let model = self.valid();
+        EmpInference {
+            plan_fused: model.plan.as_ref().map(PlanEncoder::fuse),
+            vision_fused: model.vision.as_ref().map(VisionEncoder::fuse),
+            model,
+        }
+    }
+}
+
+/// The network for inference: fused Inception kernels, no autodiff, no dropout.
+#[derive(Debug, Clone)]
+pub struct EmpInference {
+    /// The unfused weights (motion and classifier are used as they are).
+    pub model: Emp,
+    /// Fused trajectory convolutions.
+    pub plan_fused: Option<PlanFused>,
+    /// Fused vision convolutions.
+    pub vision_fused: Option<VisionFused>,
+}
+
+impl EmpInference {
+    /// Whole-window forward: monotone logits `[B, K]`.
+    pub fn forward(&self, input: EmpInput) -> Tensor<2> {
+        let vision = match (&self.vision_fused, input.frames.clone()) {
+            (Some(v), Some(f)) => Some(v.forward(f)),
+            _ => None,
+        };
+        self.forward_with_vision(input, vision)
+    }
+
+    /// Forward with the vision features already computed (the streaming path).
+    pub fn forward_with_vision(
+        &self,
+        input: EmpInput,
+        vision_features: Option<Tensor<2>>,
+    ) -> Tensor<2> {
+        let m = &self.model;
+        let mut feats = vec![m.motion.forward(input.joints)];
+        if let (Some(p), Some(plan)) = (&m.plan, input.plan) {
+            feats.push(p.forward(plan, self.plan_fused.as_ref()));
+        }
+        if m.vision.is_some() {
+            if let Some(v) = vision_features {
+                feats.push(v);
+            }
+        }
+        m.classifier.forward(Tensor::cat(feats, 1))
+    }
+}

@@ -1,0 +1,504 @@
+//! The model file: one file with the weights and everything needed to use them.
+//!
+//! Layout: `b"FGEMP\0v1"` (8 bytes), JSON length (u64 LE), the [`ModelMeta`]
+//! JSON, burnpack length (u64 LE), the burnpack bytes of the [`Emp`] weights.
+//! Written by `fall-guard train`, read by the daemon, `eval` and `bench`.
+
+use std::path::{Path, PathBuf};
+
+use burn::module::Module;
+use burn::prelude::*;
+use burn::store::ModuleRecord;
+use burn::tensor::Bytes;
+use serde::{Deserialize, Serialize};
+
+use super::config::{Ablation, ModelConfig};
+use super::emp::{Emp, EmpInference, EmpInput};
+use super::vision::lowpass_frames;
+
+const MAGIC: &[u8; 8] = b"FGEMP\0v1";
+
+/// Errors from loading, checking or running a model.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// The file could not be read or written.
+    #[error("model file {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The file ends before what its header announces.
+    #[error("model file {path} is truncated: {what}")]
+    Truncated {
+        /// The file.
+        path: PathBuf,
+        /// What was being read.
+        what: String,
+    },
+    /// The file does not start with the fall-guard model magic.
+    #[error("{path} is not a fall-guard model file (bad magic; expected a file written by `fall-guard train`)")]
+    BadMagic {
+        /// The file.
+        path: PathBuf,
+    },
+    /// The metadata is unreadable or inconsistent.
+    #[error("model file {path}: bad metadata: {message}")]
+    BadMeta {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The weights do not fit the network the metadata describes.
+    #[error("model file {path}: bad weights: {message}")]
+    Weights {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The model was trained for other inputs than those offered.
+    #[error("model does not match the inputs: {0}")]
+    Incompatible(String),
+    /// An input is malformed (wrong length, NaN, missing stream).
+    #[error("bad model input: {0}")]
+    Input(String),
+}
+
+/// One epoch of the training history.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpochRecord {
+    /// 1-based epoch.
+    pub epoch: usize,
+    /// Mean training loss (BCE per horizon).
+    pub train_loss: f64,
+    /// Validation loss.
+    pub val_loss: f64,
+    /// Validation accuracy, mean over horizons.
+    pub val_accuracy: f64,
+}
+
+/// Everything the daemon needs besides the weights.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelMeta {
+    /// Network sizes.
+    pub config: ModelConfig,
+    /// Which encoders are on.
+    pub ablation: Ablation,
+    /// Forecast horizons, ticks.
+    pub horizons_ticks: Vec<usize>,
+    /// Tick rate the model was trained at, Hz.
+    pub rate_hz: f64,
+    /// Window length `N`, ticks.
+    pub n_ticks: usize,
+    /// Joint names in model order.
+    pub joint_names: Vec<String>,
+    /// Frame side `S`, pixels.
+    pub frame_size: u32,
+    /// Per-joint mean of `joints`, radians (train split).
+    pub joint_mean: Vec<f32>,
+    /// Per-joint standard deviation of `joints`, radians (train split).
+    pub joint_std: Vec<f32>,
+    /// Per-joint mean of `plan`, radians (train split).
+    pub plan_mean: Vec<f32>,
+    /// Per-joint standard deviation of `plan`, radians (train split).
+    pub plan_std: Vec<f32>,
+    /// Training history, one entry per epoch.
+    #[serde(default)]
+    pub history: Vec<EpochRecord>,
+    /// The epoch whose weights are stored (1-based; 0 = untrained).
+    #[serde(default)]
+    pub best_epoch: usize,
+    /// Where the training data came from, e.g. `simulated`.
+    pub trained_on: String,
+    /// Training seed.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+impl ModelMeta {
+    /// Metadata for an untrained model with identity standardisation.
+    pub fn new(
+        config: ModelConfig,
+        ablation: Ablation,
+        rate_hz: f64,
+        joint_names: Vec<String>,
+    ) -> Self {
+        let c = config.n_joints;
+        ModelMeta {
+            ablation,
+            horizons_ticks: config.horizons_ticks.clone(),
+            rate_hz,
+            n_ticks: config.n_ticks,
+            frame_size: config.frame_size as u32,
+            joint_names,
+            joint_mean: vec![0.0; c],
+            joint_std: vec![1.0; c],
+            plan_mean: vec![0.0; c],
+            plan_std: vec![1.0; c],
+            history: Vec::new(),
+            best_epoch: 0,
+            trained_on: "untrained".into(),
+            seed: 0,
+            config,
+        }
+    }
+
+    /// Refuses inputs the model was not trained for, saying what differs.
+    pub fn check_compatible_with(
+        &self,
+        joint_names: &[String],
+        rate_hz: f64,
+        n_ticks: usize,
+        max_horizon_ticks: usize,
+        frame_size: u32,
+    ) -> Result<(), ModelError> {
+        let mut diffs = Vec::new();
+        if joint_names != self.joint_names.as_slice() {
+            let first = self
+                .joint_names
+                .iter()
+                .zip(joint_names)
+                .position(|(a, b)| a != b)
+                .unwrap_or(self.joint_names.len().min(joint_names.len()));
+            diffs.push(format!(
+                "joint list differs: model has {} joints, input {}; first difference at index {first}: model {:?}, input {:?}",
+                self.joint_names.len(),
+                joint_names.len(),
+                self.joint_names.get(first),
+                joint_names.get(first)
+            ));
+        }
+        if (rate_hz - self.rate_hz).abs() > 1e-6 * self.rate_hz.max(1.0) {
+            diffs.push(format!(
+                "tick rate: model {} Hz, input {} Hz",
+                self.rate_hz, rate_hz
+            ));
+        }
+        if n_ticks != self.n_ticks {
+            diffs.push(format!(
+                "window length N: model {} ticks, input {}",
+                self.n_ticks, n_ticks
+            ));
+        }
+        let hk = self.config.max_horizon_ticks();
+        if max_horizon_ticks < hk {
+            diffs.push(format!(
+                "plan reaches {max_horizon_ticks} ticks ahead, the model needs {hk}"
+            ));
+        }
+        if self.ablation.uses_vision() && frame_size != self.frame_size {
+            diffs.push(format!(
+                "frame size: model {} px, input {} px",
+                self.frame_size, frame_size
+            ));
+        }
+        if diffs.is_empty() {
+            Ok(())
+        } else {
+            Err(ModelError::Incompatible(diffs.join("; ")))
+        }
+    }
+
+    fn validate(&self) -> Result<(), String> {
+        self.config.validate()?;
+        let c = self.config.n_joints;
+        if self.joint_names.len() != c {
+            return Err(format!(
+                "{} joint names for {} joints",
+                self.joint_names.len(),
+                c
+            ));
+        }
+        for (name, v) in [
+            ("joint_mean", &self.joint_mean),
+            ("joint_std", &self.joint_std),
+            ("plan_mean", &self.plan_mean),
+            ("plan_std", &self.plan_std),
+        ] {
+            if v.len() != c {
+                return Err(format!("{name} has {} values for {c} joints", v.len()));
+            }
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(format!("{name} is not finite"));
+            }
+        }
+        if self
+            .joint_std
+            .iter()
+            .chain(&self.plan_std)
+            .any(|&s| s <= 0.0)
+        {
+            return Err("a standard deviation is not positive".into());
+        }
+        if self.n_ticks != self.config.n_ticks || self.horizons_ticks != self.config.horizons_ticks
+        {
+            return Err("n_ticks / horizons_ticks disagree with the config".into());
+        }
+        if self.rate_hz.is_nan() || self.rate_hz <= 0.0 {
+            return Err(format!("rate_hz {} is not positive", self.rate_hz));
+        }
+        Ok(())
+    }
+}
+
+/// Writes `meta` and the weights of `model` to `path` (one file).
+pub fn save_model(path: &Path, meta: &ModelMeta, model: &Emp) -> Result<(), ModelError> {
+    let io = |source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let json = serde_json::to_vec(meta).map_err(|e| ModelError::BadMeta {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let weights = model
+        .clone()
+        .valid()
+        .into_record()
+        .into_bytes()
+        .map_err(|e| ModelError::Weights {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    let mut out = Vec::with_capacity(8 + 16 + json.len() + weights.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    out.extend_from_slice(&json);
+    out.extend_from_slice(&(weights.len() as u64).to_le_bytes());
+    out.extend_from_slice(&weights);
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(io)?;
+    }
+    // Write then rename, so a reader never sees half a file.
+    let tmp = path.with_extension("partial");
+    std::fs::write(&tmp, &out).map_err(io)?;
+    std::fs::rename(&tmp, path).map_err(io)?;
+    Ok(())
+}
+
+/// Reads a model file: metadata and the trainable network on `device`.
+pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelError> {
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let p = || path.to_path_buf();
+    if bytes.len() < MAGIC.len() {
+        return Err(if MAGIC.starts_with(&bytes) && !bytes.is_empty() {
+            ModelError::Truncated {
+                path: p(),
+                what: "magic".into(),
+            }
+        } else {
+            ModelError::BadMagic { path: p() }
+        });
+    }
+    if &bytes[..8] != MAGIC {
+        return Err(ModelError::BadMagic { path: p() });
+    }
+    let mut at = 8usize;
+    let mut take = |n: usize, what: &str| -> Result<&[u8], ModelError> {
+        if bytes.len() - at < n {
+            return Err(ModelError::Truncated {
+                path: p(),
+                what: format!(
+                    "{what}: needs {n} bytes at offset {at}, file has {}",
+                    bytes.len()
+                ),
+            });
+        }
+        let s = &bytes[at..at + n];
+        at += n;
+        Ok(s)
+    };
+    let json_len =
+        u64::from_le_bytes(take(8, "metadata length")?.try_into().expect("8 bytes")) as usize;
+    let json = take(json_len, "metadata")?;
+    let meta: ModelMeta = serde_json::from_slice(json).map_err(|e| ModelError::BadMeta {
+        path: p(),
+        message: e.to_string(),
+    })?;
+    meta.validate()
+        .map_err(|message| ModelError::BadMeta { path: p(), message })?;
+    let w_len =
+        u64::from_le_bytes(take(8, "weights length")?.try_into().expect("8 bytes")) as usize;
+    let weights = take(w_len, "weights")?.to_vec();
+    let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(weights)).map_err(|e| {
+        ModelError::Weights {
+            path: p(),
+            message: e.to_string(),
+        }
+    })?;
+    let model = Emp::new(&meta.config, meta.ablation, device)
+        .try_load_record(record)
+        .map_err(|e| ModelError::Weights {
+            path: p(),
+            message: e.to_string(),
+        })?;
+    Ok((meta, model))
+}
+
+/// A model ready for inference: metadata, fused network, device.
+#[derive(Debug, Clone)]
+pub struct LoadedModel {
+    /// What the file says about the model.
+    pub meta: ModelMeta,
+    /// The fused inference network.
+    pub network: EmpInference,
+    /// The device it runs on.
+    pub device: Device,
+    /// Where it was loaded from.
+    pub path: PathBuf,
+}
+
+impl LoadedModel {
+    /// Loads `path` for inference on the CPU device.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, ModelError> {
+        let path = path.as_ref();
+        let device = super::cpu_device();
+        let (meta, emp) = load_emp(path, &device)?;
+        tracing::info!(file = %path.display(), ablation = %meta.ablation, config = %meta.config.name, "model loaded");
+        Ok(Self::from_parts(meta, &emp, device, path.to_path_buf()))
+    }
+
+    /// Wraps an in-memory network (tests, training).
+    pub fn from_parts(meta: ModelMeta, emp: &Emp, device: Device, path: PathBuf) -> Self {
+        LoadedModel {
+            network: emp.to_inference(),
+            meta,
+            device,
+            path,
+        }
+    }
+
+    /// Whole-window forecast: `K` probabilities, non-decreasing in the horizon.
+    ///
+    /// `joints` `[N, C]` and `plan` `[N + h_K, C]` in radians, `frames`
+    /// `[3, N, S, S]` in `[0, 1]` (row-major, as `window::Window` holds them).
+    /// Inputs the ablation does not use are ignored (may be empty).
+    pub fn forecast_arrays(
+        &self,
+        joints: &[f32],
+        plan: &[f32],
+        frames: &[f32],
+    ) -> Result<Vec<f32>, ModelError> {
+        let input = self.batch_input(&[joints], &[plan], &[frames])?;
+        let logits = self.network.forward(input);
+        probabilities(logits)
+    }
+
+    /// Builds a standardised, low-passed batch from raw windows.
+    pub fn batch_input(
+        &self,
+        joints: &[&[f32]],
+        plan: &[&[f32]],
+        frames: &[&[f32]],
+    ) -> Result<EmpInput, ModelError> {
+        build_input(&self.meta, joints, plan, frames, &self.device)
+    }
+}
+
+/// `sigmoid(logits)` of a `[1, K]` batch, on the host.
+pub fn probabilities(logits: Tensor<2>) -> Result<Vec<f32>, ModelError> {
+    let z: Vec<f32> = burn::tensor::activation::sigmoid(logits)
+        .into_data()
+        .try_to_vec::<f32>()
+        .map_err(|e| ModelError::Input(format!("model output is not f32: {e:?}")))?;
+    Ok(z)
+}
+
+/// Standardises joints and plan per joint, checks every value, low-passes the
+/// frames, and stacks `B` windows into one network input.
+pub fn build_input(
+    meta: &ModelMeta,
+    joints: &[&[f32]],
+    plan: &[&[f32]],
+    frames: &[&[f32]],
+    device: &Device,
+) -> Result<EmpInput, ModelError> {
+    let cfg = &meta.config;
+    let (n, c, l, s) = (cfg.n_ticks, cfg.n_joints, cfg.plan_len(), cfg.frame_size);
+    let b = joints.len();
+    let standardise = |name: &str, rows: usize, windows: &[&[f32]], mean: &[f32], std: &[f32]| {
+        let mut out = Vec::with_capacity(b * rows * c);
+        for (w, x) in windows.iter().enumerate() {
+            if x.len() != rows * c {
+                return Err(ModelError::Input(format!(
+                    "{name} of window {w} has {} values, expected {rows} ticks x {c} joints",
+                    x.len()
+                )));
+            }
+            for (i, &v) in x.iter().enumerate() {
+                if !v.is_finite() {
+                    return Err(ModelError::Input(format!(
+                        "{name} of window {w} is not finite at tick {} joint {} ({v})",
+                        i / c,
+                        meta.joint_names
+                            .get(i % c)
+                            .map(String::as_str)
+                            .unwrap_or("?")
+                    )));
+                }
+                out.push((v - mean[i % c]) / std[i % c]);
+            }
+        }
+        Ok(Tensor::<3>::from_data(
+            TensorData::new(out, [b, rows, c]),
+            device,
+        ))
+    };
+    let joints_t = standardise("joints", n, joints, &meta.joint_mean, &meta.joint_std)?;
+    let plan_t = if meta.ablation.uses_plan() {
+        if plan.len() != b {
+            return Err(ModelError::Input(format!(
+                "{} plans for {b} windows",
+                plan.len()
+            )));
+        }
+        Some(standardise(
+            "plan",
+            l,
+            plan,
+            &meta.plan_mean,
+            &meta.plan_std,
+        )?)
+    } else {
+        None
+    };
+    let frames_t = if meta.ablation.uses_vision() {
+        if frames.len() != b {
+            return Err(ModelError::Input(format!(
+                "{} frame stacks for {b} windows",
+                frames.len()
+            )));
+        }
+        let mut all = Vec::with_capacity(b * 3 * n * s * s);
+        for (w, f) in frames.iter().enumerate() {
+            if f.len() != 3 * n * s * s {
+                return Err(ModelError::Input(format!(
+                    "frames of window {w} have {} values, expected 3 x {n} x {s} x {s}",
+                    f.len()
+                )));
+            }
+            if let Some(i) = f.iter().position(|v| !v.is_finite()) {
+                return Err(ModelError::Input(format!(
+                    "frames of window {w} are not finite at tick {}",
+                    (i / (s * s)) % n
+                )));
+            }
+            all.extend_from_slice(f);
+        }
+        let raw = Tensor::<5>::from_data(TensorData::new(all, [b, 3, n, s, s]), device);
+        Some(lowpass_frames(raw, cfg.lowpass_a))
+    } else {
+        None
+    };
+    Ok(EmpInput {
+        joints: joints_t,
+        plan: plan_t,
+        frames: frames_t,
+    })
+}

@@ -1,0 +1,158 @@
+//! Trajectory encoder (M): the planned motion, past and future, TimesNet-style.
+//!
+//! In: standardised plan `[B, L, C]`, `L = N + h_K`. Out: features `[B, L·d_t]`.
+//! A linear embedding `C -> d_t`, then `num_times` TimesNet blocks: per sample,
+//! the `top_k` periods of largest DFT amplitude (DC dropped), each folded into a
+//! 2-D grid and passed through Inception2d -> GELU -> Inception2d, summed with
+//! softmax weights of their amplitudes, residual, LayerNorm over `d_t`.
+
+use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
+use burn::prelude::*;
+use burn::tensor::activation::{gelu, softmax};
+
+use super::config::ModelConfig;
+use super::inception::{FusedConv, Inception2d};
+use super::spectral::dft_matrices;
+
+/// One TimesNet block.
+#[derive(Module, Debug)]
+pub struct TimesBlock {
+    conv_in: Inception2d,
+    conv_out: Inception2d,
+    norm: LayerNorm,
+}
+
+/// The trajectory encoder.
+#[derive(Module, Debug)]
+pub struct PlanEncoder {
+    embed: Linear,
+    blocks: Vec<TimesBlock>,
+    top_k: usize,
+}
+
+/// The two fused convolutions of each block, for inference.
+#[derive(Debug, Clone)]
+pub struct PlanFused {
+    blocks: Vec<[FusedConv<4>; 2]>,
+}
+
+impl PlanEncoder {
+    /// A freshly initialised encoder.
+    pub fn new(cfg: &ModelConfig, device: &Device) -> Self {
+        PlanEncoder {
+            embed: LinearConfig::new(cfg.n_joints, cfg.plan_d).init(device),
+            blocks: (0..cfg.num_times)
+                .map(|_| TimesBlock {
+                    conv_in: Inception2d::new(cfg.plan_d, cfg.inc_dim, cfg.num_kernels, device),
+                    conv_out: Inception2d::new(cfg.inc_dim, cfg.plan_d, cfg.num_kernels, device),
+                    norm: LayerNormConfig::new(cfg.plan_d).init(device),
+                })
+                .collect(),
+            top_k: cfg.top_k,
+        }
+    }
+
+    /// Number of features per sample, `L·d_t`.
+    pub fn out_features(cfg: &ModelConfig) -> usize {
+        cfg.plan_len() * cfg.plan_d
+    }
+
+    /// Fuses every Inception block (inference).
+    pub fn fuse(&self) -> PlanFused {
+        PlanFused {
+            blocks: self
+                .blocks
+                .iter()
+                .map(|b| [b.conv_in.fuse(), b.conv_out.fuse()])
+                .collect(),
+        }
+    }
+
+    /// `[B, L, C]` -> `[B, L·d_t]`; `fused` selects the fused convolutions.
+    pub fn forward(&self, plan: Tensor<3>, fused: Option<&PlanFused>) -> Tensor<2> {
+        let [b, l, _] = plan.dims();
+        let device = plan.device();
+        let (cos, sin) = dft_matrices(l);
+        let nf = l / 2 + 1;
+        let cos_t = Tensor::<2>::from_data(TensorData::new(cos, [nf, l]), &device)
+            .transpose()
+            .unsqueeze::<3>();
+        let sin_t = Tensor::<2>::from_data(TensorData::new(sin, [nf, l]), &device)
+            .transpose()
+            .unsqueeze::<3>();
+        let mut x = self.embed.forward(plan); // [B, L, d]
+        let d = x.dims()[2];
+        for (bi, block) in self.blocks.iter().enumerate() {
+            // Amplitude per frequency, averaged over channels: [B, F].
+            let xt = x.clone().swap_dims(1, 2); // [B, d, L]
+            let re = xt.clone().matmul(cos_t.clone());
+            let im = xt.matmul(sin_t.clone());
+            let amp = (re.powi_scalar(2) + im.powi_scalar(2))
+                .add_scalar(1e-12)
+                .sqrt();
+            let amp = amp.mean_dim(1).reshape([b, nf]); // [B, F]
+                                                        // Top-k frequencies per sample (not differentiated).
+            let amp_host: Vec<f32> = amp
+                .clone()
+                .detach()
+                .into_data()
+                .try_to_vec::<f32>()
+                .expect("f32 amplitudes");
+            let k = self.top_k.min(nf.saturating_sub(1)).max(1);
+            let mut onehot = vec![0.0f32; b * nf * k];
+            let mut periods = vec![Vec::with_capacity(k); b];
+            for s in 0..b {
+                let row = &amp_host[s * nf..(s + 1) * nf];
+                let freqs = top_frequencies(row, k);
+                for (i, &f) in freqs.iter().enumerate() {
+                    onehot[s * nf * k + f * k + i] = 1.0;
+                    periods[s].push(l.div_ceil(f));
+                }
+            }
+            let onehot = Tensor::<3>::from_data(TensorData::new(onehot, [b, nf, k]), &device);
+            let weights = softmax(amp.unsqueeze_dim::<3>(1).matmul(onehot), 2); // [B, 1, k]
+            let mut outs = Vec::with_capacity(b);
+            for (s, sample_periods) in periods.iter().enumerate() {
+                let xs = x.clone().slice([s..s + 1, 0..l, 0..d]); // [1, L, d]
+                let mut acc: Option<Tensor<3>> = None;
+                for (i, &p) in sample_periods.iter().enumerate() {
+                    let rows = l.div_ceil(p);
+                    let lp = rows * p;
+                    let padded = if lp > l {
+                        Tensor::cat(vec![xs.clone(), Tensor::zeros([1, lp - l, d], &device)], 1)
+                    } else {
+                        xs.clone()
+                    };
+                    let grid = padded.reshape([1, rows, p, d]).permute([0, 3, 1, 2]); // [1, d, rows, p]
+                    let y = match fused {
+                        Some(f) => f.blocks[bi][1].forward(gelu(f.blocks[bi][0].forward(grid))),
+                        None => block.conv_out.forward(gelu(block.conv_in.forward(grid))),
+                    };
+                    let y = y
+                        .permute([0, 2, 3, 1])
+                        .reshape([1, lp, d])
+                        .slice([0..1, 0..l, 0..d]);
+                    let w = weights.clone().slice([s..s + 1, 0..1, i..i + 1]); // [1,1,1]
+                    let y = y * w;
+                    acc = Some(match acc {
+                        None => y,
+                        Some(a) => a + y,
+                    });
+                }
+                outs.push(acc.expect("top_k >= 1"));
+            }
+            let res = Tensor::cat(outs, 0);
+            x = block.norm.forward(res + x);
+        }
+        x.reshape([b, l * d])
+    }
+}
+
+/// Indices (>= 1, DC dropped) of the `k` largest amplitudes, largest first;
+/// ties go to the lower frequency, so the choice is deterministic.
+fn top_frequencies(amp: &[f32], k: usize) -> Vec<usize> {
+    let mut idx: Vec<usize> = (1..amp.len()).collect();
+    idx.sort_by(|&a, &b| amp[b].total_cmp(&amp[a]).then(a.cmp(&b)));
+    idx.truncate(k);
+    idx
+}

@@ -1,0 +1,380 @@
+//! Per-tick inference: the daemon pushes one tick at a time and asks for a
+//! forecast; per-frame and per-time-slice work is done once, not every tick.
+//!
+//! In: [`StreamingForecaster::push_parts`] with one tick's joint angles, frame
+//! and plan window. Out: [`StreamingForecaster::forecast`], `K` probabilities.
+//!
+//! What is reused across ticks (all exact, equal to the whole-window forward):
+//! - the low-pass of a frame, computed once when the frame enters;
+//! - in the vision encoder, every time slice of every layer whose receptive
+//!   field does not reach the window's edges (where "same" padding puts zeros):
+//!   such a slice depends only on the frames it covers, so it is cached by the
+//!   absolute tick where it starts. Each tick recomputes only the slices next
+//!   to the window's two ends (and the new ones).
+//!
+//! Motion, plan and classifier are recomputed every tick (their inputs all move).
+//! Inference runs on the calling thread: the Flex backend is built without
+//! its rayon feature, so no other thread is used.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
+
+use burn::prelude::*;
+use burn::tensor::activation::relu;
+
+use super::file::{probabilities, LoadedModel, ModelError};
+use super::vision::{lowpass_frames, spatial_pool};
+use super::EmpInput;
+
+/// One time slice of one vision layer: `[channels, h, w]` row-major.
+#[derive(Debug, Clone)]
+struct Slice {
+    /// Absolute tick of the first frame the slice covers.
+    key: i64,
+    /// Whether its value depends on its frames only (not on the window's edges).
+    stable: bool,
+    data: Arc<Vec<f32>>,
+}
+
+/// One tick as the forecaster keeps it.
+#[derive(Debug, Clone)]
+struct TickState {
+    tick: i64,
+    joints_std: Vec<f32>,
+    frame_lp: Option<Arc<Vec<f32>>>,
+}
+
+/// Forecasts tick by tick from a [`LoadedModel`].
+#[derive(Debug)]
+pub struct StreamingForecaster {
+    model: LoadedModel,
+    ticks: VecDeque<TickState>,
+    plan_std: Option<Vec<f32>>,
+    /// Per vision layer: stable slice (after conv, ReLU, spatial pool) by key.
+    cache: Vec<HashMap<i64, Arc<Vec<f32>>>>,
+}
+
+impl StreamingForecaster {
+    /// A forecaster with an empty window.
+    pub fn new(model: &LoadedModel) -> Self {
+        let cfg = &model.meta.config;
+        let layers = cfg.vision_channels.len();
+        StreamingForecaster {
+            model: model.clone(),
+            ticks: VecDeque::with_capacity(cfg.n_ticks + 1),
+            plan_std: None,
+            cache: vec![HashMap::new(); layers],
+        }
+    }
+
+    /// The model it runs.
+    pub fn model(&self) -> &LoadedModel {
+        &self.model
+    }
+
+    /// Forgets every tick (e.g. after a stream gap).
+    pub fn reset(&mut self) {
+        self.ticks.clear();
+        self.plan_std = None;
+        self.cache.iter_mut().for_each(HashMap::clear);
+    }
+
+    /// Whether `N` consecutive ticks are in the window.
+    pub fn is_full(&self) -> bool {
+        self.ticks.len() == self.model.meta.n_ticks
+    }
+
+    /// Adds tick `tick`: `joints_rad` `[C]` in model order; `frame` `[3, S, S]`
+    /// in `[0, 1]` (needed by vision ablations); `plan_rad` the plan window
+    /// `[N + h_K, C]` for this tick (needed by plan ablations). A tick that is
+    /// not the successor of the last one starts a new window.
+    pub fn push_parts(
+        &mut self,
+        tick: i64,
+        joints_rad: &[f32],
+        frame: Option<&[f32]>,
+        plan_rad: Option<&[f32]>,
+    ) -> Result<(), ModelError> {
+        let meta = &self.model.meta;
+        let cfg = &meta.config;
+        let c = cfg.n_joints;
+        if joints_rad.len() != c {
+            return Err(ModelError::Input(format!(
+                "tick {tick}: {} joint angles, the model needs {c}",
+                joints_rad.len()
+            )));
+        }
+        let mut joints_std = Vec::with_capacity(c);
+        for (j, &v) in joints_rad.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: joint {} is not finite ({v})",
+                    meta.joint_names[j]
+                )));
+            }
+            joints_std.push((v - meta.joint_mean[j]) / meta.joint_std[j]);
+        }
+        let frame_lp = if meta.ablation.uses_vision() {
+            let s = cfg.frame_size;
+            let f = frame.ok_or_else(|| {
+                ModelError::Input(format!(
+                    "tick {tick}: no camera frame, the {} model needs one",
+                    meta.ablation
+                ))
+            })?;
+            if f.len() != 3 * s * s {
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: frame has {} values, expected 3 x {s} x {s}",
+                    f.len()
+                )));
+            }
+            if f.iter().any(|v| !v.is_finite()) {
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: frame is not finite"
+                )));
+            }
+            // P · x · Pᵀ per channel with the same tensor code as the whole-window path.
+            let raw = Tensor::<5>::from_data(
+                TensorData::new(f.to_vec(), [1, 3, 1, s, s]),
+                &self.model.device,
+            );
+            let out: Vec<f32> = lowpass_frames(raw, cfg.lowpass_a)
+                .into_data()
+                .try_to_vec::<f32>()
+                .map_err(|e| ModelError::Input(format!("tick {tick}: low-pass output: {e:?}")))?;
+            Some(Arc::new(out))
+        } else {
+            None
+        };
+        if meta.ablation.uses_plan() {
+            let l = cfg.plan_len();
+            let p = plan_rad.ok_or_else(|| {
+                ModelError::Input(format!(
+                    "tick {tick}: no plan, the {} model needs one",
+                    meta.ablation
+                ))
+            })?;
+            if p.len() != l * c {
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: plan window has {} values, expected {l} ticks x {c} joints",
+                    p.len()
+                )));
+            }
+            let mut std = Vec::with_capacity(l * c);
+            for (i, &v) in p.iter().enumerate() {
+                if !v.is_finite() {
+                    return Err(ModelError::Input(format!(
+                        "tick {tick}: plan not finite at offset {} joint {}",
+                        i / c,
+                        meta.joint_names[i % c]
+                    )));
+                }
+                std.push((v - meta.plan_mean[i % c]) / meta.plan_std[i % c]);
+            }
+            self.plan_std = Some(std);
+        }
+        if let Some(last) = self.ticks.back() {
+            if tick != last.tick + 1 {
+                tracing::debug!(tick, last = last.tick, "tick gap: window restarts");
+                self.ticks.clear();
+                self.cache.iter_mut().for_each(HashMap::clear);
+            }
+        }
+        self.ticks.push_back(TickState {
+            tick,
+            joints_std,
+            frame_lp,
+        });
+        if self.ticks.len() > cfg.n_ticks {
+            self.ticks.pop_front();
+        }
+        Ok(())
+    }
+
+    /// `K` fall probabilities for the current window (non-decreasing in the horizon).
+    pub fn forecast(&mut self) -> Result<Vec<f32>, ModelError> {
+        let meta = &self.model.meta;
+        let cfg = &meta.config;
+        let (n, c) = (cfg.n_ticks, cfg.n_joints);
+        if !self.is_full() {
+            return Err(ModelError::Input(format!(
+                "window not full: {} of {n} ticks",
+                self.ticks.len()
+            )));
+        }
+        let device = self.model.device.clone();
+        let joints: Vec<f32> = self
+            .ticks
+            .iter()
+            .flat_map(|t| t.joints_std.iter().copied())
+            .collect();
+        let joints = Tensor::<3>::from_data(TensorData::new(joints, [1, n, c]), &device);
+        let plan = match &self.plan_std {
+            Some(p) if meta.ablation.uses_plan() => Some(Tensor::<3>::from_data(
+                TensorData::new(p.clone(), [1, cfg.plan_len(), c]),
+                &device,
+            )),
+            _ => None,
+        };
+        let vision = if meta.ablation.uses_vision() {
+            Some(self.vision_features()?)
+        } else {
+            None
+        };
+        let logits = self.model.network.forward_with_vision(
+            EmpInput {
+                joints,
+                plan,
+                frames: None,
+            },
+            vision,
+        );
+        probabilities(logits)
+    }
+
+    /// Vision features `[1, F]` of the current window, reusing cached slices.
+    fn vision_features(&mut self) -> Result<Tensor<2>, ModelError> {
+        let cfg = self.model.meta.config.clone();
+        let device = self.model.device.clone();
+        let fused =
+            self.model.network.vision_fused.clone().ok_or_else(|| {
+                ModelError::Input("vision ablation without vision weights".into())
+            })?;
+        let window_start = self.ticks.front().map(|t| t.tick).unwrap_or(0);
+        let mut slices: Vec<Slice> = Vec::with_capacity(cfg.n_ticks);
+        for t in &self.ticks {
+            let data = t
+                .frame_lp
+                .clone()
+                .ok_or_else(|| ModelError::Input(format!("tick {}: no frame", t.tick)))?;
+            slices.push(Slice {
+                key: t.tick,
+                stable: true,
+                data,
+            });
+        }
+        let mut c_in = 3usize;
+        let mut hw = cfg.lowpassed_size();
+        for (li, layer) in fused.layers.iter().enumerate() {
+            let c_out = cfg.vision_channels[li];
+            let t_len = slices.len();
+            let (ho, wo) = (hw / 2, hw / 2);
+            let out_len = c_out * ho * wo;
+            let mut out: Vec<Option<Slice>> = vec![None; t_len];
+            for j in 0..t_len {
+                let stable =
+                    j >= 1 && j + 1 < t_len && slices[j - 1..=j + 1].iter().all(|s| s.stable);
+                if stable {
+                    if let Some(d) = self.cache[li].get(&slices[j].key) {
+                        out[j] = Some(Slice {
+                            key: slices[j].key,
+                            stable,
+                            data: d.clone(),
+                        });
+                    }
+                }
+            }
+            // Compute the missing outputs in runs of consecutive positions.
+            let mut j = 0;
+            while j < t_len {
+                if out[j].is_some() {
+                    j += 1;
+                    continue;
+                }
+                let j0 = j;
+                while j < t_len && out[j].is_none() {
+                    j += 1;
+                }
+                let j1 = j - 1;
+                let lo = j0.saturating_sub(1);
+                let hi = (j1 + 1).min(t_len - 1);
+                // Zero slices stand for the "same" padding where the window ends
+                // (the kernel reaches one slice each way).
+                let (pad_lo, pad_hi) = ((j0 == 0) as usize, (j1 == t_len - 1) as usize);
+                let span = pad_lo + (hi - lo + 1) + pad_hi;
+                // Gather [1, C_in, span, hw, hw] from per-slice [C_in, hw, hw].
+                let plane = hw * hw;
+                let mut buf = vec![0.0f32; c_in * span * plane];
+                for (ti, s) in slices[lo..=hi].iter().enumerate() {
+                    let ti = ti + pad_lo;
+                    for ch in 0..c_in {
+                        buf[(ch * span + ti) * plane..(ch * span + ti + 1) * plane]
+                            .copy_from_slice(&s.data[ch * plane..(ch + 1) * plane]);
+                    }
+                }
+                let x =
+                    Tensor::<5>::from_data(TensorData::new(buf, [1, c_in, span, hw, hw]), &device);
+                let y = spatial_pool(relu(layer.forward_valid_time(x)));
+                let runs = j1 - j0 + 1;
+                debug_assert_eq!(y.dims()[2], runs);
+                let y: Vec<f32> = y
+                    .into_data()
+                    .try_to_vec::<f32>()
+                    .map_err(|e| ModelError::Input(format!("vision output: {e:?}")))?;
+                let oplane = ho * wo;
+                for r in 0..runs {
+                    let pos = j0 + r;
+                    let mut d = vec![0.0f32; out_len];
+                    for ch in 0..c_out {
+                        d[ch * oplane..(ch + 1) * oplane].copy_from_slice(
+                            &y[(ch * runs + r) * oplane..(ch * runs + r + 1) * oplane],
+                        );
+                    }
+                    let stable = pos >= 1
+                        && pos + 1 < t_len
+                        && slices[pos - 1..=pos + 1].iter().all(|s| s.stable);
+                    let data = Arc::new(d);
+                    if stable {
+                        self.cache[li].insert(slices[pos].key, data.clone());
+                    }
+                    out[pos] = Some(Slice {
+                        key: slices[pos].key,
+                        stable,
+                        data,
+                    });
+                }
+            }
+            let out: Vec<Slice> = out
+                .into_iter()
+                .map(|s| s.expect("every position computed"))
+                .collect();
+            slices = if fused.time_pool[li] {
+                out.chunks_exact(2)
+                    .map(|pair| Slice {
+                        key: pair[0].key,
+                        stable: pair[0].stable && pair[1].stable,
+                        data: Arc::new(
+                            pair[0]
+                                .data
+                                .iter()
+                                .zip(pair[1].data.iter())
+                                .map(|(a, b)| a.max(*b))
+                                .collect(),
+                        ),
+                    })
+                    .collect()
+            } else {
+                out
+            };
+            // Slices that start before the window can never be used again.
+            self.cache[li].retain(|&k, _| k >= window_start);
+            c_in = c_out;
+            hw /= 2;
+        }
+        // Flatten as [C, T, h, w].
+        let t_len = slices.len();
+        let plane = hw * hw;
+        let mut feats = vec![0.0f32; c_in * t_len * plane];
+        for (ti, s) in slices.iter().enumerate() {
+            for ch in 0..c_in {
+                feats[(ch * t_len + ti) * plane..(ch * t_len + ti + 1) * plane]
+                    .copy_from_slice(&s.data[ch * plane..(ch + 1) * plane]);
+            }
+        }
+        let f = c_in * t_len * plane;
+        Ok(Tensor::<2>::from_data(
+            TensorData::new(feats, [1, f]),
+            &device,
+        ))
+    }
+}

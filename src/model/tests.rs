@@ -1,0 +1,359 @@
+//! Tests of the network, the model file and the streaming forecaster.
+
+use super::*;
+use burn::prelude::*;
+
+fn joint_names(c: usize) -> Vec<String> {
+    (0..c).map(|i| format!("joint_{i}")).collect()
+}
+
+/// A small but complete configuration (reference sizes make tests slow in debug).
+fn small_config() -> ModelConfig {
+    let mut cfg = ModelConfig::lite(12, 5, vec![3, 6, 9, 12], 32);
+    cfg.d_model = 64;
+    cfg.inc_dim = 8;
+    cfg.plan_d = 8;
+    cfg
+}
+
+/// Deterministic pseudo-random values in [0, 1).
+fn noise(len: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15).wrapping_add(7);
+    (0..len)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        })
+        .collect()
+}
+
+struct Windows {
+    joints: Vec<f32>,
+    plan: Vec<f32>,
+    frames: Vec<f32>,
+}
+
+fn window(cfg: &ModelConfig, seed: u64) -> Windows {
+    let (n, c, s) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size);
+    Windows {
+        joints: noise(n * c, seed).iter().map(|v| v * 2.0 - 1.0).collect(),
+        plan: noise(cfg.plan_len() * c, seed + 1)
+            .iter()
+            .map(|v| v * 2.0 - 1.0)
+            .collect(),
+        frames: noise(3 * n * s * s, seed + 2),
+    }
+}
+
+fn model(cfg: &ModelConfig, ablation: Ablation) -> (ModelMeta, Emp) {
+    let device = cpu_device();
+    let meta = ModelMeta::new(cfg.clone(), ablation, 30.0, joint_names(cfg.n_joints));
+    (meta, Emp::new(cfg, ablation, &device))
+}
+
+#[test]
+fn every_ablation_has_the_right_shapes_and_monotone_output() {
+    let cfg = small_config();
+    let device = cpu_device();
+    for ablation in Ablation::ALL {
+        let (meta, emp) = model(&cfg, ablation);
+        let w: Vec<Windows> = (0..3).map(|i| window(&cfg, 10 + i)).collect();
+        let input = file::build_input(
+            &meta,
+            &w.iter().map(|w| w.joints.as_slice()).collect::<Vec<_>>(),
+            &w.iter().map(|w| w.plan.as_slice()).collect::<Vec<_>>(),
+            &w.iter().map(|w| w.frames.as_slice()).collect::<Vec<_>>(),
+            &device,
+        )
+        .expect("valid input");
+        let logits = emp.forward(input);
+        assert_eq!(logits.dims(), [3, 4], "{ablation}");
+        let z: Vec<f32> = logits.into_data().try_to_vec::<f32>().unwrap();
+        for row in z.chunks(4) {
+            assert!(
+                row.windows(2).all(|p| p[0] <= p[1]),
+                "{ablation}: logits not monotone: {row:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn reference_config_shapes() {
+    let cfg = ModelConfig::lite(60, 25, vec![15, 30, 45, 60], 64);
+    cfg.validate().unwrap();
+    assert_eq!(cfg.vision_out_shape(), [32, 15, 2, 2]);
+    assert_eq!(vision::VisionEncoder::out_features(&cfg), 1920);
+    assert_eq!(plan::PlanEncoder::out_features(&cfg), 120 * 32);
+    let device = cpu_device();
+    let v = vision::VisionEncoder::new(&cfg, &device);
+    let x = Tensor::<5>::zeros([1, 3, 60, 32, 32], &device);
+    assert_eq!(v.forward(x).dims(), [1, 1920]);
+}
+
+#[test]
+fn monotone_map_is_cumulative_softplus() {
+    let device = cpu_device();
+    let a = Tensor::<2>::from_data(
+        TensorData::new(vec![0.5f32, -3.0, 2.0, -20.0], [1, 4]),
+        &device,
+    );
+    let z: Vec<f32> = emp::monotone_logits(a)
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    let sp = |x: f32| (1.0 + x.exp()).ln();
+    let want = [
+        0.5,
+        0.5 + sp(-3.0),
+        0.5 + sp(-3.0) + sp(2.0),
+        0.5 + sp(-3.0) + sp(2.0) + sp(-20.0),
+    ];
+    for (g, w) in z.iter().zip(want) {
+        assert!((g - w).abs() < 1e-5, "{z:?} vs {want:?}");
+    }
+}
+
+#[test]
+fn probabilities_never_decrease_with_horizon_for_random_inputs() {
+    let cfg = small_config();
+    let (meta, emp) = model(&cfg, Ablation::EMP);
+    let loaded = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+    for seed in 0..5 {
+        let w = window(&cfg, 100 + seed);
+        let p = loaded
+            .forecast_arrays(&w.joints, &w.plan, &w.frames)
+            .unwrap();
+        assert_eq!(p.len(), 4);
+        assert!(p.windows(2).all(|q| q[0] <= q[1]), "{p:?}");
+        assert!(p.iter().all(|v| (0.0..=1.0).contains(v)));
+    }
+}
+
+#[test]
+fn fused_inception_equals_branches() {
+    let device = cpu_device();
+    let inc = inception::Inception2d::new(4, 6, 3, &device);
+    let x = Tensor::<4>::from_data(
+        TensorData::new(noise(2 * 4 * 5 * 7, 3), [2, 4, 5, 7]),
+        &device,
+    );
+    let a: Vec<f32> = inc
+        .forward(x.clone())
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    let b: Vec<f32> = inc
+        .fuse()
+        .forward(x)
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    assert!(a.iter().zip(&b).all(|(p, q)| (p - q).abs() < 1e-5));
+    let inc3 = inception::Inception3d::new(3, 5, &device);
+    let x = Tensor::<5>::from_data(
+        TensorData::new(noise(3 * 6 * 8 * 8, 4), [1, 3, 6, 8, 8]),
+        &device,
+    );
+    let a: Vec<f32> = inc3
+        .forward(x.clone())
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    let b: Vec<f32> = inc3
+        .fuse()
+        .forward(x)
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    assert!(a.iter().zip(&b).all(|(p, q)| (p - q).abs() < 1e-5));
+}
+
+#[test]
+fn fused_network_equals_training_network() {
+    let cfg = small_config();
+    let (meta, emp) = model(&cfg, Ablation::EMP);
+    let device = cpu_device();
+    let w = window(&cfg, 5);
+    let input = file::build_input(&meta, &[&w.joints], &[&w.plan], &[&w.frames], &device).unwrap();
+    let a: Vec<f32> = emp
+        .forward(input.clone())
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    let b: Vec<f32> = emp
+        .to_inference()
+        .forward(input)
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    assert!(
+        a.iter().zip(&b).all(|(p, q)| (p - q).abs() < 1e-5),
+        "{a:?} vs {b:?}"
+    );
+}
+
+#[test]
+fn save_then_load_gives_identical_outputs() {
+    let cfg = small_config();
+    let dir = tempfile::tempdir().unwrap();
+    for ablation in [Ablation::P, Ablation::EMP] {
+        let (mut meta, emp) = model(&cfg, ablation);
+        meta.joint_mean = vec![0.1; cfg.n_joints];
+        meta.trained_on = "simulated".into();
+        let path = dir.path().join(format!("{ablation}.bpk"));
+        save_model(&path, &meta, &emp).unwrap();
+        let before = LoadedModel::from_parts(meta.clone(), &emp, cpu_device(), path.clone());
+        let after = LoadedModel::load(&path).unwrap();
+        assert_eq!(after.meta, meta);
+        let w = window(&cfg, 9);
+        let a = before
+            .forecast_arrays(&w.joints, &w.plan, &w.frames)
+            .unwrap();
+        let b = after
+            .forecast_arrays(&w.joints, &w.plan, &w.frames)
+            .unwrap();
+        assert_eq!(a, b, "{ablation}");
+    }
+}
+
+#[test]
+fn load_errors_name_the_file() {
+    let cfg = small_config();
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("nope.bpk");
+    let e = LoadedModel::load(&missing).unwrap_err().to_string();
+    assert!(e.contains("nope.bpk"), "{e}");
+
+    let (meta, emp) = model(&cfg, Ablation::MP);
+    let good = dir.path().join("good.bpk");
+    save_model(&good, &meta, &emp).unwrap();
+    let bytes = std::fs::read(&good).unwrap();
+    for cut in [4usize, 12, 40, bytes.len() - 10] {
+        let p = dir.path().join(format!("cut{cut}.bpk"));
+        std::fs::write(&p, &bytes[..cut]).unwrap();
+        let e = LoadedModel::load(&p).unwrap_err();
+        assert!(
+            matches!(e, ModelError::Truncated { .. }),
+            "cut at {cut}: {e}"
+        );
+        assert!(e.to_string().contains(&format!("cut{cut}.bpk")));
+    }
+    let bad = dir.path().join("bad.bpk");
+    std::fs::write(&bad, b"PK\x03\x04 definitely not a model").unwrap();
+    let e = LoadedModel::load(&bad).unwrap_err();
+    assert!(
+        matches!(e, ModelError::BadMagic { .. }) && e.to_string().contains("bad.bpk"),
+        "{e}"
+    );
+}
+
+#[test]
+fn mismatched_inputs_are_refused_with_what_differs() {
+    let cfg = small_config();
+    let meta = ModelMeta::new(cfg.clone(), Ablation::EMP, 30.0, joint_names(5));
+    meta.check_compatible_with(&joint_names(5), 30.0, 12, 12, 32)
+        .unwrap();
+    let mut other = joint_names(5);
+    other.swap(1, 2);
+    let e = meta
+        .check_compatible_with(&other, 30.0, 12, 12, 32)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("joint list") && e.contains("index 1"), "{e}");
+    let e = meta
+        .check_compatible_with(&joint_names(5), 10.0, 12, 12, 32)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("tick rate") && e.contains("30") && e.contains("10"),
+        "{e}"
+    );
+    let e = meta
+        .check_compatible_with(&joint_names(5), 30.0, 24, 12, 32)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("window length"), "{e}");
+}
+
+#[test]
+fn nan_input_is_an_error_naming_tick_and_joint() {
+    let cfg = small_config();
+    let (meta, emp) = model(&cfg, Ablation::P);
+    let loaded = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+    let mut w = window(&cfg, 1);
+    w.joints[3 * 5 + 2] = f32::NAN;
+    let e = loaded
+        .forecast_arrays(&w.joints, &[], &[])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("tick 3") && e.contains("joint_2"), "{e}");
+}
+
+/// The whole-window arrays for the window ending at `end` of a long stream.
+fn stream_window(
+    cfg: &ModelConfig,
+    stream_joints: &[f32],
+    stream_frames: &[Vec<f32>],
+    end: usize,
+) -> (Vec<f32>, Vec<f32>) {
+    let (n, c, s) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size);
+    let start = end + 1 - n;
+    let joints = stream_joints[start * c..(end + 1) * c].to_vec();
+    let mut frames = vec![0.0f32; 3 * n * s * s];
+    for t in 0..n {
+        let f = &stream_frames[start + t];
+        for ch in 0..3 {
+            frames[(ch * n + t) * s * s..(ch * n + t + 1) * s * s]
+                .copy_from_slice(&f[ch * s * s..(ch + 1) * s * s]);
+        }
+    }
+    (joints, frames)
+}
+
+#[test]
+fn streaming_equals_whole_window() {
+    for cfg in [
+        small_config(),
+        ModelConfig::lite(24, 25, vec![6, 12, 18, 24], 64),
+    ] {
+        let (meta, emp) = model(&cfg, Ablation::EMP);
+        let loaded = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+        let mut stream = StreamingForecaster::new(&loaded);
+        let (c, s, l) = (cfg.n_joints, cfg.frame_size, cfg.plan_len());
+        let total = cfg.n_ticks + 7;
+        let joints = noise(total * c, 77);
+        let frames: Vec<Vec<f32>> = (0..total)
+            .map(|t| noise(3 * s * s, 1000 + t as u64))
+            .collect();
+        for t in 0..total {
+            let plan = noise(l * c, 5000 + t as u64);
+            stream
+                .push_parts(
+                    100 + t as i64,
+                    &joints[t * c..(t + 1) * c],
+                    Some(&frames[t]),
+                    Some(&plan),
+                )
+                .unwrap();
+            if t + 1 < cfg.n_ticks {
+                assert!(
+                    stream.forecast().is_err(),
+                    "forecast before the window is full"
+                );
+                continue;
+            }
+            let got = stream.forecast().unwrap();
+            let (wj, wf) = stream_window(&cfg, &joints, &frames, t);
+            let want = loaded.forecast_arrays(&wj, &plan, &wf).unwrap();
+            for (g, w) in got.iter().zip(&want) {
+                assert!(
+                    (g - w).abs() < 1e-5,
+                    "tick {t}: streaming {got:?} vs window {want:?}"
+                );
+            }
+        }
+    }
+}

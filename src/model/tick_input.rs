@@ -1,0 +1,81 @@
+//! The daemon's entry to the streaming forecaster: one resampled
+//! [`TickInput`] per tick, turned into the same arrays `Window::from_ticks`
+//! builds (the plan window sampled from the tick's latest plan on the tick
+//! grid, the frame as CHW in `[0, 1]`), then [`StreamingForecaster::push_parts`].
+//!
+//! Needs the data plane's `window.rs` and `frame.rs` (branch `data`): add
+//! `pub mod tick_input;` to `model/mod.rs` when they are merged.
+
+use super::file::ModelError;
+use super::streaming::StreamingForecaster;
+use crate::window::{TickInput, WindowSpec};
+
+impl StreamingForecaster {
+    /// The window spec of the loaded model (for `check_compatible` and the ring).
+    pub fn window_spec(&self) -> WindowSpec {
+        let m = &self.model().meta;
+        WindowSpec {
+            n_ticks: m.n_ticks,
+            max_horizon_ticks: m.config.max_horizon_ticks(),
+            rate_hz: m.rate_hz,
+            joint_names: m.joint_names.clone(),
+            frame_size: m.frame_size,
+        }
+    }
+
+    /// Adds one tick. Streams the model's ablation does not use may be absent.
+    pub fn push(&mut self, input: &TickInput) -> Result<(), ModelError> {
+        let spec = self.window_spec();
+        let meta = &self.model().meta;
+        let (n, c, s) = (meta.n_ticks, meta.config.n_joints, meta.config.frame_size);
+        let tick = input.tick;
+        let joints = input
+            .joints_rad
+            .as_ref()
+            .ok_or_else(|| ModelError::Input(format!("tick {tick}: no joint angles yet")))?;
+        let frame = if meta.ablation.uses_vision() {
+            let f = input
+                .frame
+                .as_ref()
+                .ok_or_else(|| ModelError::Input(format!("tick {tick}: no camera frame yet")))?;
+            if f.width as usize != s || f.height as usize != s {
+                return Err(ModelError::Input(format!("tick {tick}: frame is {}x{}, the model needs {s}x{s}", f.width, f.height)));
+            }
+            let mut chw = vec![0.0f32; 3 * s * s];
+            f.write_chw(&mut chw, s * s);
+            Some(chw)
+        } else {
+            None
+        };
+        let plan = if meta.ablation.uses_plan() {
+            let p = input
+                .plan
+                .as_ref()
+                .ok_or_else(|| ModelError::Input(format!("tick {tick}: no plan yet")))?;
+            let grid = spec.grid().map_err(|e| ModelError::Input(format!("tick grid: {e}")))?;
+            let first_tick = tick - n as i64 + 1;
+            let mut out = vec![0.0f32; spec.plan_len() * c];
+            for (i, row) in out.chunks_exact_mut(c).enumerate() {
+                p.sample_into(grid.stamp_ns(first_tick + i as i64), row);
+            }
+            Some(out)
+        } else {
+            None
+        };
+        self.push_parts(tick, joints, frame.as_deref(), plan.as_deref())
+    }
+}
+
+impl super::file::ModelMeta {
+    /// Refuses a window spec the model was not trained for, saying what differs.
+    pub fn check_compatible(&self, spec: &WindowSpec) -> Result<(), ModelError> {
+        self.check_compatible_with(&spec.joint_names, spec.rate_hz, spec.n_ticks, spec.max_horizon_ticks, spec.frame_size)
+    }
+}
+
+impl super::file::LoadedModel {
+    /// Whole-window forecast of a `Window` built by `window.rs`: `K` probabilities.
+    pub fn forecast_window(&self, window: &crate::window::Window) -> Result<Vec<f32>, ModelError> {
+        self.forecast_arrays(&window.joints, &window.plan, &window.frames)
+    }
+}

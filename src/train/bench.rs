@@ -1,0 +1,271 @@
+//! `fall-guard bench`: per-tick latency of the streaming forecast for each
+//! ablation (one thread), the whole-window forward for comparison, and
+//! training throughput. Results as JSON.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use super::fit::{bce_with_logits, LabeledWindow};
+use crate::model::file::build_input;
+use crate::model::{
+    cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster,
+};
+
+/// Arguments of `fall-guard bench`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BenchArgs {
+    /// Model file whose configuration is benchmarked (every ablation of it);
+    /// without one, the reference `lite` configuration (N=60, C=25, 64 px).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Configuration when no model is given: lite or paper.
+    #[arg(long, default_value = "lite")]
+    pub config: String,
+    /// Write the results here as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Ticks measured per ablation (after the window is full).
+    #[arg(long, default_value_t = 300)]
+    pub ticks: usize,
+    /// Training steps measured (batch 4, EMP); 0 skips.
+    #[arg(long, default_value_t = 10)]
+    pub train_steps: usize,
+}
+
+/// Latency summary, milliseconds.
+#[derive(Debug, Clone, Serialize)]
+pub struct Latency {
+    /// Median.
+    pub median_ms: f64,
+    /// 99th percentile.
+    pub p99_ms: f64,
+    /// Mean.
+    pub mean_ms: f64,
+    /// Maximum.
+    pub max_ms: f64,
+    /// Number of samples.
+    pub samples: usize,
+}
+
+impl Latency {
+    fn from_ms(mut v: Vec<f64>) -> Latency {
+        v.sort_by(f64::total_cmp);
+        let q = |p: f64| v[((v.len() as f64 - 1.0) * p).round() as usize];
+        Latency {
+            median_ms: q(0.5),
+            p99_ms: q(0.99),
+            mean_ms: v.iter().sum::<f64>() / v.len() as f64,
+            max_ms: *v.last().unwrap_or(&0.0),
+            samples: v.len(),
+        }
+    }
+}
+
+/// Results of one ablation.
+#[derive(Debug, Clone, Serialize)]
+pub struct AblationBench {
+    /// Which ablation.
+    pub ablation: String,
+    /// Streaming forecast per tick (push + forecast).
+    pub streaming_per_tick: Latency,
+    /// Whole-window forward (fused, no cache).
+    pub whole_window: Latency,
+}
+
+/// Everything `bench` measures.
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchReport {
+    /// Backend the numbers were taken on.
+    pub backend: String,
+    /// Configuration name.
+    pub config: String,
+    /// `N`, `C`, `S`.
+    pub n_ticks: usize,
+    /// Joints.
+    pub n_joints: usize,
+    /// Frame side.
+    pub frame_size: usize,
+    /// Per ablation.
+    pub ablations: Vec<AblationBench>,
+    /// Training samples per second (EMP, batch 4), if measured.
+    pub train_samples_per_s: Option<f64>,
+    /// Threads used by inference.
+    pub threads: usize,
+}
+
+/// The backend compiled in.
+pub fn backend_name() -> &'static str {
+    if cfg!(feature = "flex") {
+        "flex"
+    } else if cfg!(feature = "ndarray") {
+        "ndarray"
+    } else {
+        "default"
+    }
+}
+
+fn noise(len: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15) | 1;
+    (0..len)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        })
+        .collect()
+}
+
+/// Runs the benchmark.
+pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
+    let cfg = match &args.model {
+        Some(p) => LoadedModel::load(p)?.meta.config,
+        None => ModelConfig::named(&args.config, 60, 25, vec![15, 30, 45, 60], 64)
+            .map_err(anyhow::Error::msg)?,
+    };
+    let device = cpu_device();
+    let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
+    let (n, c, s, l) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len());
+    let mut ablations = Vec::new();
+    for ablation in Ablation::ALL {
+        let meta = ModelMeta::new(cfg.clone(), ablation, 30.0, names.clone());
+        let emp = Emp::new(&cfg, ablation, &device);
+        let model = LoadedModel::from_parts(meta, &emp, device.clone(), "bench".into());
+        let mut stream = StreamingForecaster::new(&model);
+        let total = n + args.ticks;
+        let mut per_tick = Vec::with_capacity(args.ticks);
+        for t in 0..total {
+            let joints = noise(c, t as u64);
+            let frame = noise(3 * s * s, 10_000 + t as u64);
+            let plan = noise(l * c, 20_000 + t as u64);
+            let start = Instant::now();
+            stream.push_parts(t as i64, &joints, Some(&frame), Some(&plan))?;
+            if t + 1 >= n {
+                let p = stream.forecast()?;
+                std::hint::black_box(p);
+                if t + 1 > n {
+                    per_tick.push(start.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        }
+        let joints = noise(n * c, 1);
+        let plan = noise(l * c, 2);
+        let frames = noise(3 * n * s * s, 3);
+        let reps = (args.ticks / 10).max(5);
+        let mut whole = Vec::with_capacity(reps);
+        for _ in 0..reps {
+            let start = Instant::now();
+            std::hint::black_box(model.forecast_arrays(&joints, &plan, &frames)?);
+            whole.push(start.elapsed().as_secs_f64() * 1e3);
+        }
+        let b = AblationBench {
+            ablation: ablation.to_string(),
+            streaming_per_tick: Latency::from_ms(per_tick),
+            whole_window: Latency::from_ms(whole),
+        };
+        eprintln!(
+            "{:>3}: per tick median {:.2} ms p99 {:.2} ms | whole window median {:.2} ms",
+            b.ablation,
+            b.streaming_per_tick.median_ms,
+            b.streaming_per_tick.p99_ms,
+            b.whole_window.median_ms
+        );
+        ablations.push(b);
+    }
+    let train_samples_per_s = if args.train_steps > 0 {
+        Some(train_throughput(&cfg, args.train_steps)?)
+    } else {
+        None
+    };
+    if let Some(t) = train_samples_per_s {
+        eprintln!("training (EMP, batch 4): {t:.1} samples/s");
+    }
+    let report = BenchReport {
+        backend: backend_name().into(),
+        config: cfg.name.clone(),
+        n_ticks: n,
+        n_joints: c,
+        frame_size: s,
+        ablations,
+        train_samples_per_s,
+        threads: 1,
+    };
+    if let Some(path) = &args.json {
+        std::fs::write(path, serde_json::to_string_pretty(&report)?)
+            .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
+    }
+    Ok(report)
+}
+
+fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
+    use burn::optim::{AdamConfig, GradientsParams};
+    let device = cpu_device().autodiff();
+    let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
+    let meta = ModelMeta::new(cfg.clone(), Ablation::EMP, 30.0, names);
+    let mut model = Emp::new(cfg, Ablation::EMP, &device);
+    let mut opt = AdamConfig::new().init();
+    let (n, c, s, l, k) = (
+        cfg.n_ticks,
+        cfg.n_joints,
+        cfg.frame_size,
+        cfg.plan_len(),
+        cfg.k(),
+    );
+    let batch: Vec<LabeledWindow> = (0..4)
+        .map(|i| LabeledWindow {
+            joints: noise(n * c, 40 + i),
+            plan: noise(l * c, 50 + i),
+            frames: noise(3 * n * s * s, 60 + i),
+            labels: (0..k).map(|h| ((h as u64 + i) % 2) as f32).collect(),
+        })
+        .collect();
+    let mut elapsed = 0.0;
+    for step in 0..steps + 1 {
+        let start = Instant::now();
+        let j: Vec<&[f32]> = batch.iter().map(|w| w.joints.as_slice()).collect();
+        let p: Vec<&[f32]> = batch.iter().map(|w| w.plan.as_slice()).collect();
+        let f: Vec<&[f32]> = batch.iter().map(|w| w.frames.as_slice()).collect();
+        let input = build_input(&meta, &j, &p, &f, &device)?;
+        let labels: Vec<f32> = batch
+            .iter()
+            .flat_map(|w| w.labels.iter().copied())
+            .collect();
+        let labels = burn::prelude::Tensor::<2>::from_data(
+            burn::prelude::TensorData::new(labels, [4, k]),
+            &device,
+        );
+        let loss = bce_with_logits(model.forward(input), labels);
+        let grads = GradientsParams::from_grads(loss.backward(), &model);
+        model = opt.step(1e-4, model, grads);
+        if step > 0 {
+            elapsed += start.elapsed().as_secs_f64();
+        }
+    }
+    Ok(4.0 * steps as f64 / elapsed)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The reference benchmark, run by hand:
+    /// `cargo test --lib reference_benchmark -- --ignored --nocapture`
+    /// (`FALL_GUARD_BENCH_JSON=path` writes the JSON report).
+    #[test]
+    #[ignore = "benchmark, not a test: run by hand"]
+    fn reference_benchmark() {
+        let args = BenchArgs {
+            model: None,
+            config: std::env::var("FALL_GUARD_BENCH_CONFIG").unwrap_or_else(|_| "lite".into()),
+            json: std::env::var("FALL_GUARD_BENCH_JSON")
+                .ok()
+                .map(PathBuf::from),
+            ticks: 300,
+            train_steps: 5,
+        };
+        let report = run_bench(&args).unwrap();
+        println!("{}", serde_json::to_string_pretty(&report).unwrap());
+    }
+}

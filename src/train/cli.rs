@@ -1,0 +1,364 @@
+//! The `train` and `eval` subcommands: argument structs and their run
+//! functions. Windows come from the data plane (`dataset`, `sampler`,
+//! `window`): the same code the daemon uses to build its windows.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+
+use super::eval::{predict, report, Predictions};
+use super::fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
+use super::logreg::LogRegModel;
+use super::plots;
+use crate::model::{save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster};
+use crate::train::dataset::{Dataset, Split};
+use crate::train::sampler::{SamplerConfig, WindowSampler};
+use crate::window::{EpisodeTicks, Streams, WindowSpec};
+
+/// Arguments of `fall-guard train`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct TrainArgs {
+    /// Data set directory (recordings + manifest.json).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// P, MP, EP, EMP, or logreg (the logistic-regression baseline).
+    #[arg(long, default_value = "EMP")]
+    pub ablation: String,
+    /// Network configuration: lite or paper.
+    #[arg(long, default_value = "lite")]
+    pub config: String,
+    /// Seed of initialisation, dropout and window sampling.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output model file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// At most this many epochs.
+    #[arg(long, default_value_t = 10)]
+    pub epochs: usize,
+    /// Early-stopping patience on validation loss, epochs.
+    #[arg(long, default_value_t = 3)]
+    pub patience: usize,
+    /// Windows per step.
+    #[arg(long, default_value_t = 4)]
+    pub batch: usize,
+    /// Learning-rate table: sim (SimP column) or robot (RP column).
+    #[arg(long, default_value = "sim")]
+    pub rates: String,
+    /// Window length N, ticks.
+    #[arg(long, default_value_t = 60)]
+    pub n_ticks: usize,
+    /// Horizons, ticks, comma-separated.
+    #[arg(long, default_value = "15,30,45,60", value_delimiter = ',')]
+    pub horizons: Vec<usize>,
+    /// Tick rate, Hz.
+    #[arg(long, default_value_t = 30.0)]
+    pub rate_hz: f64,
+    /// Frame side, pixels.
+    #[arg(long, default_value_t = 64)]
+    pub frame_size: u32,
+    /// Joint names in model order, comma-separated (default: the Poppy Humanoid's 25).
+    #[arg(long, value_delimiter = ',')]
+    pub joint_names: Option<Vec<String>>,
+    /// What the data is, stored in the model file.
+    #[arg(long, default_value = "simulated")]
+    pub trained_on: String,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Arguments of `fall-guard eval`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EvalArgs {
+    /// Model file (network or logreg baseline).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// More model files of other seeds: metrics become mean ± std.
+    #[arg(long, num_args = 1..)]
+    pub seeds: Vec<PathBuf>,
+    /// Data set directory.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Split to evaluate.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Output directory (metrics.json, metrics.md, PNG plots).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Seed of the test-window sampler.
+    #[arg(long, default_value_t = 12345)]
+    pub sample_seed: u64,
+    /// Windows drawn per episode (each an independent draw).
+    #[arg(long, default_value_t = 1)]
+    pub draws: usize,
+    /// Offline per-tick forecast of one recording (with --per-tick-out).
+    #[arg(long)]
+    pub recording: Option<PathBuf>,
+    /// JSON lines: one forecast per tick of --recording.
+    #[arg(long)]
+    pub per_tick_out: Option<PathBuf>,
+}
+
+/// The window spec a model expects.
+pub fn spec_of(meta: &ModelMeta) -> WindowSpec {
+    WindowSpec {
+        n_ticks: meta.n_ticks,
+        max_horizon_ticks: meta.config.max_horizon_ticks(),
+        rate_hz: meta.rate_hz,
+        joint_names: meta.joint_names.clone(),
+        frame_size: meta.frame_size,
+    }
+}
+
+/// The streams an ablation reads.
+pub fn needs_of(ablation: Option<Ablation>) -> Streams {
+    match ablation {
+        Some(a) => Streams { joints: true, plan: a.uses_plan(), frames: a.uses_vision() },
+        // logreg: joints + plan
+        None => Streams { joints: true, plan: true, frames: false },
+    }
+}
+
+/// Labelled windows of a split: each episode's sampler picks, `draws` epochs.
+pub struct SplitWindows {
+    episodes: Vec<EpisodeTicks>,
+    sampler: WindowSampler,
+    spec: WindowSpec,
+    needs: Streams,
+}
+
+impl SplitWindows {
+    /// Loads `split` of `dataset` for `spec`.
+    pub fn load(dataset: &Dataset, split: Split, spec: &WindowSpec, needs: Streams, horizons: &[usize], seed: u64) -> Result<Self, TrainError> {
+        let episodes = dataset
+            .load_split(split, spec, needs)
+            .map_err(|e| TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display())))?;
+        let mut cfg = SamplerConfig::new(spec.n_ticks, horizons.to_vec());
+        cfg.needs = needs;
+        let sampler = WindowSampler::new(&episodes, cfg, seed)
+            .map_err(|e| TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display())))?;
+        Ok(SplitWindows { episodes, sampler, spec: spec.clone(), needs })
+    }
+
+    /// The next epoch of windows (one per usable episode).
+    pub fn epoch(&mut self) -> Result<Vec<LabeledWindow>, TrainError> {
+        let picks = self.sampler.epoch();
+        let mut out = Vec::with_capacity(picks.len());
+        for pick in picks {
+            let ep = &self.episodes[pick.episode];
+            let w = ep
+                .window_ending_at(pick.end_tick, &self.spec, self.needs)
+                .map_err(|e| TrainError::Data(format!("{} at tick {}: {e}", ep.path.display(), pick.end_tick)))?;
+            out.push(LabeledWindow {
+                joints: w.joints,
+                plan: w.plan,
+                frames: w.frames,
+                labels: pick.labels.iter().map(|&b| f32::from(u8::from(b))).collect(),
+            });
+        }
+        Ok(out)
+    }
+}
+
+struct DatasetSource {
+    train: SplitWindows,
+    validation: Vec<LabeledWindow>,
+}
+
+impl EpochSource for DatasetSource {
+    fn train_epoch(&mut self, _epoch: usize) -> Result<Vec<LabeledWindow>, TrainError> {
+        self.train.epoch()
+    }
+    fn validation(&mut self) -> Result<Vec<LabeledWindow>, TrainError> {
+        Ok(self.validation.clone())
+    }
+}
+
+fn default_joint_names() -> Vec<String> {
+    crate::robot::JointTable::poppy_humanoid().names()
+}
+
+/// Runs `fall-guard train`.
+pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
+    let dataset = Dataset::open(&args.data).with_context(|| format!("opening data set {}", args.data.display()))?;
+    let joint_names = args.joint_names.clone().unwrap_or_else(default_joint_names);
+    let logreg = args.ablation.eq_ignore_ascii_case("logreg");
+    let ablation: Option<Ablation> = if logreg { None } else { Some(args.ablation.parse().map_err(anyhow::Error::msg)?) };
+    let cfg = ModelConfig::named(&args.config, args.n_ticks, joint_names.len(), args.horizons.clone(), args.frame_size as usize)
+        .map_err(anyhow::Error::msg)?;
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    let spec = WindowSpec {
+        n_ticks: cfg.n_ticks,
+        max_horizon_ticks: cfg.max_horizon_ticks(),
+        rate_hz: args.rate_hz,
+        joint_names: joint_names.clone(),
+        frame_size: args.frame_size,
+    };
+    let needs = needs_of(ablation);
+    let mut train = SplitWindows::load(&dataset, Split::Train, &spec, needs, &cfg.horizons_ticks, args.seed)?;
+    let validation = SplitWindows::load(&dataset, Split::Validation, &spec, needs, &cfg.horizons_ticks, args.seed ^ 0x5EED)?.epoch()?;
+    if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+    }
+    match ablation {
+        None => {
+            let windows = train.epoch()?;
+            let mut m = LogRegModel::fit(&windows, cfg.horizons_ticks.clone(), args.rate_hz, cfg.n_ticks, joint_names)?;
+            m.trained_on = args.trained_on.clone();
+            m.save(&args.out)?;
+            eprintln!("logistic-regression baseline written to {}", args.out.display());
+        }
+        Some(ablation) => {
+            let mut meta = ModelMeta::new(cfg, ablation, args.rate_hz, joint_names);
+            meta.trained_on = args.trained_on.clone();
+            let rates = match args.rates.as_str() {
+                "sim" => EncoderRates::sim(),
+                "robot" => EncoderRates::robot(),
+                other => bail!("unknown --rates {other:?}: sim or robot"),
+            };
+            let opts = FitOptions {
+                seed: args.seed,
+                max_epochs: args.epochs,
+                patience: args.patience,
+                batch_size: args.batch,
+                rates,
+                progress: !args.quiet,
+            };
+            let mut source = DatasetSource { train, validation };
+            let (meta, model) = fit(meta, &mut source, &opts)?;
+            save_model(&args.out, &meta, &model)?;
+            eprintln!(
+                "{} model written to {} (best epoch {}, val loss {:.4})",
+                ablation,
+                args.out.display(),
+                meta.best_epoch,
+                meta.history.get(meta.best_epoch.saturating_sub(1)).map(|h| h.val_loss).unwrap_or(f64::NAN)
+            );
+        }
+    }
+    Ok(())
+}
+
+enum AnyModel {
+    Network(LoadedModel),
+    LogReg(LogRegModel, PathBuf),
+}
+
+fn load_any(path: &Path) -> anyhow::Result<AnyModel> {
+    if let Some(m) = LogRegModel::load(path)? {
+        return Ok(AnyModel::LogReg(m, path.to_path_buf()));
+    }
+    Ok(AnyModel::Network(LoadedModel::load(path)?))
+}
+
+/// Runs `fall-guard eval`.
+pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
+    if let Some(rec) = &args.recording {
+        let out = args.per_tick_out.as_ref().context("--recording needs --per-tick-out FILE")?;
+        let model = LoadedModel::load(&args.model)?;
+        let n = per_tick_forecast(&model, rec, out)?;
+        eprintln!("{n} per-tick forecasts written to {}", out.display());
+        if args.data.is_none() {
+            return Ok(());
+        }
+    }
+    let data = args.data.as_ref().context("--data DIR is needed to evaluate on a split")?;
+    let out_dir = args.out.as_ref().context("--out DIR is needed to evaluate on a split")?;
+    let split: Split = args.split.parse().map_err(anyhow::Error::msg)?;
+    let dataset = Dataset::open(data).with_context(|| format!("opening data set {}", data.display()))?;
+    let mut paths = vec![args.model.clone()];
+    paths.extend(args.seeds.iter().cloned());
+    let models: Vec<AnyModel> = paths.iter().map(|p| load_any(p)).collect::<anyhow::Result<_>>()?;
+    // Windows come from the first model's description; the others must agree.
+    let (spec, needs, horizons, rate_hz, ablation_name, history) = match &models[0] {
+        AnyModel::Network(m) => (
+            spec_of(&m.meta),
+            needs_of(Some(m.meta.ablation)),
+            m.meta.horizons_ticks.clone(),
+            m.meta.rate_hz,
+            m.meta.ablation.to_string(),
+            m.meta.history.clone(),
+        ),
+        AnyModel::LogReg(m, _) => (
+            WindowSpec {
+                n_ticks: m.n_ticks,
+                max_horizon_ticks: *m.horizons_ticks.last().unwrap_or(&0),
+                rate_hz: m.rate_hz,
+                joint_names: m.joint_names.clone(),
+                frame_size: 64,
+            },
+            needs_of(None),
+            m.horizons_ticks.clone(),
+            m.rate_hz,
+            "logreg".to_string(),
+            Vec::new(),
+        ),
+    };
+    for m in &models[1..] {
+        if let AnyModel::Network(m) = m {
+            m.meta.check_compatible_with(&spec.joint_names, spec.rate_hz, spec.n_ticks, spec.max_horizon_ticks, spec.frame_size)?;
+        }
+    }
+    let mut split_windows = SplitWindows::load(&dataset, split, &spec, needs, &horizons, args.sample_seed)?;
+    let mut windows = Vec::new();
+    for _ in 0..args.draws.max(1) {
+        windows.extend(split_windows.epoch()?);
+    }
+    let preds: Vec<Predictions> = models
+        .iter()
+        .map(|m| match m {
+            AnyModel::Network(m) => predict(m, &windows),
+            AnyModel::LogReg(m, p) => Ok(Predictions {
+                model: p.display().to_string(),
+                probabilities: windows.iter().map(|w| m.predict(w)).collect::<Result<_, _>>()?,
+            }),
+        })
+        .collect::<Result<_, TrainError>>()?;
+    let rep = report(&preds, &windows, &horizons, rate_hz, &ablation_name, split.name());
+    rep.write(out_dir).with_context(|| format!("writing to {}", out_dir.display()))?;
+    // Plots of the first model.
+    let labels: Vec<Vec<bool>> = (0..horizons.len()).map(|k| windows.iter().map(|w| w.labels[k] > 0.5).collect()).collect();
+    let probs: Vec<Vec<f32>> = (0..horizons.len()).map(|k| preds[0].probabilities.iter().map(|r| r[k]).collect()).collect();
+    let series: Vec<plots::HorizonSeries<'_>> = horizons
+        .iter()
+        .enumerate()
+        .map(|(k, h)| (format!("{:.0} ms", *h as f64 * 1000.0 / rate_hz), probs[k].as_slice(), labels[k].as_slice()))
+        .collect();
+    plots::roc_plot(&out_dir.join("roc.png"), &series)?;
+    plots::reliability_plot(&out_dir.join("reliability.png"), &series)?;
+    if !history.is_empty() {
+        plots::training_plot(&out_dir.join("training.png"), &history)?;
+    }
+    print!("{}", rep.markdown());
+    Ok(())
+}
+
+/// Replays a recording tick by tick through the streaming forecaster, as the
+/// daemon would, and writes one JSON line per tick once the window is full:
+/// `{"tick", "stamp_ns", "probabilities"}`. Returns the number of lines.
+pub fn per_tick_forecast(model: &LoadedModel, recording: &Path, out: &Path) -> anyhow::Result<usize> {
+    use std::io::Write;
+    let spec = spec_of(&model.meta);
+    let needs = needs_of(Some(model.meta.ablation));
+    let episode = crate::train::dataset::load_episode(recording, &spec, needs)
+        .with_context(|| format!("reading {}", recording.display()))?;
+    let mut stream = StreamingForecaster::new(model);
+    let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut w = std::io::BufWriter::new(file);
+    let mut lines = 0;
+    for tick in &episode.ticks {
+        if !needs.present_in(tick) {
+            continue;
+        }
+        stream.push(tick)?;
+        if stream.is_full() {
+            let p = stream.forecast()?;
+            serde_json::to_writer(&mut w, &serde_json::json!({"tick": tick.tick, "stamp_ns": tick.stamp_ns, "probabilities": p}))?;
+            w.write_all(b"\n")?;
+            lines += 1;
+        }
+    }
+    w.flush()?;
+    Ok(lines)
+}

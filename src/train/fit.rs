@@ -1,0 +1,383 @@
+//! The training loop: Adam with per-encoder learning rate and weight decay,
+//! batch 4, early stopping on validation loss, the best epoch kept.
+//!
+//! In: labelled windows from an [`EpochSource`] (one i.i.d. window per episode
+//! per epoch, built by the data plane's sampler). Out: the trained [`Emp`] and
+//! its [`ModelMeta`] (standardisation statistics, history), ready for
+//! [`crate::model::save_model`].
+
+use burn::optim::decay::WeightDecayConfig;
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::prelude::*;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::model::file::build_input;
+use crate::model::{cpu_device, Ablation, Emp, EpochRecord, ModelConfig, ModelError, ModelMeta};
+
+/// One training sample: a window and its labels.
+#[derive(Debug, Clone)]
+pub struct LabeledWindow {
+    /// `[N, C]` radians.
+    pub joints: Vec<f32>,
+    /// `[N + h_K, C]` radians.
+    pub plan: Vec<f32>,
+    /// `[3, N, S, S]` in `[0, 1]` (may be empty for ablations without vision).
+    pub frames: Vec<f32>,
+    /// `K` labels: 1 if fallen at `t + h_k`.
+    pub labels: Vec<f32>,
+}
+
+/// Errors of training.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The model rejected a window.
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// The data could not be read or sampled.
+    #[error("training data: {0}")]
+    Data(String),
+}
+
+/// Where the windows come from.
+pub trait EpochSource {
+    /// The training windows of epoch `epoch` (1-based), in training order.
+    fn train_epoch(&mut self, epoch: usize) -> Result<Vec<LabeledWindow>, TrainError>;
+    /// The validation windows (the same every epoch).
+    fn validation(&mut self) -> Result<Vec<LabeledWindow>, TrainError>;
+}
+
+/// Learning rate and weight decay of one encoder.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Rate {
+    /// Learning rate.
+    pub lr: f64,
+    /// L2 weight decay.
+    pub weight_decay: f32,
+}
+
+/// Per-encoder rates (the paper's appendix table).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EncoderRates {
+    /// Motion encoder.
+    pub motion: Rate,
+    /// Trajectory encoder.
+    pub trajectory: Rate,
+    /// Vision encoder.
+    pub vision: Rate,
+    /// Classifier.
+    pub classifier: Rate,
+}
+
+impl EncoderRates {
+    /// SimP column (simulation, 30 Hz).
+    pub fn sim() -> Self {
+        EncoderRates {
+            motion: Rate {
+                lr: 1e-4,
+                weight_decay: 1e-5,
+            },
+            trajectory: Rate {
+                lr: 1e-3,
+                weight_decay: 1e-4,
+            },
+            vision: Rate {
+                lr: 1e-6,
+                weight_decay: 1e-6,
+            },
+            classifier: Rate {
+                lr: 1e-3,
+                weight_decay: 1e-4,
+            },
+        }
+    }
+
+    /// RP column (real robot, ~10 Hz).
+    pub fn robot() -> Self {
+        EncoderRates {
+            motion: Rate {
+                lr: 5e-4,
+                weight_decay: 1e-4,
+            },
+            trajectory: Rate {
+                lr: 1e-4,
+                weight_decay: 1e-4,
+            },
+            vision: Rate {
+                lr: 1e-5,
+                weight_decay: 5e-4,
+            },
+            classifier: Rate {
+                lr: 1e-4,
+                weight_decay: 1e-4,
+            },
+        }
+    }
+}
+
+/// Training options.
+#[derive(Debug, Clone)]
+pub struct FitOptions {
+    /// Seed of initialisation and dropout.
+    pub seed: u64,
+    /// At most this many epochs.
+    pub max_epochs: usize,
+    /// Stop after this many epochs without a better validation loss.
+    pub patience: usize,
+    /// Windows per step.
+    pub batch_size: usize,
+    /// Per-encoder rates.
+    pub rates: EncoderRates,
+    /// Show a progress bar on stderr.
+    pub progress: bool,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions {
+            seed: 1,
+            max_epochs: 10,
+            patience: 3,
+            batch_size: 4,
+            rates: EncoderRates::sim(),
+            progress: true,
+        }
+    }
+}
+
+/// Per-joint mean and standard deviation of `joints` and `plan` over `windows`.
+pub fn standardisation(meta: &mut ModelMeta, windows: &[LabeledWindow]) {
+    let c = meta.config.n_joints;
+    let stats = |get: &dyn Fn(&LabeledWindow) -> &[f32]| {
+        let mut sum = vec![0.0f64; c];
+        let mut sq = vec![0.0f64; c];
+        let mut count = 0usize;
+        for w in windows {
+            for row in get(w).chunks_exact(c) {
+                for (j, &v) in row.iter().enumerate() {
+                    sum[j] += v as f64;
+                    sq[j] += (v as f64) * (v as f64);
+                }
+                count += 1;
+            }
+        }
+        let n = count.max(1) as f64;
+        let mean: Vec<f32> = sum.iter().map(|s| (s / n) as f32).collect();
+        let std: Vec<f32> = sq
+            .iter()
+            .zip(&sum)
+            .map(|(q, s)| ((q / n - (s / n).powi(2)).max(0.0).sqrt() as f32).max(1e-3))
+            .collect();
+        (mean, std)
+    };
+    (meta.joint_mean, meta.joint_std) = stats(&|w| &w.joints);
+    (meta.plan_mean, meta.plan_std) = stats(&|w| &w.plan);
+}
+
+/// Numerically stable binary cross-entropy with logits, mean over batch and horizons.
+pub fn bce_with_logits(logits: Tensor<2>, labels: Tensor<2>) -> Tensor<1> {
+    let pos = logits.clone().clamp_min(0.0);
+    let log_term = logits.clone().abs().neg().exp().log1p();
+    (pos - logits * labels + log_term).mean()
+}
+
+fn labels_tensor(
+    windows: &[LabeledWindow],
+    k: usize,
+    device: &Device,
+) -> Result<Tensor<2>, TrainError> {
+    let mut v = Vec::with_capacity(windows.len() * k);
+    for w in windows {
+        if w.labels.len() != k {
+            return Err(TrainError::Data(format!(
+                "a window has {} labels, the model has {k} horizons",
+                w.labels.len()
+            )));
+        }
+        v.extend_from_slice(&w.labels);
+    }
+    Ok(Tensor::<2>::from_data(
+        TensorData::new(v, [windows.len(), k]),
+        device,
+    ))
+}
+
+fn input_for(
+    meta: &ModelMeta,
+    batch: &[LabeledWindow],
+    device: &Device,
+) -> Result<crate::model::EmpInput, TrainError> {
+    let joints: Vec<&[f32]> = batch.iter().map(|w| w.joints.as_slice()).collect();
+    let plan: Vec<&[f32]> = batch.iter().map(|w| w.plan.as_slice()).collect();
+    let frames: Vec<&[f32]> = batch.iter().map(|w| w.frames.as_slice()).collect();
+    Ok(build_input(meta, &joints, &plan, &frames, device)?)
+}
+
+/// Validation loss and mean accuracy of `model` (evaluated without autodiff).
+pub fn evaluate_loss(
+    model: &Emp,
+    meta: &ModelMeta,
+    windows: &[LabeledWindow],
+    batch_size: usize,
+) -> Result<(f64, f64), TrainError> {
+    let device = cpu_device();
+    let model = model.valid();
+    let k = meta.config.k();
+    let (mut loss_sum, mut correct, mut count) = (0.0f64, 0usize, 0usize);
+    for batch in windows.chunks(batch_size.max(1)) {
+        let logits = model.forward(input_for(meta, batch, &device)?);
+        let labels = labels_tensor(batch, k, &device)?;
+        let loss: f32 = bce_with_logits(logits.clone(), labels).into_scalar();
+        loss_sum += loss as f64 * batch.len() as f64;
+        let z: Vec<f32> = logits
+            .into_data()
+            .try_to_vec::<f32>()
+            .map_err(|e| TrainError::Data(format!("{e:?}")))?;
+        for (w, row) in batch.iter().zip(z.chunks(k)) {
+            for (y, zv) in w.labels.iter().zip(row) {
+                correct += usize::from((*zv > 0.0) == (*y > 0.5));
+                count += 1;
+            }
+        }
+    }
+    let n = windows.len().max(1) as f64;
+    Ok((loss_sum / n, correct as f64 / count.max(1) as f64))
+}
+
+/// Trains `meta.ablation` on `source`. `meta` carries the config and input
+/// description; its standardisation is computed from the first training epoch.
+///
+/// burn's random generator (initialisation, dropout) is global to the
+/// process, so one training at a time holds it: two `fit` calls in one process
+/// run one after the other, each deterministic for its seed.
+pub fn fit(
+    mut meta: ModelMeta,
+    source: &mut dyn EpochSource,
+    opts: &FitOptions,
+) -> Result<(ModelMeta, Emp), TrainError> {
+    static RNG_OWNER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _rng = RNG_OWNER
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let device = cpu_device().autodiff();
+    device.seed(opts.seed);
+    let cfg: ModelConfig = meta.config.clone();
+    let ablation: Ablation = meta.ablation;
+    let k = cfg.k();
+    let mut model = Emp::new(&cfg, ablation, &device);
+    let adam = |r: Rate| -> ModuleOptimizer {
+        AdamConfig::new()
+            .with_weight_decay(Some(WeightDecayConfig::new(r.weight_decay)))
+            .init()
+    };
+    let r = opts.rates;
+    let (mut opt_m, mut opt_t, mut opt_v, mut opt_c) = (
+        adam(r.motion),
+        adam(r.trajectory),
+        adam(r.vision),
+        adam(r.classifier),
+    );
+
+    let validation = source.validation()?;
+    let mut first_epoch = Some(source.train_epoch(1)?);
+    if let Some(w) = &first_epoch {
+        if w.is_empty() {
+            return Err(TrainError::Data(
+                "the training split gave no windows".into(),
+            ));
+        }
+        standardisation(&mut meta, w);
+    }
+    meta.seed = opts.seed;
+    meta.history.clear();
+    let mut best: Option<(f64, Emp)> = None;
+    let mut since_best = 0usize;
+    let bar = if opts.progress {
+        ProgressBar::new(0)
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "epoch {prefix} [{bar:30}] {pos}/{len} steps  {msg}  eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    for epoch in 1..=opts.max_epochs {
+        let windows = match first_epoch.take() {
+            Some(w) => w,
+            None => source.train_epoch(epoch)?,
+        };
+        let steps = windows.len().div_ceil(opts.batch_size.max(1));
+        bar.set_length(steps as u64);
+        bar.set_position(0);
+        bar.set_prefix(format!("{epoch}/{}", opts.max_epochs));
+        let mut loss_sum = 0.0f64;
+        for (step, batch) in windows.chunks(opts.batch_size.max(1)).enumerate() {
+            let input = input_for(&meta, batch, &device)?;
+            let labels = labels_tensor(batch, k, &device)?;
+            let loss = bce_with_logits(model.forward(input), labels);
+            let loss_value: f32 = loss.clone().into_scalar();
+            loss_sum += loss_value as f64 * batch.len() as f64;
+            let mut grads = loss.backward();
+            let g_m = GradientsParams::from_module(&mut grads, &model.motion);
+            let g_c = GradientsParams::from_module(&mut grads, &model.classifier);
+            let g_t = model
+                .plan
+                .as_ref()
+                .map(|p| GradientsParams::from_module(&mut grads, p));
+            let g_v = model
+                .vision
+                .as_ref()
+                .map(|v| GradientsParams::from_module(&mut grads, v));
+            let Emp {
+                motion,
+                plan,
+                vision,
+                classifier,
+            } = model;
+            model = Emp {
+                motion: opt_m.step(r.motion.lr, motion, g_m),
+                plan: plan
+                    .zip(g_t)
+                    .map(|(p, g)| opt_t.step(r.trajectory.lr, p, g)),
+                vision: vision.zip(g_v).map(|(v, g)| opt_v.step(r.vision.lr, v, g)),
+                classifier: opt_c.step(r.classifier.lr, classifier, g_c),
+            };
+            bar.set_position(step as u64 + 1);
+            bar.set_message(format!(
+                "loss {:.4}",
+                loss_sum / ((step + 1) * opts.batch_size).min(windows.len()) as f64
+            ));
+        }
+        let train_loss = loss_sum / windows.len().max(1) as f64;
+        let (val_loss, val_accuracy) = evaluate_loss(&model, &meta, &validation, 16)?;
+        meta.history.push(EpochRecord {
+            epoch,
+            train_loss,
+            val_loss,
+            val_accuracy,
+        });
+        bar.println(format!(
+            "epoch {epoch}: train loss {train_loss:.4}, val loss {val_loss:.4}, val acc {val_accuracy:.3}"
+        ));
+        tracing::debug!(epoch, train_loss, val_loss, val_accuracy, "epoch done");
+        if best.as_ref().is_none_or(|(b, _)| val_loss < *b) {
+            best = Some((val_loss, model.valid()));
+            meta.best_epoch = epoch;
+            since_best = 0;
+        } else {
+            since_best += 1;
+            if since_best >= opts.patience {
+                bar.println(format!(
+                    "early stop: no better validation loss for {} epochs",
+                    opts.patience
+                ));
+                break;
+            }
+        }
+    }
+    bar.finish_and_clear();
+    let (_, best_model) =
+        best.ok_or_else(|| TrainError::Data("no epoch ran (max_epochs = 0)".into()))?;
+    Ok((meta, best_model))
+}
