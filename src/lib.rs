@@ -14,6 +14,7 @@ pub mod msgs;
 pub mod outputs;
 pub mod recording;
 pub mod robot;
+pub mod ros;
 pub mod service;
 pub mod shutdown;
 pub mod sources;

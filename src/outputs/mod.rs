@@ -20,6 +20,7 @@
 
 pub mod latch;
 pub mod recorder;
+pub mod ros;
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};

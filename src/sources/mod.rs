@@ -14,6 +14,8 @@
 //! - camera: `crate::frame::Frame`, already S x S;
 //! - plan: `crate::window::Plan`.
 
+pub mod ros;
+
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -23,7 +25,6 @@ use tokio::sync::watch;
 
 pub mod camera;
 pub mod dynamixel;
-<<<<<<< HEAD
 pub mod replay;
 
 /// The three input streams of the model.
@@ -280,5 +281,3 @@ mod tests {
         );
     }
 }
-=======
->>>>>>> model

@@ -1,0 +1,476 @@
+//! What the daemon publishes on ROS 2: the forecast every tick, the latched
+//! safety signal, `/diagnostics` and, when the daemon owns the servo bus,
+//! `/joint_states`.
+//!
+//! Values enter as plain Rust from the service (probabilities per horizon, a
+//! bool, a [`Health`] report, a `JointState`; the service's bridge reads them
+//! off its output bus); they leave as the standard messages of
+//! `interfaces.md` with the QoS of [`crate::ros::qos`]. Publishing never
+//! blocks: a reliable send window that is full fails at once and is counted,
+//! the next tick carries a newer value.
+//!
+//! The forecast is a `std_msgs/Float32MultiArray` with one dimension,
+//! `layout.dim[0] = {label: "horizon_ms", size: K, stride: K}`, and
+//! `data[k]` = fall probability within horizon k. Which horizon k is, in
+//! milliseconds, is published once, latched (transient local), on
+//! `fall_guard/horizons_ms`: a `Float32MultiArray` with the same layout whose
+//! `data[k]` is horizon k in ms. A subscriber reads it once (it arrives even
+//! when the subscriber starts late) and then indexes the forecasts.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use ros2_client::Publisher;
+
+use crate::msgs::{
+    Bool, DiagnosticArray, DiagnosticStatus, Float32MultiArray, Header, JointState, KeyValue,
+    MultiArrayDimension, MultiArrayLayout, Time,
+};
+use crate::ros::{qos, RosError, RosNode};
+
+/// `layout.dim[0].label` of the forecast and of the horizons topic.
+pub const HORIZON_DIM_LABEL: &str = "horizon_ms";
+
+/// ROS type names of what this module publishes.
+pub const FLOAT32_MULTI_ARRAY: &str = "std_msgs/msg/Float32MultiArray";
+pub const BOOL: &str = "std_msgs/msg/Bool";
+pub const DIAGNOSTIC_ARRAY: &str = "diagnostic_msgs/msg/DiagnosticArray";
+pub const JOINT_STATE: &str = "sensor_msgs/msg/JointState";
+
+/// Topic names (ROS names: relative ones resolve under the node namespace).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OutputTopics {
+    pub forecast: String,
+    pub horizons_ms: String,
+    pub fall_imminent: String,
+    pub diagnostics: String,
+    /// `Some` when the daemon reads the servos itself and republishes them.
+    pub joint_states: Option<String>,
+}
+
+impl Default for OutputTopics {
+    fn default() -> Self {
+        OutputTopics {
+            forecast: "fall_guard/forecast".to_owned(),
+            horizons_ms: "fall_guard/horizons_ms".to_owned(),
+            fall_imminent: "fall_guard/fall_imminent".to_owned(),
+            // diagnostic_aggregator listens on the absolute name.
+            diagnostics: "/diagnostics".to_owned(),
+            joint_states: None,
+        }
+    }
+}
+
+/// `diagnostic_msgs/DiagnosticStatus` levels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum DiagnosticLevel {
+    Ok = 0,
+    Warn = 1,
+    Error = 2,
+    Stale = 3,
+}
+
+/// Health of one input stream (servos or `/joint_states`, camera, plan).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StreamHealth {
+    /// Short stream name, e.g. `joints`, `camera`, `plan`.
+    pub name: String,
+    pub level: DiagnosticLevel,
+    /// One line for humans, e.g. `ok` or `no sample for 1200 ms`.
+    pub message: String,
+    /// Samples per second over the last report period.
+    pub rate_hz: f64,
+    /// Time since the last sample; `None` when no sample ever arrived.
+    pub age_ms: Option<f64>,
+    /// Errors counted since start (timeouts, bad checksums, undecodable messages).
+    pub errors: u64,
+}
+
+/// Health of the inference side.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelHealth {
+    pub level: DiagnosticLevel,
+    pub message: String,
+    /// Inference latency percentiles; NaN when no inference ran yet (published as `none`).
+    pub inference_p50_ms: f64,
+    pub inference_p99_ms: f64,
+    /// Ticks skipped because an inference was still running.
+    pub overruns: u64,
+    /// Ablation in use: `EMP`, `MP`, `EP` or `P`.
+    pub active_model: String,
+    /// Whether the forecasts now published can be trusted (ring full, no stale stream).
+    pub valid: bool,
+}
+
+/// One `/diagnostics` report: a status per input stream and one for the model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Health {
+    pub stamp_ns: i64,
+    pub streams: Vec<StreamHealth>,
+    pub model: ModelHealth,
+}
+
+/// Counters of what could not be sent (a full reliable window, a closed participant).
+#[derive(Debug, Default)]
+pub struct PublishFailures {
+    pub forecast: AtomicU64,
+    pub fall_imminent: AtomicU64,
+    pub diagnostics: AtomicU64,
+    pub joint_states: AtomicU64,
+}
+
+/// The daemon's publishers. Create once after [`RosNode::start`]; the
+/// methods are synchronous and cheap, callable from the tick loop.
+pub struct RosOutputs {
+    forecast: Publisher<Float32MultiArray>,
+    fall_imminent: Publisher<Bool>,
+    diagnostics: Publisher<DiagnosticArray>,
+    joint_states: Option<Publisher<JointState>>,
+    // Kept alive so that late joiners keep receiving the latched horizons.
+    _horizons: Publisher<Float32MultiArray>,
+    horizons_ms: Vec<f32>,
+    topics: ResolvedTopics,
+    hardware_id: String,
+    /// Name prefix of every DiagnosticStatus, ROS style `node: stream`.
+    status_prefix: String,
+    pub failures: PublishFailures,
+}
+
+#[derive(Debug, Clone)]
+struct ResolvedTopics {
+    forecast: String,
+    fall_imminent: String,
+    diagnostics: String,
+    joint_states: String,
+}
+
+impl RosOutputs {
+    /// Creates the publishers and publishes the latched horizons.
+    /// `horizons_ms` are the model's horizons in milliseconds, in the order
+    /// of the probabilities passed to [`RosOutputs::publish_forecast`].
+    /// `hardware_id` goes into every DiagnosticStatus (e.g. `poppy_humanoid`).
+    pub fn new(
+        node: &mut RosNode,
+        topics: &OutputTopics,
+        horizons_ms: &[f32],
+        hardware_id: &str,
+    ) -> Result<RosOutputs, RosError> {
+        let forecast = publisher(node, &topics.forecast, FLOAT32_MULTI_ARRAY, qos::forecast())?;
+        let horizons = publisher(
+            node,
+            &topics.horizons_ms,
+            FLOAT32_MULTI_ARRAY,
+            qos::horizons(),
+        )?;
+        let fall_imminent = publisher(node, &topics.fall_imminent, BOOL, qos::fall_imminent())?;
+        let diagnostics = publisher(
+            node,
+            &topics.diagnostics,
+            DIAGNOSTIC_ARRAY,
+            qos::diagnostics(),
+        )?;
+        let joint_states = match &topics.joint_states {
+            Some(t) => Some(publisher(node, t, JOINT_STATE, qos::sensor_data())?),
+            None => None,
+        };
+        horizons
+            .publish(forecast_message(horizons_ms))
+            .map_err(|e| RosError::Publish {
+                topic: node.resolve(&topics.horizons_ms),
+                reason: e.to_string(),
+            })?;
+        let resolved = ResolvedTopics {
+            forecast: node.resolve(&topics.forecast),
+            fall_imminent: node.resolve(&topics.fall_imminent),
+            diagnostics: node.resolve(&topics.diagnostics),
+            joint_states: topics
+                .joint_states
+                .as_deref()
+                .map(|t| node.resolve(t))
+                .unwrap_or_default(),
+        };
+        tracing::info!(
+            forecast = %resolved.forecast,
+            fall_imminent = %resolved.fall_imminent,
+            diagnostics = %resolved.diagnostics,
+            horizons_ms = ?horizons_ms,
+            "ROS 2 publishers ready"
+        );
+        Ok(RosOutputs {
+            forecast,
+            fall_imminent,
+            diagnostics,
+            joint_states,
+            _horizons: horizons,
+            horizons_ms: horizons_ms.to_vec(),
+            topics: resolved,
+            hardware_id: hardware_id.to_owned(),
+            status_prefix: node.settings().node_name.clone(),
+            failures: PublishFailures::default(),
+        })
+    }
+
+    pub fn horizons_ms(&self) -> &[f32] {
+        &self.horizons_ms
+    }
+
+    /// Publishes one forecast: `probabilities[k]` for horizon k.
+    pub fn publish_forecast(&self, probabilities: &[f32]) -> Result<(), RosError> {
+        if probabilities.len() != self.horizons_ms.len() {
+            return Err(RosError::Publish {
+                topic: self.topics.forecast.clone(),
+                reason: format!(
+                    "{} probabilities for {} horizons",
+                    probabilities.len(),
+                    self.horizons_ms.len()
+                ),
+            });
+        }
+        let result = self.forecast.publish(forecast_message(probabilities));
+        count(result, &self.failures.forecast, &self.topics.forecast)
+    }
+
+    /// Publishes the safety signal (latched: late subscribers get the last
+    /// value). Publish it on change; the latch keeps it for late joiners.
+    pub fn publish_fall_imminent(&self, imminent: bool) -> Result<(), RosError> {
+        let result = self.fall_imminent.publish(Bool { data: imminent });
+        count(
+            result,
+            &self.failures.fall_imminent,
+            &self.topics.fall_imminent,
+        )
+    }
+
+    /// Publishes one `/diagnostics` report.
+    pub fn publish_diagnostics(&self, health: &Health) -> Result<(), RosError> {
+        let msg = diagnostic_array(&self.status_prefix, &self.hardware_id, health);
+        let result = self.diagnostics.publish(msg);
+        count(result, &self.failures.diagnostics, &self.topics.diagnostics)
+    }
+
+    /// Republishes a servo read; a no-op when no `joint_states` topic was configured.
+    pub fn publish_joint_states(&self, msg: JointState) -> Result<(), RosError> {
+        match &self.joint_states {
+            Some(p) => count(
+                p.publish(msg),
+                &self.failures.joint_states,
+                &self.topics.joint_states,
+            ),
+            None => Ok(()),
+        }
+    }
+}
+
+fn publisher<M: serde::Serialize>(
+    node: &mut RosNode,
+    topic: &str,
+    type_name: &str,
+    qos: ros2_client::QosProfile,
+) -> Result<Publisher<M>, RosError> {
+    let t = node.topic(topic, type_name, &qos)?;
+    let resolved = node.resolve(topic);
+    node.node_mut()
+        .create_publisher(&t, Some(qos))
+        .map_err(|e| RosError::Endpoint {
+            kind: "publisher",
+            topic: resolved,
+            reason: e.to_string(),
+        })
+}
+
+fn count<M>(
+    result: Result<(), ros2_client::ros2::WriteError<M>>,
+    failures: &AtomicU64,
+    topic: &str,
+) -> Result<(), RosError> {
+    result.map_err(|e| {
+        if failures.fetch_add(1, Ordering::Relaxed) == 0 {
+            tracing::warn!(topic, error = %e, "ROS 2 publish failed (further failures are only counted)");
+        }
+        RosError::Publish {
+            topic: topic.to_owned(),
+            reason: e.to_string(),
+        }
+    })
+}
+
+/// The forecast message (also the horizons message): one `horizon_ms`
+/// dimension of `values.len()` entries.
+pub fn forecast_message(values: &[f32]) -> Float32MultiArray {
+    let k = u32::try_from(values.len()).unwrap_or(u32::MAX);
+    Float32MultiArray {
+        layout: MultiArrayLayout {
+            dim: vec![MultiArrayDimension {
+                label: HORIZON_DIM_LABEL.to_owned(),
+                size: k,
+                stride: k,
+            }],
+            data_offset: 0,
+        },
+        data: values.to_vec(),
+    }
+}
+
+/// `builtin_interfaces/Time` from ns since the epoch (negative ns round down).
+pub fn ros_time(stamp_ns: i64) -> Time {
+    let sec = stamp_ns.div_euclid(1_000_000_000);
+    let nanosec = stamp_ns.rem_euclid(1_000_000_000) as u32;
+    Time {
+        sec: i32::try_from(sec).unwrap_or(if sec < 0 { i32::MIN } else { i32::MAX }),
+        nanosec,
+    }
+}
+
+fn ms(value: f64) -> String {
+    if value.is_finite() {
+        format!("{value:.3}")
+    } else {
+        "none".to_owned()
+    }
+}
+
+/// Builds the `/diagnostics` message: one status per stream, named
+/// `<prefix>: <stream>`, then `<prefix>: model`. Keys: `rate_hz`, `age_ms`
+/// (`never` before the first sample), `errors`; `inference_p50_ms`,
+/// `inference_p99_ms` (`none` before the first inference), `overruns`,
+/// `active_model`, `valid`.
+pub fn diagnostic_array(prefix: &str, hardware_id: &str, health: &Health) -> DiagnosticArray {
+    let kv = |key: &str, value: String| KeyValue {
+        key: key.to_owned(),
+        value,
+    };
+    let mut status: Vec<DiagnosticStatus> = health
+        .streams
+        .iter()
+        .map(|s| DiagnosticStatus {
+            level: s.level as u8,
+            name: format!("{prefix}: {}", s.name),
+            message: s.message.clone(),
+            hardware_id: hardware_id.to_owned(),
+            values: vec![
+                kv("rate_hz", format!("{:.1}", s.rate_hz)),
+                kv(
+                    "age_ms",
+                    s.age_ms
+                        .map_or_else(|| "never".to_owned(), |a| format!("{a:.1}")),
+                ),
+                kv("errors", s.errors.to_string()),
+            ],
+        })
+        .collect();
+    let m = &health.model;
+    status.push(DiagnosticStatus {
+        level: m.level as u8,
+        name: format!("{prefix}: model"),
+        message: m.message.clone(),
+        hardware_id: hardware_id.to_owned(),
+        values: vec![
+            kv("inference_p50_ms", ms(m.inference_p50_ms)),
+            kv("inference_p99_ms", ms(m.inference_p99_ms)),
+            kv("overruns", m.overruns.to_string()),
+            kv("active_model", m.active_model.clone()),
+            kv("valid", m.valid.to_string()),
+        ],
+    });
+    DiagnosticArray {
+        header: Header {
+            stamp: ros_time(health.stamp_ns),
+            frame_id: String::new(),
+        },
+        status,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn forecast_layout_names_the_horizon_dimension() {
+        let m = forecast_message(&[0.1, 0.5, 0.9]);
+        assert_eq!(m.layout.dim.len(), 1);
+        assert_eq!(m.layout.dim[0].label, "horizon_ms");
+        assert_eq!(m.layout.dim[0].size, 3);
+        assert_eq!(m.layout.dim[0].stride, 3);
+        assert_eq!(m.layout.data_offset, 0);
+        assert_eq!(m.data, vec![0.1, 0.5, 0.9]);
+    }
+
+    #[test]
+    fn ros_time_splits_ns() {
+        assert_eq!(
+            ros_time(1_500_000_001),
+            Time {
+                sec: 1,
+                nanosec: 500_000_001
+            }
+        );
+        assert_eq!(ros_time(0), Time { sec: 0, nanosec: 0 });
+        assert_eq!(
+            ros_time(-1),
+            Time {
+                sec: -1,
+                nanosec: 999_999_999
+            }
+        );
+    }
+
+    #[test]
+    fn diagnostics_have_one_status_per_stream_and_one_for_the_model() {
+        let health = Health {
+            stamp_ns: 2_000_000_000,
+            streams: vec![
+                StreamHealth {
+                    name: "joints".into(),
+                    level: DiagnosticLevel::Ok,
+                    message: "ok".into(),
+                    rate_hz: 30.0,
+                    age_ms: Some(12.5),
+                    errors: 0,
+                },
+                StreamHealth {
+                    name: "camera".into(),
+                    level: DiagnosticLevel::Stale,
+                    message: "no frame yet".into(),
+                    rate_hz: 0.0,
+                    age_ms: None,
+                    errors: 3,
+                },
+            ],
+            model: ModelHealth {
+                level: DiagnosticLevel::Warn,
+                message: "camera lost: MP".into(),
+                inference_p50_ms: 3.25,
+                inference_p99_ms: f64::NAN,
+                overruns: 2,
+                active_model: "MP".into(),
+                valid: false,
+            },
+        };
+        let a = diagnostic_array("fall_guard", "poppy_humanoid", &health);
+        assert_eq!(a.header.stamp, Time { sec: 2, nanosec: 0 });
+        assert_eq!(a.status.len(), 3);
+        assert_eq!(a.status[0].name, "fall_guard: joints");
+        assert_eq!(a.status[1].level, 3);
+        assert_eq!(a.status[2].level, 1);
+        let value = |s: &DiagnosticStatus, k: &str| {
+            s.values
+                .iter()
+                .find(|kv| kv.key == k)
+                .map(|kv| kv.value.clone())
+        };
+        assert_eq!(value(&a.status[0], "age_ms").as_deref(), Some("12.5"));
+        assert_eq!(value(&a.status[1], "age_ms").as_deref(), Some("never"));
+        assert_eq!(value(&a.status[1], "errors").as_deref(), Some("3"));
+        assert_eq!(value(&a.status[2], "active_model").as_deref(), Some("MP"));
+        assert_eq!(value(&a.status[2], "valid").as_deref(), Some("false"));
+        assert_eq!(
+            value(&a.status[2], "inference_p50_ms").as_deref(),
+            Some("3.250")
+        );
+        assert_eq!(
+            value(&a.status[2], "inference_p99_ms").as_deref(),
+            Some("none")
+        );
+        assert_eq!(value(&a.status[2], "overruns").as_deref(), Some("2"));
+    }
+}

@@ -1,0 +1,489 @@
+//! The daemon's ROS 2 node: one DDS participant, one node, the QoS profiles
+//! of `interfaces.md` and the topic-name rules, shared by the publishers in
+//! `outputs::ros` and the subscriptions in `sources::ros`.
+//!
+//! Settings enter from the environment the way every ROS 2 node reads them
+//! (`ROS_DOMAIN_ID`, `ROS_AUTOMATIC_DISCOVERY_RANGE`, the older
+//! `ROS_LOCALHOST_ONLY`: ros2-client reads none of them itself) plus a
+//! namespace and node name from the config. [`RosNode::start`] builds the
+//! participant (bound to 127.0.0.1 only when discovery is limited to the
+//! localhost), creates the node and runs its spinner (discovery, parameter
+//! services) as a tokio task. Topics leave this module as `Topic` handles
+//! created with the QoS that belongs to them.
+
+use std::net::{IpAddr, Ipv4Addr};
+
+use ros2_client::qos::{Durability, History, WhenFull};
+use ros2_client::{Context, MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile};
+use rustdds::{DomainParticipant, DomainParticipantBuilder, Topic};
+
+/// Environment variable with the DDS domain (0 when unset or empty).
+pub const DOMAIN_ID_ENV: &str = "ROS_DOMAIN_ID";
+/// Environment variable limiting discovery (`LOCALHOST`, `SUBNET`, ...).
+pub const DISCOVERY_RANGE_ENV: &str = "ROS_AUTOMATIC_DISCOVERY_RANGE";
+/// Humble-era switch (`1` = localhost only), honoured when the range is unset.
+pub const LOCALHOST_ONLY_ENV: &str = "ROS_LOCALHOST_ONLY";
+
+/// Largest domain id whose RTPS ports still fit in 16 bits (ROS 2 allows
+/// 0..=232 on Linux).
+pub const MAX_DOMAIN_ID: u16 = 232;
+
+/// Errors of the ROS 2 layer; each names the variable, topic or node involved.
+#[derive(Debug, thiserror::Error)]
+pub enum RosError {
+    #[error("{var}={value:?} is not a ROS domain id (expected an integer 0..={MAX_DOMAIN_ID})")]
+    BadDomainId { var: &'static str, value: String },
+    #[error(
+        "{var}={value:?} is not a discovery range (expected LOCALHOST, SUBNET or SYSTEM_DEFAULT)"
+    )]
+    BadDiscoveryRange { var: &'static str, value: String },
+    #[error(
+        "{var}=OFF disables discovery: fall-guard would publish to nobody; use LOCALHOST instead"
+    )]
+    DiscoveryOff { var: &'static str },
+    #[error("bad ROS name {name:?} ({what}): {reason}")]
+    BadName {
+        name: String,
+        what: &'static str,
+        reason: String,
+    },
+    #[error("cannot create the DDS participant on domain {domain_id}: {reason}")]
+    Participant { domain_id: u16, reason: String },
+    #[error("cannot create ROS 2 node {node}: {reason}")]
+    Node { node: String, reason: String },
+    #[error("cannot create topic {topic} ({type_name}): {reason}")]
+    Topic {
+        topic: String,
+        type_name: String,
+        reason: String,
+    },
+    #[error("cannot create {kind} on {topic}: {reason}")]
+    Endpoint {
+        kind: &'static str,
+        topic: String,
+        reason: String,
+    },
+    #[error("publishing on {topic} failed: {reason}")]
+    Publish { topic: String, reason: String },
+    #[error("RosNode::start must run inside a tokio runtime (it spawns the node's spinner)")]
+    NoRuntime,
+}
+
+/// How far automatic discovery reaches, as ROS 2 (Iron and later) defines
+/// `ROS_AUTOMATIC_DISCOVERY_RANGE`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DiscoveryRange {
+    /// Only processes on this machine: the participant uses 127.0.0.1 only.
+    Localhost,
+    /// Every interface (the ROS 2 default).
+    Subnet,
+}
+
+/// Everything needed to create the node. Build it with [`RosSettings::from_env`]
+/// (what the daemon does) or fill it directly (tests).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RosSettings {
+    pub domain_id: u16,
+    pub discovery: DiscoveryRange,
+    /// Node namespace, e.g. `/` or `/poppy`; relative topic names resolve under it.
+    pub namespace: String,
+    pub node_name: String,
+}
+
+impl RosSettings {
+    /// Reads `ROS_DOMAIN_ID`, `ROS_AUTOMATIC_DISCOVERY_RANGE` and
+    /// `ROS_LOCALHOST_ONLY` from the process environment.
+    pub fn from_env(namespace: &str, node_name: &str) -> Result<RosSettings, RosError> {
+        RosSettings::from_vars(namespace, node_name, |var| std::env::var(var).ok())
+    }
+
+    /// As [`RosSettings::from_env`], with the environment given as a lookup
+    /// function (so that tests need not mutate the process environment).
+    pub fn from_vars(
+        namespace: &str,
+        node_name: &str,
+        var: impl Fn(&str) -> Option<String>,
+    ) -> Result<RosSettings, RosError> {
+        let domain_id = match var(DOMAIN_ID_ENV).map(|v| v.trim().to_owned()) {
+            None => 0,
+            Some(v) if v.is_empty() => 0,
+            Some(v) => match v.parse::<u16>() {
+                Ok(id) if id <= MAX_DOMAIN_ID => id,
+                _ => {
+                    return Err(RosError::BadDomainId {
+                        var: DOMAIN_ID_ENV,
+                        value: v,
+                    })
+                }
+            },
+        };
+        let range = var(DISCOVERY_RANGE_ENV).map(|v| v.trim().to_ascii_uppercase());
+        let discovery = match range.as_deref() {
+            Some("LOCALHOST") => DiscoveryRange::Localhost,
+            Some("SUBNET") | Some("SYSTEM_DEFAULT") => DiscoveryRange::Subnet,
+            Some("OFF") => {
+                return Err(RosError::DiscoveryOff {
+                    var: DISCOVERY_RANGE_ENV,
+                })
+            }
+            Some("") | None => {
+                // Humble's switch, still read by Jazzy when the range is unset.
+                if var(LOCALHOST_ONLY_ENV).is_some_and(|v| v.trim() == "1") {
+                    DiscoveryRange::Localhost
+                } else {
+                    DiscoveryRange::Subnet
+                }
+            }
+            Some(_) => {
+                return Err(RosError::BadDiscoveryRange {
+                    var: DISCOVERY_RANGE_ENV,
+                    value: var(DISCOVERY_RANGE_ENV).unwrap_or_default(),
+                })
+            }
+        };
+        let settings = RosSettings {
+            domain_id,
+            discovery,
+            namespace: namespace.to_owned(),
+            node_name: node_name.to_owned(),
+        };
+        settings.node_name()?;
+        Ok(settings)
+    }
+
+    fn node_name(&self) -> Result<NodeName, RosError> {
+        NodeName::new(&self.namespace, &self.node_name).map_err(|e| RosError::BadName {
+            name: format!("{}/{}", self.namespace, self.node_name),
+            what: "node namespace/name",
+            reason: format!("{e:?}"),
+        })
+    }
+}
+
+/// The QoS profiles of `interfaces.md`, one function per kind of topic.
+pub mod qos {
+    use super::*;
+
+    /// rclpy's `qos_profile_sensor_data`: best effort, keep last 5, volatile.
+    /// For `/joint_states` and `/head_camera/image_raw/compressed`.
+    pub fn sensor_data() -> QosProfile {
+        QosProfile::subscription_default().history(History::KeepLast { depth: 5 })
+    }
+
+    /// `/fall_guard/forecast`: reliable, keep last 1, volatile (a fresh value
+    /// every tick; an old one is worthless).
+    pub fn forecast() -> QosProfile {
+        reliable().history(History::KeepLast { depth: 1 })
+    }
+
+    /// `/fall_guard/fall_imminent`: reliable, transient local, keep last 1, so
+    /// that a safety node starting late still gets the current state.
+    pub fn fall_imminent() -> QosProfile {
+        latched()
+    }
+
+    /// `/fall_guard/horizons_ms`: latched like `fall_imminent`.
+    pub fn horizons() -> QosProfile {
+        latched()
+    }
+
+    /// `/planned_trajectory`: reliable, transient local, depth 1 (the
+    /// planner's current plan survives a late subscriber). A subscription
+    /// with this profile does not match a volatile or best-effort publisher.
+    pub fn planned_trajectory() -> QosProfile {
+        latched()
+    }
+
+    /// `/diagnostics`: the ROS 2 default, reliable, keep last 10, volatile.
+    pub fn diagnostics() -> QosProfile {
+        reliable().history(History::KeepLast { depth: 10 })
+    }
+
+    fn reliable() -> QosProfile {
+        // Never block the tick: if the send window is full, fail at once and
+        // count it; the next tick publishes a newer value anyway.
+        QosProfile::publisher_default().reliability_reliable(WhenFull::Fail)
+    }
+
+    fn latched() -> QosProfile {
+        reliable()
+            .durability(Durability::TransientLocal)
+            .history(History::KeepLast { depth: 1 })
+    }
+}
+
+/// A running ROS 2 node: the DDS participant, the node and its spinner task.
+/// Dropping it stops the spinner and leaves the DDS domain.
+pub struct RosNode {
+    node: Node,
+    settings: RosSettings,
+    spinner: tokio::task::JoinHandle<()>,
+}
+
+impl RosNode {
+    /// Creates the participant and the node and spawns the spinner on the
+    /// current tokio runtime.
+    pub fn start(settings: &RosSettings) -> Result<RosNode, RosError> {
+        let runtime = tokio::runtime::Handle::try_current().map_err(|_| RosError::NoRuntime)?;
+        let node_name = settings.node_name()?;
+        let participant = participant(settings)?;
+        let context =
+            Context::from_domain_participant(participant).map_err(|e| RosError::Node {
+                node: node_name.fully_qualified_name(),
+                reason: e.to_string(),
+            })?;
+        let node_error = |e: String| RosError::Node {
+            node: node_name.fully_qualified_name(),
+            reason: e,
+        };
+        let mut node = context
+            .new_node(node_name.clone(), NodeOptions::new().enable_rosout(true))
+            .map_err(|e| node_error(format!("{e:?}")))?;
+        let spinner = node.spinner().map_err(|e| node_error(e.to_string()))?;
+        let fqn = node_name.fully_qualified_name();
+        let spinner = runtime.spawn(async move {
+            if let Err(e) = spinner.spin().await {
+                tracing::error!(node = %fqn, error = %e, "ROS 2 spinner stopped");
+            }
+        });
+        tracing::info!(
+            node = %node_name.fully_qualified_name(),
+            domain_id = settings.domain_id,
+            discovery = ?settings.discovery,
+            "ROS 2 node started"
+        );
+        Ok(RosNode {
+            node,
+            settings: settings.clone(),
+            spinner,
+        })
+    }
+
+    pub fn settings(&self) -> &RosSettings {
+        &self.settings
+    }
+
+    /// The underlying ros2-client node, to create publishers and subscriptions.
+    pub fn node_mut(&mut self) -> &mut Node {
+        &mut self.node
+    }
+
+    pub fn node(&self) -> &Node {
+        &self.node
+    }
+
+    /// Creates a topic. `topic` is a ROS name: absolute (`/diagnostics`) or
+    /// relative (`fall_guard/forecast`, resolved under the node namespace).
+    /// `type_name` is `pkg/msg/Type` or `pkg/Type`.
+    pub fn topic(
+        &mut self,
+        topic: &str,
+        type_name: &str,
+        qos: &QosProfile,
+    ) -> Result<Topic, RosError> {
+        // Resolved here rather than by ros2-client: with the root namespace it
+        // would map a relative `fall_guard/forecast` to the DDS topic
+        // `rt//fall_guard/forecast`, which no ROS 2 node ever matches.
+        let name = parse_topic_name(&self.resolve(topic))?;
+        let message_type = parse_type_name(type_name)?;
+        self.node
+            .create_topic(&name, message_type, qos)
+            .map_err(|e| RosError::Topic {
+                topic: self.resolve(topic),
+                type_name: type_name.to_owned(),
+                reason: e.to_string(),
+            })
+    }
+
+    /// The fully qualified name a topic name resolves to on this node.
+    pub fn resolve(&self, topic: &str) -> String {
+        resolve_topic(&self.settings.namespace, topic)
+    }
+}
+
+impl Drop for RosNode {
+    fn drop(&mut self) {
+        self.node.stop_spinner();
+        self.spinner.abort();
+    }
+}
+
+/// Resolves a topic name against a node namespace the way ROS 2 does
+/// (absolute names stay, relative names get the namespace prefix).
+pub fn resolve_topic(namespace: &str, topic: &str) -> String {
+    if topic.starts_with('/') {
+        topic.to_owned()
+    } else if namespace == "/" || namespace.is_empty() {
+        format!("/{topic}")
+    } else {
+        format!("{}/{topic}", namespace.trim_end_matches('/'))
+    }
+}
+
+fn parse_topic_name(topic: &str) -> Result<Name, RosError> {
+    Name::parse(topic).map_err(|e| RosError::BadName {
+        name: topic.to_owned(),
+        what: "topic",
+        reason: format!("{e:?}"),
+    })
+}
+
+/// Accepts `pkg/msg/Type` (the form in `.msg` files and MCAP schemas) and `pkg/Type`.
+fn parse_type_name(type_name: &str) -> Result<MessageTypeName, RosError> {
+    let parts: Vec<&str> = type_name.split('/').collect();
+    match parts.as_slice() {
+        [pkg, "msg", ty] | [pkg, ty] if !pkg.is_empty() && !ty.is_empty() => {
+            Ok(MessageTypeName::new(pkg, ty))
+        }
+        _ => Err(RosError::BadName {
+            name: type_name.to_owned(),
+            what: "message type",
+            reason: "expected pkg/msg/Type".to_owned(),
+        }),
+    }
+}
+
+fn participant(settings: &RosSettings) -> Result<DomainParticipant, RosError> {
+    let builder = DomainParticipantBuilder::new(settings.domain_id);
+    let builder = match settings.discovery {
+        DiscoveryRange::Localhost => builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]),
+        DiscoveryRange::Subnet => builder,
+    };
+    builder.build().map_err(|e| RosError::Participant {
+        domain_id: settings.domain_id,
+        reason: e.to_string(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env<'a>(pairs: &'a [(&'a str, &'a str)]) -> impl Fn(&str) -> Option<String> + 'a {
+        move |k| {
+            pairs
+                .iter()
+                .find(|(n, _)| *n == k)
+                .map(|(_, v)| (*v).to_owned())
+        }
+    }
+
+    #[test]
+    fn defaults_are_domain_0_on_every_interface() {
+        let s = RosSettings::from_vars("/", "fall_guard", env(&[])).expect("defaults");
+        assert_eq!(s.domain_id, 0);
+        assert_eq!(s.discovery, DiscoveryRange::Subnet);
+    }
+
+    #[test]
+    fn reads_domain_and_localhost_range() {
+        let s = RosSettings::from_vars(
+            "/poppy",
+            "fall_guard",
+            env(&[(DOMAIN_ID_ENV, "42"), (DISCOVERY_RANGE_ENV, "localhost")]),
+        )
+        .expect("valid");
+        assert_eq!(s.domain_id, 42);
+        assert_eq!(s.discovery, DiscoveryRange::Localhost);
+        let s = RosSettings::from_vars("/", "n", env(&[(LOCALHOST_ONLY_ENV, "1")])).expect("valid");
+        assert_eq!(s.discovery, DiscoveryRange::Localhost);
+        // An explicit range wins over the older switch, as in rmw.
+        let s = RosSettings::from_vars(
+            "/",
+            "n",
+            env(&[(LOCALHOST_ONLY_ENV, "1"), (DISCOVERY_RANGE_ENV, "SUBNET")]),
+        )
+        .expect("valid");
+        assert_eq!(s.discovery, DiscoveryRange::Subnet);
+    }
+
+    #[test]
+    fn bad_values_name_the_variable() {
+        for bad in ["abc", "-1", "233", "70000"] {
+            let e = RosSettings::from_vars("/", "n", env(&[(DOMAIN_ID_ENV, bad)]))
+                .expect_err("must reject");
+            assert!(e.to_string().contains("ROS_DOMAIN_ID"), "{e}");
+        }
+        let e = RosSettings::from_vars("/", "n", env(&[(DISCOVERY_RANGE_ENV, "MOON")]))
+            .expect_err("must reject");
+        assert!(
+            e.to_string().contains("ROS_AUTOMATIC_DISCOVERY_RANGE"),
+            "{e}"
+        );
+        let e = RosSettings::from_vars("/", "n", env(&[(DISCOVERY_RANGE_ENV, "OFF")]))
+            .expect_err("must reject");
+        assert!(matches!(e, RosError::DiscoveryOff { .. }));
+        let e = RosSettings::from_vars("poppy", "n", env(&[])).expect_err("namespace needs /");
+        assert!(e.to_string().contains("poppy"), "{e}");
+    }
+
+    #[test]
+    fn topic_names_resolve_like_ros() {
+        assert_eq!(
+            resolve_topic("/", "fall_guard/forecast"),
+            "/fall_guard/forecast"
+        );
+        assert_eq!(
+            resolve_topic("/poppy", "fall_guard/forecast"),
+            "/poppy/fall_guard/forecast"
+        );
+        assert_eq!(resolve_topic("/poppy", "/diagnostics"), "/diagnostics");
+        assert!(parse_type_name("std_msgs/msg/Bool").is_ok());
+        assert!(parse_type_name("std_msgs/Bool").is_ok());
+        assert!(parse_type_name("Bool").is_err());
+    }
+
+    /// The DDS topic names ROS 2 peers match on, for the root namespace and
+    /// another one (ros2-client alone gets the root case wrong).
+    #[tokio::test]
+    async fn topics_get_the_dds_names_rclcpp_uses() {
+        use rustdds::TopicDescription;
+        for (namespace, topic, dds) in [
+            ("/", "fall_guard/forecast", "rt/fall_guard/forecast"),
+            ("/", "/diagnostics", "rt/diagnostics"),
+            (
+                "/poppy",
+                "fall_guard/forecast",
+                "rt/poppy/fall_guard/forecast",
+            ),
+            ("/poppy", "/diagnostics", "rt/diagnostics"),
+        ] {
+            let settings = RosSettings {
+                domain_id: MAX_DOMAIN_ID,
+                discovery: DiscoveryRange::Localhost,
+                namespace: namespace.to_owned(),
+                node_name: "fall_guard_names".to_owned(),
+            };
+            let mut node = RosNode::start(&settings).expect("node");
+            let t = node
+                .topic(topic, "std_msgs/msg/Bool", &qos::forecast())
+                .expect("topic");
+            assert_eq!(t.name(), dds, "{namespace} + {topic}");
+        }
+    }
+
+    #[test]
+    fn qos_profiles_follow_interfaces_md() {
+        use ros2_client::qos::Reliability;
+        assert_eq!(qos::sensor_data().reliability, Reliability::BestEffort);
+        assert_eq!(qos::sensor_data().history, History::KeepLast { depth: 5 });
+        assert_eq!(qos::sensor_data().durability, Durability::Volatile);
+        assert!(matches!(
+            qos::forecast().reliability,
+            Reliability::Reliable { .. }
+        ));
+        assert_eq!(qos::forecast().durability, Durability::Volatile);
+        assert_eq!(qos::forecast().history, History::KeepLast { depth: 1 });
+        for latched in [
+            qos::fall_imminent(),
+            qos::planned_trajectory(),
+            qos::horizons(),
+        ] {
+            assert!(matches!(latched.reliability, Reliability::Reliable { .. }));
+            assert_eq!(latched.durability, Durability::TransientLocal);
+            assert_eq!(latched.history, History::KeepLast { depth: 1 });
+        }
+        assert_eq!(qos::diagnostics().history, History::KeepLast { depth: 10 });
+        assert_eq!(qos::diagnostics().durability, Durability::Volatile);
+    }
+}

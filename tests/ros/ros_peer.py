@@ -1,0 +1,217 @@
+#!/usr/bin/env python3
+"""A real rclpy peer for fall-guard's ROS 2 interop tests.
+
+Two modes, both speaking JSON lines on stdout so that the Rust tests can read
+them without parsing ROS text output:
+
+  listen   subscribe to topics and print every message received:
+             {"event": "ready"}                       once subscriptions exist
+             {"event": "msg", "topic": T, "t": S, "msg": {...}}  per message
+             {"event": "done", "counts": {T: N}}      when all --count are met
+           exits 0 when done, 3 on --timeout.
+
+  publish  publish a scenario of sensor inputs (see PUBLISH_SCENARIO below):
+             {"event": "published", "topic": T, "n": N}  after each publish
+           then keeps publishing the streaming topics until killed or --timeout.
+
+Each subscription is given as TOPIC:TYPE:QOS, with TYPE like
+std_msgs/msg/Bool and QOS one of the profile names of fall-guard's
+interfaces.md: sensor_data, forecast, latched, diagnostics.
+
+Keep DDS on the loopback interface: the tests set
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a ROS_DOMAIN_ID per test.
+"""
+
+import argparse
+import importlib
+import json
+import math
+import sys
+import time
+
+import rclpy
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+
+QOS = {
+    "sensor_data": QoSProfile(
+        reliability=ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=5,
+    ),
+    "forecast": QoSProfile(
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+    ),
+    "latched": QoSProfile(
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+    ),
+    "diagnostics": QoSProfile(
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=10,
+    ),
+}
+
+
+def emit(obj):
+    sys.stdout.write(json.dumps(obj) + "\n")
+    sys.stdout.flush()
+
+
+def message_class(type_name):
+    parts = type_name.split("/")
+    if len(parts) == 3 and parts[1] == "msg":
+        pkg, ty = parts[0], parts[2]
+    elif len(parts) == 2:
+        pkg, ty = parts
+    else:
+        raise SystemExit(f"bad message type {type_name!r}: expected pkg/msg/Type")
+    return getattr(importlib.import_module(f"{pkg}.msg"), ty)
+
+
+def to_plain(value):
+    """A ROS message (or field) as JSON-able Python values."""
+    if hasattr(value, "get_fields_and_field_types"):
+        return {f: to_plain(getattr(value, f)) for f in value.get_fields_and_field_types()}
+    if isinstance(value, (bytes, bytearray)):
+        return list(value)
+    if isinstance(value, (list, tuple)):
+        return [to_plain(v) for v in value]
+    if hasattr(value, "tolist"):  # numpy / array.array
+        return [to_plain(v) for v in value.tolist()]
+    if isinstance(value, float) and math.isnan(value):
+        return "NaN"  # JSON has no NaN
+    return value
+
+
+def listen(args):
+    node = rclpy.create_node("fall_guard_test_listener")
+    want = {}
+    counts = {}
+    subs = []
+    for spec in args.sub:
+        try:
+            topic, type_name, qos = spec.split(":")
+        except ValueError:
+            raise SystemExit(f"bad --sub {spec!r}: expected TOPIC:TYPE:QOS")
+        cls = message_class(type_name)
+        counts[topic] = 0
+
+        def callback(msg, topic=topic):
+            counts[topic] += 1
+            emit({"event": "msg", "topic": topic, "t": time.monotonic(), "msg": to_plain(msg)})
+
+        subs.append(node.create_subscription(cls, topic, callback, QOS[qos]))
+    for spec in args.count:
+        topic, n = spec.rsplit("=", 1)
+        want[topic] = int(n)
+    emit({"event": "ready", "t": time.monotonic()})
+    deadline = time.monotonic() + args.timeout
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if want and all(counts.get(t, 0) >= n for t, n in want.items()):
+            emit({"event": "done", "counts": counts})
+            return 0
+    emit({"event": "timeout", "counts": counts})
+    return 3
+
+
+def stamp(msg_time, stamp_ns):
+    msg_time.sec = stamp_ns // 1_000_000_000
+    msg_time.nanosec = stamp_ns % 1_000_000_000
+
+
+# The scenario the input test checks value by value (tests/ros_inputs.rs
+# holds the same numbers).
+JOINTS = ["abs_y", "abs_x", "abs_z"]
+PLAN_STAMP_NS = 1_700_000_000_250_000_000
+PLAN_STEP_NS = 33_333_333
+PLAN_POINTS = 4
+JPEG_BYTES = bytes([0xFF, 0xD8, 0xFF, 0xE0, 0x00, 0x10, 0x4A, 0x46, 0xFF, 0xD9])
+
+
+def joint_positions(i):
+    return [0.01 * i, -0.5 + 0.001 * i, 1.25]
+
+
+def publish(args):
+    from sensor_msgs.msg import CompressedImage, JointState
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    node = rclpy.create_node("fall_guard_test_publisher")
+    joints = node.create_publisher(JointState, args.joint_states, QOS["sensor_data"])
+    plans = node.create_publisher(JointTrajectory, args.planned_trajectory, QOS["latched"])
+    images = node.create_publisher(CompressedImage, args.camera, QOS["sensor_data"])
+
+    # The plan is published once, before anybody listens: only a
+    # transient-local subscription can get it.
+    plan = JointTrajectory()
+    stamp(plan.header.stamp, PLAN_STAMP_NS)
+    plan.header.frame_id = "base_link"
+    plan.joint_names = JOINTS
+    for p in range(PLAN_POINTS):
+        point = JointTrajectoryPoint()
+        point.positions = [0.1 * p, 0.2 * p, -0.3 * p]
+        point.time_from_start.sec = (p * PLAN_STEP_NS) // 1_000_000_000
+        point.time_from_start.nanosec = (p * PLAN_STEP_NS) % 1_000_000_000
+        plan.points.append(point)
+    plans.publish(plan)
+    emit({"event": "published", "topic": args.planned_trajectory, "n": 1})
+
+    deadline = time.monotonic() + args.timeout
+    i = 0
+    while time.monotonic() < deadline:
+        i += 1
+        js = JointState()
+        stamp(js.header.stamp, 1_000_000_000 + i * 33_000_000)
+        js.name = JOINTS
+        js.position = joint_positions(i)
+        js.velocity = [0.5, 0.0, -0.5]
+        joints.publish(js)
+        img = CompressedImage()
+        stamp(img.header.stamp, 1_000_000_000 + i * 33_000_000)
+        img.header.frame_id = "head_camera"
+        img.format = "jpeg"
+        img.data = JPEG_BYTES + bytes([i % 256])
+        images.publish(img)
+        if i == 1 or i % 30 == 0:
+            emit({"event": "published", "topic": args.joint_states, "n": i})
+        rclpy.spin_once(node, timeout_sec=args.period)
+    return 0
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="mode", required=True)
+    lp = sub.add_parser("listen")
+    lp.add_argument("--sub", action="append", default=[], help="TOPIC:TYPE:QOS")
+    lp.add_argument("--count", action="append", default=[], help="TOPIC=N to wait for")
+    lp.add_argument("--timeout", type=float, default=30.0)
+    pp = sub.add_parser("publish")
+    pp.add_argument("--joint-states", default="/joint_states")
+    pp.add_argument("--planned-trajectory", default="/planned_trajectory")
+    pp.add_argument("--camera", default="/head_camera/image_raw/compressed")
+    pp.add_argument("--period", type=float, default=0.033)
+    pp.add_argument("--timeout", type=float, default=30.0)
+    args = parser.parse_args()
+    rclpy.init()
+    try:
+        return listen(args) if args.mode == "listen" else publish(args)
+    finally:
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
