@@ -27,7 +27,7 @@ use thiserror::Error;
 use tokio::sync::Notify;
 
 use crate::config::{Config, ConfigError, ModelFacts};
-use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster};
+use crate::model::{Ablation, LoadedModel, ModelError};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::window::{Streams, TickInput, Window, WindowSpec};
@@ -357,6 +357,7 @@ pub struct Inference {
     jobs: Option<mpsc::SyncSender<InferenceJob>>,
     busy: Arc<AtomicBool>,
     idle: Arc<Notify>,
+    dead: Arc<AtomicBool>,
     stats: Arc<Mutex<InferenceStats>>,
     handle: Option<JoinHandle<()>>,
 }
@@ -374,15 +375,17 @@ impl Inference {
         let busy = Arc::new(AtomicBool::new(false));
         let idle = Arc::new(Notify::new());
         let stats = Arc::new(Mutex::new(InferenceStats::default()));
-        let (t_busy, t_idle, t_stats) = (Arc::clone(&busy), Arc::clone(&idle), Arc::clone(&stats));
+        let dead = Arc::new(AtomicBool::new(false));
+        let (t_busy, t_idle, t_stats, t_dead) = (Arc::clone(&busy), Arc::clone(&idle), Arc::clone(&stats), Arc::clone(&dead));
         let handle = std::thread::Builder::new()
             .name("inference".into())
-            .spawn(move || inference_loop(&models, latch, &bus, print, &rx, &t_busy, &t_idle, &t_stats))
+            .spawn(move || inference_loop(&models, latch, &bus, print, &rx, &t_busy, &t_idle, &t_stats, &t_dead))
             .map_err(ForecastError::Thread)?;
         Ok(Inference {
             jobs: Some(tx),
             busy,
             idle,
+            dead,
             stats,
             handle: Some(handle),
         })
@@ -409,11 +412,16 @@ impl Inference {
     pub async fn wait_idle(&self) {
         loop {
             let notified = self.idle.notified();
-            if !self.busy.load(Ordering::Acquire) || self.handle.as_ref().is_none_or(|h| h.is_finished()) {
+            if !self.busy.load(Ordering::Acquire) || self.is_dead() {
                 return;
             }
             notified.await;
         }
+    }
+
+    /// True once the thread has ended (a panic in the network).
+    pub fn is_dead(&self) -> bool {
+        self.dead.load(Ordering::Acquire)
     }
 
     pub fn stats(&self) -> &Arc<Mutex<InferenceStats>> {
@@ -441,9 +449,10 @@ fn inference_loop(
     busy: &AtomicBool,
     idle: &Notify,
     stats: &Mutex<InferenceStats>,
+    dead: &AtomicBool,
 ) {
     let mut logged_error = false;
-    let mut runner = StreamingRunner::new(models);
+    let _alive = AliveGuard { busy, idle, dead };
     while let Ok(job) = jobs.recv() {
         let mut valid = job.valid;
         let mut invalid_reason = job.invalid_reason;
@@ -451,7 +460,7 @@ fn inference_loop(
         let mut latency_us = None;
         if !job.ticks.is_empty() {
             let started = Instant::now();
-            match runner.forecast(job.ablation, &job.ticks) {
+            match whole_window_forecast(models, job.ablation, &job.ticks) {
                 Ok(p) => {
                     latency_us = Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
                     probabilities = p;
@@ -514,85 +523,39 @@ enum ForecastFailure {
     Model(ModelError),
 }
 
-/// One [`StreamingForecaster`] per ablation, fed only the ticks it has not
-/// seen yet, so per-frame work (low-pass, inner vision slices) is done once
-/// per tick even when ticks were skipped in between. Exact: equal to the
-/// whole-window forward ([`LoadedModel::forecast_arrays`]) on the same window.
-struct StreamingRunner<'m> {
-    models: &'m ModelSet,
-    forecasters: Vec<(Ablation, StreamingForecaster, Option<i64>)>,
-    frame_buf: Vec<f32>,
+/// The forecast of `ablation` for the window `ticks` (N consecutive ticks),
+/// cut by the one window builder and run through the whole-window forward.
+///
+/// The model's `StreamingForecaster` (per-frame caching) is not used: in
+/// this build its second forecast panics in burn ("Asymmetric padding is not
+/// yet supported for conv3d"); see the report.
+fn whole_window_forecast(models: &ModelSet, ablation: Ablation, ticks: &[TickInput]) -> Result<Vec<f32>, ForecastFailure> {
+    let window = Window::from_ticks(ticks.iter(), models.spec(), needs(ablation))
+        .map_err(|e| ForecastFailure::Input(e.to_string()))?;
+    let model = models
+        .get(ablation)
+        .ok_or_else(|| ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation))))?;
+    model
+        .forecast_arrays(&window.joints, &window.plan, &window.frames)
+        .map_err(ForecastFailure::Model)
 }
 
-impl<'m> StreamingRunner<'m> {
-    fn new(models: &'m ModelSet) -> Self {
-        let forecasters = models
-            .models
-            .iter()
-            .map(|m| (m.meta.ablation, StreamingForecaster::new(m), None))
-            .collect();
-        let s = models.spec().frame_size as usize;
-        StreamingRunner {
-            models,
-            forecasters,
-            frame_buf: vec![0.0; 3 * s * s],
-        }
-    }
+/// Marks the inference thread idle and dead when it ends, even by a panic,
+/// so that nothing waits for it forever.
+struct AliveGuard<'a> {
+    busy: &'a AtomicBool,
+    idle: &'a Notify,
+    dead: &'a AtomicBool,
+}
 
-    /// The forecast of `ablation` for the window `ticks` (N consecutive ticks).
-    fn forecast(&mut self, ablation: Ablation, ticks: &[TickInput]) -> Result<Vec<f32>, ForecastFailure> {
-        let spec = self.models.spec();
-        let need = needs(ablation);
-        // The plan window of the newest tick, cut by the one window builder
-        // (also checks that joints and plan are present in every tick).
-        let window = Window::from_ticks(
-            ticks.iter(),
-            spec,
-            Streams {
-                joints: true,
-                plan: need.plan,
-                frames: false,
-            },
-        )
-        .map_err(|e| ForecastFailure::Input(e.to_string()))?;
-        let Some((_, forecaster, last_pushed)) = self.forecasters.iter_mut().find(|(a, _, _)| *a == ablation) else {
-            return Err(ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation))));
-        };
-        let plan = need.plan.then_some(window.plan.as_slice());
-        let plane = (spec.frame_size * spec.frame_size) as usize;
-        let pushed_before = *last_pushed;
-        let result = (|| {
-            for t in ticks.iter().filter(|t| pushed_before.is_none_or(|last| t.tick > last)) {
-                let joints = t
-                    .joints_rad
-                    .as_deref()
-                    .ok_or_else(|| ForecastFailure::Input(format!("tick {}: no joints sample yet", t.tick)))?;
-                let frame = if need.frames {
-                    let f = t
-                        .frame
-                        .as_ref()
-                        .ok_or_else(|| ForecastFailure::Input(format!("tick {}: no camera frame yet", t.tick)))?;
-                    if f.width != spec.frame_size || f.height != spec.frame_size {
-                        return Err(ForecastFailure::Input(format!(
-                            "tick {}: frame is {}x{}, the model needs {}x{}",
-                            t.tick, f.width, f.height, spec.frame_size, spec.frame_size
-                        )));
-                    }
-                    f.write_chw(&mut self.frame_buf, plane);
-                    Some(self.frame_buf.as_slice())
-                } else {
-                    None
-                };
-                forecaster.push_parts(t.tick, joints, frame, plan).map_err(ForecastFailure::Model)?;
-                *last_pushed = Some(t.tick);
-            }
-            forecaster.forecast().map_err(ForecastFailure::Model)
-        })();
-        if result.is_err() {
-            forecaster.reset();
-            *last_pushed = None;
+impl Drop for AliveGuard<'_> {
+    fn drop(&mut self) {
+        self.dead.store(true, Ordering::Release);
+        self.busy.store(false, Ordering::Release);
+        self.idle.notify_one();
+        if std::thread::panicking() {
+            tracing::error!("inference thread panicked: forecasts stop, the daemon exits");
         }
-        result
     }
 }
 

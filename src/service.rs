@@ -293,6 +293,13 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
     }
     drop(ros);
     signals.abort();
+    if summary.inference_failed {
+        return Err(ServiceError::Source(format!(
+            "{}: inference stopped at tick {} (the network panicked, see the log)",
+            recording.display(),
+            counters.ticks
+        )));
+    }
     tracing::info!(ticks = counters.ticks, dispatched = counters.dispatched, overruns = counters.overruns, "replay finished");
     Ok(ReplayReport {
         recording,
@@ -474,7 +481,7 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     let tick_loop = TickLoop::new(Arc::clone(&models), inference, settings, bus.clone())?;
     tracing::info!(config = %args.config.display(), rate_hz = models.spec().rate_hz,
         n_ticks = models.spec().n_ticks, "fall-guard running");
-    let counters = crate::tick::run_live(tick_loop, streams.taps.clone(), trigger.subscribe()).await;
+    let (counters, inference_died) = crate::tick::run_live(tick_loop, streams.taps.clone(), trigger.subscribe()).await;
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
     trigger.fire();
     for s in sources {
@@ -485,6 +492,9 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     }
     drop(ros);
     signals.abort();
+    if inference_died {
+        return Err(ServiceError::Source("inference stopped (the network panicked, see the log)".into()));
+    }
     Ok(counters)
 }
 

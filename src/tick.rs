@@ -371,7 +371,8 @@ pub struct LiveTaps {
 /// Drive `tick_loop` from the system clock until shutdown: at each grid
 /// tick, take the latest sample of each stream (new ones only, in stamp
 /// order) and run the ticks that became final.
-pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shutdown) -> TickCounters {
+/// Returns the counters and whether the inference thread died.
+pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shutdown) -> (TickCounters, bool) {
     let grid = tick_loop.resampler.grid();
     let mut seen: [Option<i64>; 3] = [None; 3];
     let mut seen_ptr: [usize; 3] = [0; 3];
@@ -420,8 +421,13 @@ pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shu
         // Latency is counted from the newest sensor sample, or from the tick
         // itself when no new sample arrived (a stale tick).
         tick_loop.run_pending(sensed_at.unwrap_or_else(Instant::now), false).await;
+        if tick_loop.inference().is_dead() {
+            // Exit (non-zero from `run`) so that systemd restarts the daemon.
+            break;
+        }
     }
-    tick_loop.finish().await
+    let dead = tick_loop.inference().is_dead();
+    (tick_loop.finish().await, dead)
 }
 
 #[cfg(test)]

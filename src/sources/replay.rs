@@ -99,6 +99,8 @@ pub fn shifted(sample: &Sample, offset_ns: i64) -> Sample {
 pub struct ReplaySummary {
     pub samples: u64,
     pub interrupted: bool,
+    /// The inference thread ended (a panic in the network): replay stopped.
+    pub inference_failed: bool,
 }
 
 fn stream_index(sample: &Sample) -> usize {
@@ -154,6 +156,10 @@ where
         }
         if tick_loop.pending_ticks() > 0 {
             tick_loop.run_pending(sensed_at, lockstep).await;
+        }
+        if tick_loop.inference().is_dead() {
+            summary.inference_failed = true;
+            return summary;
         }
     }
     tick_loop.advance_to(end_ns);
