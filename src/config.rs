@@ -355,7 +355,11 @@ impl Config {
             span.map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1)
         };
         let deserializer = toml::Deserializer::parse(text).map_err(|e| {
-            syntax(line_of(e.span()), "(syntax)".into(), e.message().trim().to_string())
+            syntax(
+                line_of(e.span()),
+                "(syntax)".into(),
+                e.message().trim().to_string(),
+            )
         })?;
         let mut config: Config = serde_path_to_error::deserialize(deserializer).map_err(|e| {
             let path = e.path().to_string();
@@ -403,9 +407,14 @@ impl Config {
             ));
         }
         let m = &self.model;
-        for (key, p) in [("[model].trigger", m.trigger), ("[model].release", m.release)] {
+        for (key, p) in [
+            ("[model].trigger", m.trigger),
+            ("[model].release", m.release),
+        ] {
             if !(0.0..=1.0).contains(&p) {
-                return Err(self.value_error(key, format!("expected a probability in [0, 1], got {p}")));
+                return Err(
+                    self.value_error(key, format!("expected a probability in [0, 1], got {p}"))
+                );
             }
         }
         if m.release >= m.trigger {
@@ -467,7 +476,10 @@ impl Config {
         if !self.ros.namespace.starts_with('/') {
             return Err(self.value_error(
                 "[ros].namespace",
-                format!("expected an absolute namespace like \"/poppy\", got {:?}", self.ros.namespace),
+                format!(
+                    "expected an absolute namespace like \"/poppy\", got {:?}",
+                    self.ros.namespace
+                ),
             ));
         }
         if let Some(r) = &self.replay {
@@ -481,7 +493,10 @@ impl Config {
         if self.output.diagnostics_period_ms < 10 {
             return Err(self.value_error(
                 "[output].diagnostics_period_ms",
-                format!("expected at least 10, got {}", self.output.diagnostics_period_ms),
+                format!(
+                    "expected at least 10, got {}",
+                    self.output.diagnostics_period_ms
+                ),
             ));
         }
         Ok(())
@@ -489,7 +504,11 @@ impl Config {
 
     /// Checks against the loaded model: the latch horizon must be one of
     /// the model's, and the model's joints must be the robot's.
-    pub fn check_against_model(&self, facts: &ModelFacts, robot_joints: &[String]) -> Result<(), ConfigError> {
+    pub fn check_against_model(
+        &self,
+        facts: &ModelFacts,
+        robot_joints: &[String],
+    ) -> Result<(), ConfigError> {
         if !facts.horizons_ms.contains(&self.model.horizon_ms) {
             let list: Vec<String> = facts.horizons_ms.iter().map(u32::to_string).collect();
             return Err(self.value_error(
@@ -530,7 +549,9 @@ impl Config {
             return Err(ConfigError::Value {
                 file: origin.to_string(),
                 key: "[ros].namespace".to_string(),
-                message: format!("expected an absolute namespace like \"/poppy\", got {namespace:?}"),
+                message: format!(
+                    "expected an absolute namespace like \"/poppy\", got {namespace:?}"
+                ),
             });
         }
         self.ros.namespace = namespace.to_string();
@@ -577,7 +598,8 @@ mod tests {
 
     #[test]
     fn unknown_key_is_named_with_its_table_and_line() {
-        let text = EMBEDDED_REPLAY_CONFIG.replace("horizon_ms = 1000", "horizon_ms = 1000\nhorizn = 3");
+        let text =
+            EMBEDDED_REPLAY_CONFIG.replace("horizon_ms = 1000", "horizon_ms = 1000\nhorizn = 3");
         let err = parse(&text).expect_err("unknown key");
         assert_eq!(err.key(), Some("[model].horizn"));
         let shown = err.to_string();
@@ -634,7 +656,10 @@ mod tests {
         let err = config
             .check_against_model(&facts, &["b".to_string()])
             .expect_err("joint mismatch");
-        assert!(err.to_string().contains("first difference at index 0"), "{err}");
+        assert!(
+            err.to_string().contains("first difference at index 0"),
+            "{err}"
+        );
     }
 
     #[test]

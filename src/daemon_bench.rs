@@ -64,7 +64,11 @@ pub fn rss_mb() -> f64 {
     let page = 4096.0;
     std::fs::read_to_string("/proc/self/statm")
         .ok()
-        .and_then(|s| s.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()))
+        .and_then(|s| {
+            s.split_whitespace()
+                .nth(1)
+                .and_then(|v| v.parse::<f64>().ok())
+        })
         .map_or(0.0, |pages| pages * page / (1024.0 * 1024.0))
 }
 
@@ -80,9 +84,18 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
     let mut setup = ReplaySetup::new(config, &recording, false)?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let mut shutdown = trigger.subscribe();
-    let mut bridge = if ros { Some(RosBridge::start(&setup.config)?) } else { None };
+    let mut bridge = if ros {
+        Some(RosBridge::start(&setup.config)?)
+    } else {
+        None
+    };
     let publisher = match bridge.as_mut() {
-        Some(b) => Some(b.start_outputs(&setup.config, &setup.models, &setup.bus, trigger.subscribe())?),
+        Some(b) => Some(b.start_outputs(
+            &setup.config,
+            &setup.models,
+            &setup.bus,
+            trigger.subscribe(),
+        )?),
         None => None,
     };
     // Without ROS, a subscriber stands in for the publisher.
@@ -118,7 +131,8 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
             }
         }
     });
-    let span = setup.recording.end_ns - setup.recording.start_ns + (1e9 / setup.models.spec().rate_hz) as i64;
+    let span = setup.recording.end_ns - setup.recording.start_ns
+        + (1e9 / setup.models.spec().rate_hz) as i64;
     let mut passes = 0u64;
     let mut latencies: Vec<u32> = Vec::new();
     let (mut inf_p50, mut inf_p99) = (0.0f64, 0.0f64);
@@ -154,7 +168,10 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
     let max = latencies.iter().copied().max().unwrap_or(0);
     let (p50, p99) = percentiles_ms(&mut latencies).unwrap_or((0.0, 0.0));
     let rss = rss.lock().map(|v| v.clone()).unwrap_or_default();
-    let after_10 = rss.iter().find(|(t, _)| *t >= 10.0).map_or(rss_first, |x| x.1);
+    let after_10 = rss
+        .iter()
+        .find(|(t, _)| *t >= 10.0)
+        .map_or(rss_first, |x| x.1);
     let report = BenchReport {
         recording: recording.display().to_string(),
         wall_s,
@@ -177,7 +194,8 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
     let text = serde_json::to_string_pretty(&report).unwrap_or_default();
     println!("{text}");
     if let Some(path) = &args.json {
-        std::fs::write(path, &text).map_err(|e| ServiceError::Usage(format!("{}: {e}", path.display())))?;
+        std::fs::write(path, &text)
+            .map_err(|e| ServiceError::Usage(format!("{}: {e}", path.display())))?;
     }
     Ok(report)
 }

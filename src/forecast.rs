@@ -284,13 +284,28 @@ impl ModelChoice {
         // A stream the active network reads may stay as long as it is fresh;
         // one it does not read must be back for a whole window first.
         let usable = |uses: bool, active_uses: bool, fresh: bool, run: usize| {
-            !uses || if active_uses { fresh } else { run >= self.window_ticks }
+            !uses
+                || if active_uses {
+                    fresh
+                } else {
+                    run >= self.window_ticks
+                }
         };
         let current = self.active;
         let choice = PREFERENCE.into_iter().find(|&a| {
             self.available.contains(&a)
-                && usable(a.uses_vision(), current.uses_vision(), fresh.camera, self.camera_run)
-                && usable(a.uses_plan(), current.uses_plan(), fresh.plan, self.plan_run)
+                && usable(
+                    a.uses_vision(),
+                    current.uses_vision(),
+                    fresh.camera,
+                    self.camera_run,
+                )
+                && usable(
+                    a.uses_plan(),
+                    current.uses_plan(),
+                    fresh.plan,
+                    self.plan_run,
+                )
         });
         match choice {
             Some(next) if next != current => {
@@ -376,10 +391,19 @@ impl Inference {
         let idle = Arc::new(Notify::new());
         let stats = Arc::new(Mutex::new(InferenceStats::default()));
         let dead = Arc::new(AtomicBool::new(false));
-        let (t_busy, t_idle, t_stats, t_dead) = (Arc::clone(&busy), Arc::clone(&idle), Arc::clone(&stats), Arc::clone(&dead));
+        let (t_busy, t_idle, t_stats, t_dead) = (
+            Arc::clone(&busy),
+            Arc::clone(&idle),
+            Arc::clone(&stats),
+            Arc::clone(&dead),
+        );
         let handle = std::thread::Builder::new()
             .name("inference".into())
-            .spawn(move || inference_loop(&models, latch, &bus, print, &rx, &t_busy, &t_idle, &t_stats, &t_dead))
+            .spawn(move || {
+                inference_loop(
+                    &models, latch, &bus, print, &rx, &t_busy, &t_idle, &t_stats, &t_dead,
+                )
+            })
             .map_err(ForecastError::Thread)?;
         Ok(Inference {
             jobs: Some(tx),
@@ -462,7 +486,8 @@ fn inference_loop(
             let started = Instant::now();
             match whole_window_forecast(models, job.ablation, &job.ticks) {
                 Ok(p) => {
-                    latency_us = Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
+                    latency_us =
+                        Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
                     probabilities = p;
                 }
                 Err(ForecastFailure::Input(e)) => {
@@ -529,12 +554,16 @@ enum ForecastFailure {
 /// The model's `StreamingForecaster` (per-frame caching) is not used: in
 /// this build its second forecast panics in burn ("Asymmetric padding is not
 /// yet supported for conv3d"); see the report.
-fn whole_window_forecast(models: &ModelSet, ablation: Ablation, ticks: &[TickInput]) -> Result<Vec<f32>, ForecastFailure> {
+fn whole_window_forecast(
+    models: &ModelSet,
+    ablation: Ablation,
+    ticks: &[TickInput],
+) -> Result<Vec<f32>, ForecastFailure> {
     let window = Window::from_ticks(ticks.iter(), models.spec(), needs(ablation))
         .map_err(|e| ForecastFailure::Input(e.to_string()))?;
-    let model = models
-        .get(ablation)
-        .ok_or_else(|| ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation))))?;
+    let model = models.get(ablation).ok_or_else(|| {
+        ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation)))
+    })?;
     model
         .forecast_arrays(&window.joints, &window.plan, &window.frames)
         .map_err(ForecastFailure::Model)
@@ -604,7 +633,10 @@ mod tests {
         let mut choice = ModelChoice::new(all(), 3);
         assert_eq!(choice.update(FRESH), None);
         assert_eq!(choice.active(), Ablation::EMP);
-        let no_camera = Freshness { camera: false, ..FRESH };
+        let no_camera = Freshness {
+            camera: false,
+            ..FRESH
+        };
         assert_eq!(choice.update(no_camera), Some(Ablation::MP));
         let neither = Freshness {
             camera: false,
@@ -612,7 +644,10 @@ mod tests {
             ..FRESH
         };
         assert_eq!(choice.update(neither), Some(Ablation::P));
-        let no_plan = Freshness { plan: false, ..FRESH };
+        let no_plan = Freshness {
+            plan: false,
+            ..FRESH
+        };
         // Camera back: it must stay fresh for 3 ticks before EP takes over.
         assert_eq!(choice.update(no_plan), None);
         assert_eq!(choice.update(no_plan), None);

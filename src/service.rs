@@ -159,14 +159,19 @@ pub fn latch_for(config: &Config, models: &ModelSet) -> Result<SafetyLatch, Serv
                 config.origin, config.model.horizon_ms
             ))
         })?;
-    SafetyLatch::new(index, config.model.trigger, config.model.release).map_err(|source| ServiceError::Latch {
-        key: "[model].release",
-        source,
+    SafetyLatch::new(index, config.model.trigger, config.model.release).map_err(|source| {
+        ServiceError::Latch {
+            key: "[model].release",
+            source,
+        }
     })
 }
 
 /// The tick settings of `config` for streams with these sources and stats.
-pub fn tick_settings(config: &Config, sources: [(String, bool, Arc<StreamStats>); 3]) -> TickSettings {
+pub fn tick_settings(
+    config: &Config,
+    sources: [(String, bool, Arc<StreamStats>); 3],
+) -> TickSettings {
     let s = &config.streams;
     let stale_ms = [s.joints_stale_ms, s.camera_stale_ms, s.plan_stale_ms];
     let mut i = 0;
@@ -218,7 +223,8 @@ impl ReplaySetup {
         let bus = OutputBus::new();
         let latch = latch_for(&config, &models)?;
         let inference = Inference::spawn(Arc::clone(&models), latch, bus.clone(), print)?;
-        let stats: [Arc<StreamStats>; 3] = std::array::from_fn(|_| Arc::new(StreamStats::default()));
+        let stats: [Arc<StreamStats>; 3] =
+            std::array::from_fn(|_| Arc::new(StreamStats::default()));
         let source = format!("replay {}", recording.path.display());
         let settings = tick_settings(
             &config,
@@ -254,12 +260,19 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
             )))
         }
     };
-    let pacing = if args.max_speed || replay_defaults.as_ref().is_some_and(|r| r.max_speed) && args.speed.is_none() {
+    let pacing = if args.max_speed
+        || replay_defaults.as_ref().is_some_and(|r| r.max_speed) && args.speed.is_none()
+    {
         Pacing::MaxSpeed
     } else {
-        let speed = args.speed.or(replay_defaults.map(|r| r.speed)).unwrap_or(1.0);
+        let speed = args
+            .speed
+            .or(replay_defaults.map(|r| r.speed))
+            .unwrap_or(1.0);
         if !(speed.is_finite() && speed > 0.0) {
-            return Err(ServiceError::Usage(format!("--speed {speed}: expected a positive factor")));
+            return Err(ServiceError::Usage(format!(
+                "--speed {speed}: expected a positive factor"
+            )));
         }
         Pacing::Speed(speed)
     };
@@ -269,9 +282,18 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let mut shutdown = trigger.subscribe();
     let signals = shutdown_on_signals(Arc::clone(&trigger));
-    let mut ros = if ros_enabled { Some(RosBridge::start(&setup.config)?) } else { None };
+    let mut ros = if ros_enabled {
+        Some(RosBridge::start(&setup.config)?)
+    } else {
+        None
+    };
     let publisher = match ros.as_mut() {
-        Some(bridge) => Some(bridge.start_outputs(&setup.config, &setup.models, &setup.bus, trigger.subscribe())?),
+        Some(bridge) => Some(bridge.start_outputs(
+            &setup.config,
+            &setup.models,
+            &setup.bus,
+            trigger.subscribe(),
+        )?),
         None => None,
     };
     tracing::info!(recording = %recording.display(), ?pacing, "replay started");
@@ -300,7 +322,12 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
             counters.ticks
         )));
     }
-    tracing::info!(ticks = counters.ticks, dispatched = counters.dispatched, overruns = counters.overruns, "replay finished");
+    tracing::info!(
+        ticks = counters.ticks,
+        dispatched = counters.dispatched,
+        overruns = counters.overruns,
+        "replay finished"
+    );
     Ok(ReplayReport {
         recording,
         samples: summary.samples,
@@ -358,7 +385,14 @@ fn source_names(config: &Config) -> [(String, bool); 3] {
     };
     let camera = match config.streams.camera {
         CameraSource::V4l2 => (
-            format!("v4l2 {}", config.camera.as_ref().map(|c| c.device.display().to_string()).unwrap_or_default()),
+            format!(
+                "v4l2 {}",
+                config
+                    .camera
+                    .as_ref()
+                    .map(|c| c.device.display().to_string())
+                    .unwrap_or_default()
+            ),
             true,
         ),
         CameraSource::Ros => (format!("ros {}", topics.camera), true),
@@ -381,10 +415,19 @@ fn start_sources(
 ) -> Result<Vec<SourceHandle>, ServiceError> {
     let mut handles = Vec::new();
     if config.streams.joints == JointsSource::Dynamixel {
-        handles.push(servo_bridge::start(config, streams.joints.clone(), shutdown.subscribe())?);
+        handles.push(servo_bridge::start(
+            config,
+            streams.joints.clone(),
+            shutdown.subscribe(),
+        )?);
     }
     if config.streams.camera == CameraSource::V4l2 {
-        handles.push(start_camera(config, models, streams.camera.clone(), shutdown.subscribe())?);
+        handles.push(start_camera(
+            config,
+            models,
+            streams.camera.clone(),
+            shutdown.subscribe(),
+        )?);
     }
     let wanted = InputsWanted {
         joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
@@ -393,7 +436,10 @@ fn start_sources(
     };
     if wanted.any() {
         let bridge = ros.ok_or_else(|| {
-            ServiceError::Usage(format!("{}: [streams] reads from ROS 2 but [ros].enabled = false", config.origin))
+            ServiceError::Usage(format!(
+                "{}: [streams] reads from ROS 2 but [ros].enabled = false",
+                config.origin
+            ))
         })?;
         let tasks = bridge.start_inputs(config, models.spec(), wanted, shutdown.subscribe())?;
         handles.extend(tasks.into_iter().map(SourceHandle::Task));
@@ -459,7 +505,12 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     let models = Arc::new(ModelSet::load(&config, &joints)?);
     let bus = OutputBus::new();
     let latch = latch_for(&config, &models)?;
-    let inference = Inference::spawn(Arc::clone(&models), latch, bus.clone(), config.output.print_forecasts)?;
+    let inference = Inference::spawn(
+        Arc::clone(&models),
+        latch,
+        bus.clone(),
+        config.output.print_forecasts,
+    )?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let signals = shutdown_on_signals(Arc::clone(&trigger));
     let streams = LiveStreams::new();
@@ -472,7 +523,11 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     let [(j, jc), (c, cc), (p, pc)] = names;
     let [sj, sc, sp] = stats;
     let settings = tick_settings(&config, [(j, jc, sj), (c, cc, sc), (p, pc, sp)]);
-    let mut ros = if config.ros.enabled { Some(RosBridge::start(&config)?) } else { None };
+    let mut ros = if config.ros.enabled {
+        Some(RosBridge::start(&config)?)
+    } else {
+        None
+    };
     let publisher = match ros.as_mut() {
         Some(bridge) => Some(bridge.start_outputs(&config, &models, &bus, trigger.subscribe())?),
         None => None,
@@ -481,7 +536,8 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     let tick_loop = TickLoop::new(Arc::clone(&models), inference, settings, bus.clone())?;
     tracing::info!(config = %args.config.display(), rate_hz = models.spec().rate_hz,
         n_ticks = models.spec().n_ticks, "fall-guard running");
-    let (counters, inference_died) = crate::tick::run_live(tick_loop, streams.taps.clone(), trigger.subscribe()).await;
+    let (counters, inference_died) =
+        crate::tick::run_live(tick_loop, streams.taps.clone(), trigger.subscribe()).await;
     let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
     trigger.fire();
     for s in sources {
@@ -493,24 +549,39 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     drop(ros);
     signals.abort();
     if inference_died {
-        return Err(ServiceError::Source("inference stopped (the network panicked, see the log)".into()));
+        return Err(ServiceError::Source(
+            "inference stopped (the network panicked, see the log)".into(),
+        ));
     }
     Ok(counters)
 }
 
 /// `fall-guard record`.
-pub async fn record(args: RecordArgs) -> Result<crate::outputs::recorder::RecordSummary, ServiceError> {
+pub async fn record(
+    args: RecordArgs,
+) -> Result<crate::outputs::recorder::RecordSummary, ServiceError> {
     let config = Config::load(&args.config)?;
     let joints = robot_joints(&config);
     let models = ModelSet::load(&config, &joints)?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let signals = shutdown_on_signals(Arc::clone(&trigger));
     let streams = LiveStreams::new();
-    let mut ros = if config.ros.enabled { Some(RosBridge::start(&config)?) } else { None };
+    let mut ros = if config.ros.enabled {
+        Some(RosBridge::start(&config)?)
+    } else {
+        None
+    };
     let sources = start_sources(&config, &models, &streams, ros.as_mut(), &trigger)?;
-    let mut recorder = Recorder::create(&args.out, joints, &config.robot.joints, models.spec().rate_hz)?;
+    let mut recorder = Recorder::create(
+        &args.out,
+        joints,
+        &config.robot.joints,
+        models.spec().rate_hz,
+    )?;
     let mut shutdown = trigger.subscribe();
-    let deadline = args.duration_s.map(|s| tokio::time::Instant::now() + std::time::Duration::from_secs_f64(s.max(0.0)));
+    let deadline = args
+        .duration_s
+        .map(|s| tokio::time::Instant::now() + std::time::Duration::from_secs_f64(s.max(0.0)));
     let LiveTaps {
         mut joints,
         mut camera,
@@ -547,7 +618,9 @@ async fn changed<T>(tap: &mut StreamTap<T>) -> Option<Arc<crate::sources::Stampe
 pub fn label(args: &LabelArgs) -> Result<Option<i64>, ServiceError> {
     let fall_at = if args.no_fall { None } else { args.fall_at };
     if !args.no_fall && fall_at.is_none() {
-        return Err(ServiceError::Usage("label: pass --fall-at SECONDS or --no-fall".into()));
+        return Err(ServiceError::Usage(
+            "label: pass --fall-at SECONDS or --no-fall".into(),
+        ));
     }
     Ok(crate::recording::label(&args.recording, fall_at)?)
 }

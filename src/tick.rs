@@ -16,7 +16,9 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use crate::forecast::{ablation_name, percentiles_ms, Freshness, Inference, InferenceJob, ModelChoice, ModelSet};
+use crate::forecast::{
+    ablation_name, percentiles_ms, Freshness, Inference, InferenceJob, ModelChoice, ModelSet,
+};
 use crate::frame::Frame;
 use crate::model::Ablation;
 use crate::outputs::{
@@ -75,9 +77,13 @@ impl Watchdog {
     /// Reads `WATCHDOG_USEC`; without systemd both messages are no-ops.
     pub fn from_env() -> Watchdog {
         let mut usec = 0u64;
-        let interval = sd_notify::watchdog_enabled(false, &mut usec).then(|| Duration::from_micros(usec / 2));
+        let interval =
+            sd_notify::watchdog_enabled(false, &mut usec).then(|| Duration::from_micros(usec / 2));
         if let Some(i) = interval {
-            tracing::info!(every_ms = i.as_millis() as u64, "systemd watchdog enabled: pinged from the tick loop");
+            tracing::info!(
+                every_ms = i.as_millis() as u64,
+                "systemd watchdog enabled: pinged from the tick loop"
+            );
         }
         Watchdog {
             ready_sent: false,
@@ -123,11 +129,25 @@ pub struct TickLoop {
 }
 
 /// Why a tick's forecast is not valid (`None`: valid).
-fn invalid_reason(ring: &Ring, tick: &TickInput, fresh: [bool; 3], slots: &[StreamSlot; 3], active: Ablation) -> Option<String> {
+fn invalid_reason(
+    ring: &Ring,
+    tick: &TickInput,
+    fresh: [bool; 3],
+    slots: &[StreamSlot; 3],
+    active: Ablation,
+) -> Option<String> {
     if !ring.is_full() {
-        return Some(format!("ring filling ({}/{} ticks)", ring.len(), ring.capacity()));
+        return Some(format!(
+            "ring filling ({}/{} ticks)",
+            ring.len(),
+            ring.capacity()
+        ));
     }
-    let ages = [tick.age_ns.joints_ns, tick.age_ns.frame_ns, tick.age_ns.plan_ns];
+    let ages = [
+        tick.age_ns.joints_ns,
+        tick.age_ns.frame_ns,
+        tick.age_ns.plan_ns,
+    ];
     let used = [true, active.uses_vision(), active.uses_plan()];
     let stale: Vec<String> = (0..3)
         .filter(|&i| used[i] && !fresh[i])
@@ -201,14 +221,25 @@ impl TickLoop {
         let ticks = std::mem::take(&mut self.pending);
         let last = ticks.len().saturating_sub(1);
         for (i, tick) in ticks.into_iter().enumerate() {
-            self.run_tick(tick, sensed_at, lockstep || i == last, lockstep).await;
+            self.run_tick(tick, sensed_at, lockstep || i == last, lockstep)
+                .await;
         }
     }
 
-    async fn run_tick(&mut self, tick: TickInput, sensed_at: Instant, dispatch: bool, lockstep: bool) {
+    async fn run_tick(
+        &mut self,
+        tick: TickInput,
+        sensed_at: Instant,
+        dispatch: bool,
+        lockstep: bool,
+    ) {
         self.counters.ticks += 1;
         self.watchdog.tick();
-        let ages = [tick.age_ns.joints_ns, tick.age_ns.frame_ns, tick.age_ns.plan_ns];
+        let ages = [
+            tick.age_ns.joints_ns,
+            tick.age_ns.frame_ns,
+            tick.age_ns.plan_ns,
+        ];
         let slots = &self.settings.streams;
         let fresh: [bool; 3] =
             std::array::from_fn(|i| ages[i].is_some_and(|age| age <= slots[i].stale_ns));
@@ -257,7 +288,11 @@ impl TickLoop {
     fn overrun(&mut self, tick: i64) {
         self.counters.overruns += 1;
         if self.counters.overruns == 1 || self.counters.overruns.is_power_of_two() {
-            tracing::warn!(tick, overruns = self.counters.overruns, "inference overrun: tick skipped");
+            tracing::warn!(
+                tick,
+                overruns = self.counters.overruns,
+                "inference overrun: tick skipped"
+            );
         }
     }
 
@@ -273,14 +308,22 @@ impl TickLoop {
     }
 
     /// Build a diagnostics snapshot now (also used at the end of a replay).
-    pub fn diagnostics(&mut self, stamp_ns: i64, period_ns: i64, latest: Option<&TickInput>) -> DiagnosticsSnapshot {
+    pub fn diagnostics(
+        &mut self,
+        stamp_ns: i64,
+        period_ns: i64,
+        latest: Option<&TickInput>,
+    ) -> DiagnosticsSnapshot {
         let active = self.choice.active();
-        let ages = latest.map_or([None; 3], |t| [t.age_ns.joints_ns, t.age_ns.frame_ns, t.age_ns.plan_ns]);
+        let ages = latest.map_or([None; 3], |t| {
+            [t.age_ns.joints_ns, t.age_ns.frame_ns, t.age_ns.plan_ns]
+        });
         let period_s = (period_ns as f64 / 1e9).max(1e-9);
         let mut streams = Vec::with_capacity(3);
         for (i, slot) in self.settings.streams.iter().enumerate() {
             let stats = slot.stats.snapshot();
-            let rate_hz = (stats.samples - self.diag_samples[i].min(stats.samples)) as f64 / period_s;
+            let rate_hz =
+                (stats.samples - self.diag_samples[i].min(stats.samples)) as f64 / period_s;
             self.diag_samples[i] = stats.samples;
             let (level, message) = if !slot.configured {
                 (DiagnosticLevel::Ok, "not configured".to_string())
@@ -289,14 +332,24 @@ impl TickLoop {
                     None => (DiagnosticLevel::Stale, "no sample yet".to_string()),
                     Some(age) if age > slot.stale_ns => (
                         DiagnosticLevel::Stale,
-                        format!("stale: last sample {} ms old (limit {} ms)", age / 1_000_000, slot.stale_ns / 1_000_000),
+                        format!(
+                            "stale: last sample {} ms old (limit {} ms)",
+                            age / 1_000_000,
+                            slot.stale_ns / 1_000_000
+                        ),
                     ),
-                    Some(_) if stats.errors > 0 => (DiagnosticLevel::Warn, format!("ok, {} errors so far", stats.errors)),
+                    Some(_) if stats.errors > 0 => (
+                        DiagnosticLevel::Warn,
+                        format!("ok, {} errors so far", stats.errors),
+                    ),
                     Some(_) => (DiagnosticLevel::Ok, "ok".to_string()),
                 }
             };
-            let mut details: Vec<(String, String)> =
-                stats.error_kinds.iter().map(|(k, n)| (format!("errors.{k}"), n.to_string())).collect();
+            let mut details: Vec<(String, String)> = stats
+                .error_kinds
+                .iter()
+                .map(|(k, n)| (format!("errors.{k}"), n.to_string()))
+                .collect();
             details.extend(stats.details.iter().cloned());
             if !stats.state.is_empty() {
                 details.push(("state".to_string(), stats.state.clone()));
@@ -313,16 +366,34 @@ impl TickLoop {
             });
         }
         let (mut latencies, forecasts, errors, imminent) = {
-            let mut s = self.inference.stats().lock().unwrap_or_else(|e| e.into_inner());
-            (std::mem::take(&mut s.latencies_us), s.forecasts, s.errors, s.imminent)
+            let mut s = self
+                .inference
+                .stats()
+                .lock()
+                .unwrap_or_else(|e| e.into_inner());
+            (
+                std::mem::take(&mut s.latencies_us),
+                s.forecasts,
+                s.errors,
+                s.imminent,
+            )
         };
         let percentiles = percentiles_ms(&mut latencies);
         let (level, message) = if errors > 0 && !self.last_valid {
-            (DiagnosticLevel::Error, format!("{errors} inference errors; {}", self.last_reason))
+            (
+                DiagnosticLevel::Error,
+                format!("{errors} inference errors; {}", self.last_reason),
+            )
         } else if !self.last_valid {
-            (DiagnosticLevel::Warn, format!("forecast not valid: {}", self.last_reason))
+            (
+                DiagnosticLevel::Warn,
+                format!("forecast not valid: {}", self.last_reason),
+            )
         } else if active != Ablation::EMP {
-            (DiagnosticLevel::Warn, format!("degraded: running {}", ablation_name(active)))
+            (
+                DiagnosticLevel::Warn,
+                format!("degraded: running {}", ablation_name(active)),
+            )
         } else {
             (DiagnosticLevel::Ok, "ok".to_string())
         };
@@ -334,7 +405,11 @@ impl TickLoop {
                 level,
                 message,
                 active_ablation: ablation_name(active),
-                model_file: self.models.file(active).map(|p| p.display().to_string()).unwrap_or_default(),
+                model_file: self
+                    .models
+                    .file(active)
+                    .map(|p| p.display().to_string())
+                    .unwrap_or_default(),
                 inference_p50_ms: percentiles.map(|p| p.0),
                 inference_p99_ms: percentiles.map(|p| p.1),
                 overruns: self.counters.overruns,
@@ -372,7 +447,11 @@ pub struct LiveTaps {
 /// tick, take the latest sample of each stream (new ones only, in stamp
 /// order) and run the ticks that became final.
 /// Returns the counters and whether the inference thread died.
-pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shutdown) -> (TickCounters, bool) {
+pub async fn run_live(
+    mut tick_loop: TickLoop,
+    taps: LiveTaps,
+    mut shutdown: Shutdown,
+) -> (TickCounters, bool) {
     let grid = tick_loop.resampler.grid();
     let mut seen: [Option<i64>; 3] = [None; 3];
     let mut seen_ptr: [usize; 3] = [0; 3];
@@ -392,7 +471,13 @@ pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shu
                 seen_ptr[0] = ptr;
                 seen[0] = Some(s.stamp_ns);
                 sensed_at = Some(s.received);
-                fresh.push((s.stamp_ns, Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() }));
+                fresh.push((
+                    s.stamp_ns,
+                    Sample::Joints {
+                        stamp_ns: s.stamp_ns,
+                        positions_rad: s.value.clone(),
+                    },
+                ));
             }
         }
         if let Some(s) = taps.camera.latest() {
@@ -401,7 +486,13 @@ pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shu
                 seen_ptr[1] = ptr;
                 seen[1] = Some(s.stamp_ns);
                 sensed_at = Some(sensed_at.map_or(s.received, |t| t.max(s.received)));
-                fresh.push((s.stamp_ns, Sample::Frame { stamp_ns: s.stamp_ns, frame: Arc::clone(&s.value) }));
+                fresh.push((
+                    s.stamp_ns,
+                    Sample::Frame {
+                        stamp_ns: s.stamp_ns,
+                        frame: Arc::clone(&s.value),
+                    },
+                ));
             }
         }
         if let Some(s) = taps.plan.latest() {
@@ -409,7 +500,13 @@ pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shu
             if seen_ptr[2] != ptr {
                 seen_ptr[2] = ptr;
                 seen[2] = Some(s.stamp_ns);
-                fresh.push((s.stamp_ns, Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) }));
+                fresh.push((
+                    s.stamp_ns,
+                    Sample::Plan {
+                        stamp_ns: s.stamp_ns,
+                        plan: Arc::clone(&s.value),
+                    },
+                ));
             }
         }
         fresh.sort_by_key(|(stamp, _)| *stamp);
@@ -420,7 +517,9 @@ pub async fn run_live(mut tick_loop: TickLoop, taps: LiveTaps, mut shutdown: Shu
         tick_loop.advance_to(now_ns);
         // Latency is counted from the newest sensor sample, or from the tick
         // itself when no new sample arrived (a stale tick).
-        tick_loop.run_pending(sensed_at.unwrap_or_else(Instant::now), false).await;
+        tick_loop
+            .run_pending(sensed_at.unwrap_or_else(Instant::now), false)
+            .await;
         if tick_loop.inference().is_dead() {
             // Exit (non-zero from `run`) so that systemd restarts the daemon.
             break;

@@ -7,7 +7,13 @@ mod daemon_common;
 use daemon_common::*;
 
 fn replay(scene: &Scene) -> std::process::Output {
-    fall_guard(&["replay", "--config", scene.config.to_str().expect("utf8"), "--max-speed", "--quiet"])
+    fall_guard(&[
+        "replay",
+        "--config",
+        scene.config.to_str().expect("utf8"),
+        "--max-speed",
+        "--quiet",
+    ])
 }
 
 fn assert_clean_failure(out: &std::process::Output, needles: &[&str]) {
@@ -16,7 +22,10 @@ fn assert_clean_failure(out: &std::process::Output, needles: &[&str]) {
     assert_eq!(out.status.code(), Some(1), "exit code: {err}");
     assert!(!err.contains("panicked"), "panic: {err}");
     for needle in needles {
-        assert!(err.contains(needle), "error should mention {needle:?}: {err}");
+        assert!(
+            err.contains(needle),
+            "error should mention {needle:?}: {err}"
+        );
     }
 }
 
@@ -24,8 +33,15 @@ fn assert_clean_failure(out: &std::process::Output, needles: &[&str]) {
 fn wrong_config_key_is_named() {
     let scene = Scene::new("x.mcap");
     let text = std::fs::read_to_string(&scene.config).expect("read");
-    std::fs::write(&scene.config, text.replace("trigger = 0.6", "trigger = 0.6\ntrigerr = 0.7")).expect("write");
-    assert_clean_failure(&replay(&scene), &["replay.toml", "[model].trigerr", "unknown field"]);
+    std::fs::write(
+        &scene.config,
+        text.replace("trigger = 0.6", "trigger = 0.6\ntrigerr = 0.7"),
+    )
+    .expect("write");
+    assert_clean_failure(
+        &replay(&scene),
+        &["replay.toml", "[model].trigerr", "unknown field"],
+    );
 }
 
 #[test]
@@ -33,14 +49,26 @@ fn wrong_config_values_are_named() {
     let scene = Scene::new("x.mcap");
     write_recording(&scene.path("x.mcap"), 1, false, 40);
     let text = std::fs::read_to_string(&scene.config).expect("read");
-    std::fs::write(&scene.config, text.replace("horizon_ms = 533", "horizon_ms = 700")).expect("write");
+    std::fs::write(
+        &scene.config,
+        text.replace("horizon_ms = 533", "horizon_ms = 700"),
+    )
+    .expect("write");
     assert_clean_failure(
         &replay(&scene),
         &["[model].horizon_ms: expected one of the model's horizons 267, 533, got 700"],
     );
-    std::fs::write(&scene.config, text.replace("camera = \"ros\"", "camera = \"webcam\"")).expect("write");
+    std::fs::write(
+        &scene.config,
+        text.replace("camera = \"ros\"", "camera = \"webcam\""),
+    )
+    .expect("write");
     assert_clean_failure(&replay(&scene), &["[streams].camera", "webcam"]);
-    std::fs::write(&scene.config, text.replace("release = 0.3", "release = 0.9")).expect("write");
+    std::fs::write(
+        &scene.config,
+        text.replace("release = 0.3", "release = 0.9"),
+    )
+    .expect("write");
     assert_clean_failure(&replay(&scene), &["[model].release"]);
 }
 
@@ -75,7 +103,9 @@ fn network_for_other_joints_is_refused() {
     let scene = Scene::new("x.mcap");
     write_recording(&scene.path("x.mcap"), 1, false, 40);
     // Same sizes, joints named j00..j24: not this robot.
-    let other: Vec<String> = (0..robot_joints().len()).map(|j| format!("j{j:02}")).collect();
+    let other: Vec<String> = (0..robot_joints().len())
+        .map(|j| format!("j{j:02}"))
+        .collect();
     write_models(&scene.path("models"), &other);
     assert_clean_failure(&replay(&scene), &["[model].emp", "emp.fgm", "joint"]);
 }

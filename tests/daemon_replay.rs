@@ -26,7 +26,12 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
     let scene = Scene::new("falling.mcap");
     let recording = scene.path("falling.mcap");
     write_recording(&recording, 7, true, 90);
-    let out = fall_guard(&["replay", "--config", scene.config.to_str().expect("utf8"), "--max-speed"]);
+    let out = fall_guard(&[
+        "replay",
+        "--config",
+        scene.config.to_str().expect("utf8"),
+        "--max-speed",
+    ]);
     assert!(out.status.success(), "replay failed: {}", stderr(&out));
     let lines = parse_lines(&out.stdout);
 
@@ -37,14 +42,21 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
     for (i, line) in lines.iter().enumerate() {
         assert_eq!(line.tick, first + i as i64, "ticks are consecutive");
         if i + 1 < N_TICKS {
-            assert!(!line.valid, "tick {} valid before the ring is full", line.tick);
+            assert!(
+                !line.valid,
+                "tick {} valid before the ring is full",
+                line.tick
+            );
             assert!(line.reason.starts_with("ring filling"), "{line:?}");
             assert!(line.probabilities.is_empty());
         } else {
             assert!(line.valid, "tick {} not valid: {}", line.tick, line.reason);
             assert_eq!(line.ablation, "EMP");
             assert_eq!(line.probabilities.len(), HORIZONS_MS.len());
-            assert!(line.probabilities.windows(2).all(|w| w[0] <= w[1]), "monotone: {line:?}");
+            assert!(
+                line.probabilities.windows(2).all(|w| w[0] <= w[1]),
+                "monotone: {line:?}"
+            );
         }
     }
 
@@ -58,7 +70,11 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
             .forecast_arrays(&window.joints, &window.plan, &window.frames)
             .expect("offline forward");
         for (printed, exact) in line.probabilities.iter().zip(&offline) {
-            assert!((printed - exact).abs() <= 0.00005 + 1e-6, "tick {}: {printed} vs {exact}", line.tick);
+            assert!(
+                (printed - exact).abs() <= 0.00005 + 1e-6,
+                "tick {}: {printed} vs {exact}",
+                line.tick
+            );
         }
     }
 
@@ -96,19 +112,22 @@ fn drop_camera(src: &std::path::Path, dst: &std::path::Path, from_ns: i64, to_ns
             None => break,
             Some((_, 0)) => {
                 let m = &rec.joint_states[i.0];
-                w.write(topics::JOINT_STATES, m.log_time_ns, &m.msg).expect("write");
+                w.write(topics::JOINT_STATES, m.log_time_ns, &m.msg)
+                    .expect("write");
                 i.0 += 1;
             }
             Some((_, 1)) => {
                 let m = &rec.images[i.1];
                 if !(from_ns..to_ns).contains(&m.log_time_ns) {
-                    w.write(topics::HEAD_CAMERA, m.log_time_ns, &m.msg).expect("write");
+                    w.write(topics::HEAD_CAMERA, m.log_time_ns, &m.msg)
+                        .expect("write");
                 }
                 i.1 += 1;
             }
             Some(_) => {
                 let m = &rec.plans[i.2];
-                w.write(topics::PLANNED_TRAJECTORY, m.log_time_ns, &m.msg).expect("write");
+                w.write(topics::PLANNED_TRAJECTORY, m.log_time_ns, &m.msg)
+                    .expect("write");
                 i.2 += 1;
             }
         }
@@ -123,11 +142,26 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
     let full = scene.path("full.mcap");
     write_recording(&full, 3, false, 120);
     // Camera gone from 1.5 s to 2.5 s (ticks 45..75).
-    drop_camera(&full, &scene.path("no_camera.mcap"), 1_500_000_000, 2_500_000_000);
-    let out = fall_guard(&["replay", "--config", scene.config.to_str().expect("utf8"), "--max-speed"]);
+    drop_camera(
+        &full,
+        &scene.path("no_camera.mcap"),
+        1_500_000_000,
+        2_500_000_000,
+    );
+    let out = fall_guard(&[
+        "replay",
+        "--config",
+        scene.config.to_str().expect("utf8"),
+        "--max-speed",
+    ]);
     assert!(out.status.success(), "replay failed: {}", stderr(&out));
     let lines = parse_lines(&out.stdout);
-    let ablation_at = |tick: i64| lines.iter().find(|l| l.tick == tick).map(|l| l.ablation.clone());
+    let ablation_at = |tick: i64| {
+        lines
+            .iter()
+            .find(|l| l.tick == tick)
+            .map(|l| l.ablation.clone())
+    };
     assert_eq!(ablation_at(40).as_deref(), Some("EMP"));
     // Stale after 100 ms: MP from tick ~49 on, and its forecasts are valid.
     let mp: Vec<&Line> = lines.iter().filter(|l| l.ablation == "MP").collect();
@@ -136,9 +170,16 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
     assert!((45..=52).contains(&first_mp), "MP from tick {first_mp}");
     assert!(mp.iter().all(|l| l.valid), "MP forecasts must be valid");
     // Back to EMP only after a whole window of fresh frames (75 + 16).
-    assert!((75 + N_TICKS as i64 - 2..=75 + N_TICKS as i64 + 1).contains(&(last_mp + 1)), "EMP again from tick {}", last_mp + 1);
+    assert!(
+        (75 + N_TICKS as i64 - 2..=75 + N_TICKS as i64 + 1).contains(&(last_mp + 1)),
+        "EMP again from tick {}",
+        last_mp + 1
+    );
     assert_eq!(ablation_at(last_mp + 1).as_deref(), Some("EMP"));
-    assert!(lines.iter().filter(|l| l.tick > last_mp).all(|l| l.ablation == "EMP" && l.valid));
+    assert!(lines
+        .iter()
+        .filter(|l| l.tick > last_mp)
+        .all(|l| l.ablation == "EMP" && l.valid));
     let err = stderr(&out);
     assert!(err.contains("model switch"), "switches are logged: {err}");
 }
@@ -152,11 +193,25 @@ fn label_marks_the_fall_onset_in_place() {
     assert!(out.status.success(), "label failed: {}", stderr(&out));
     let rec = Recording::open(&path).expect("read");
     let start = rec.start_ns().expect("messages");
-    assert_eq!(rec.episode().expect("meta").fall_onset_ns, Some(start + 1_500_000_000));
+    assert_eq!(
+        rec.episode().expect("meta").fall_onset_ns,
+        Some(start + 1_500_000_000)
+    );
     let out = fall_guard(&["label", path.to_str().expect("utf8"), "--no-fall"]);
     assert!(out.status.success(), "label failed: {}", stderr(&out));
-    assert_eq!(Recording::open(&path).expect("read").episode().expect("meta").fall_onset_ns, None);
+    assert_eq!(
+        Recording::open(&path)
+            .expect("read")
+            .episode()
+            .expect("meta")
+            .fall_onset_ns,
+        None
+    );
     let out = fall_guard(&["label", path.to_str().expect("utf8"), "--fall-at", "99"]);
     assert!(!out.status.success());
-    assert!(stderr(&out).contains("outside the recording"), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("outside the recording"),
+        "{}",
+        stderr(&out)
+    );
 }

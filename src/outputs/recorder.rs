@@ -14,7 +14,9 @@
 use std::path::{Path, PathBuf};
 
 use crate::frame::{encode_jpeg, Frame};
-use crate::msgs::{CompressedImage, Duration, Header, JointState, JointTrajectory, JointTrajectoryPoint, Time};
+use crate::msgs::{
+    CompressedImage, Duration, Header, JointState, JointTrajectory, JointTrajectoryPoint, Time,
+};
 use crate::recording::{topics, EpisodeMeta, RecordingError, RecordingWriter};
 use crate::window::{Plan, Sample};
 
@@ -51,7 +53,12 @@ pub struct RecordSummary {
 }
 
 impl Recorder {
-    pub fn create(path: &Path, joint_names: Vec<String>, robot: &str, rate_hz: f64) -> Result<Recorder, RecordingError> {
+    pub fn create(
+        path: &Path,
+        joint_names: Vec<String>,
+        robot: &str,
+        rate_hz: f64,
+    ) -> Result<Recorder, RecordingError> {
         let mut writer = RecordingWriter::create(path)?;
         writer.add_topic::<JointState>(topics::JOINT_STATES)?;
         writer.add_topic::<CompressedImage>(topics::HEAD_CAMERA)?;
@@ -98,7 +105,8 @@ impl Recorder {
             }
             Sample::Plan { plan, .. } => {
                 let msg = plan_message(plan, &self.joint_names);
-                self.writer.write(topics::PLANNED_TRAJECTORY, stamp_ns, &msg)?;
+                self.writer
+                    .write(topics::PLANNED_TRAJECTORY, stamp_ns, &msg)?;
                 self.counts[2] += 1;
             }
         }
@@ -114,7 +122,10 @@ impl Recorder {
             _ => 0,
         };
         let mut other = std::collections::BTreeMap::new();
-        other.insert("duration_s".to_string(), format!("{:.3}", duration_ns as f64 / 1e9));
+        other.insert(
+            "duration_s".to_string(),
+            format!("{:.3}", duration_ns as f64 / 1e9),
+        );
         self.writer.write_episode(&EpisodeMeta {
             source: "robot".into(),
             robot: self.robot.clone(),
@@ -182,7 +193,8 @@ mod tests {
     fn recorded_samples_read_back_as_the_same_samples() {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("live.mcap");
-        let mut recorder = Recorder::create(&path, names(), "poppy_humanoid", 30.0).expect("create");
+        let mut recorder =
+            Recorder::create(&path, names(), "poppy_humanoid", 30.0).expect("create");
         let plan = Arc::new(Plan {
             stamp_ns: 1_000,
             times_ns: vec![1_000, 34_334_334, 67_667_667],
@@ -191,10 +203,22 @@ mod tests {
         });
         let frame = Arc::new(Frame::solid(8, 8, [200, 40, 10]));
         let input = vec![
-            Sample::Plan { stamp_ns: 1_000, plan: Arc::clone(&plan) },
-            Sample::Joints { stamp_ns: 2_000, positions_rad: vec![0.5, -0.125] },
-            Sample::Frame { stamp_ns: 3_000, frame: Arc::clone(&frame) },
-            Sample::Joints { stamp_ns: 33_336_000, positions_rad: vec![0.25, 1.5] },
+            Sample::Plan {
+                stamp_ns: 1_000,
+                plan: Arc::clone(&plan),
+            },
+            Sample::Joints {
+                stamp_ns: 2_000,
+                positions_rad: vec![0.5, -0.125],
+            },
+            Sample::Frame {
+                stamp_ns: 3_000,
+                frame: Arc::clone(&frame),
+            },
+            Sample::Joints {
+                stamp_ns: 33_336_000,
+                positions_rad: vec![0.25, 1.5],
+            },
         ];
         for s in &input {
             recorder.record(s).expect("record");
@@ -205,7 +229,15 @@ mod tests {
 
         let rec = Recording::open(&path).expect("read back");
         let meta = rec.episode().expect("episode metadata");
-        assert_eq!((meta.source.as_str(), meta.robot.as_str(), meta.rate_hz, meta.fall_onset_ns), ("robot", "poppy_humanoid", 30.0, None));
+        assert_eq!(
+            (
+                meta.source.as_str(),
+                meta.robot.as_str(),
+                meta.rate_hz,
+                meta.fall_onset_ns
+            ),
+            ("robot", "poppy_humanoid", 30.0, None)
+        );
         let spec = WindowSpec {
             n_ticks: 2,
             max_horizon_ticks: 1,
@@ -218,11 +250,23 @@ mod tests {
         for (a, b) in input.iter().zip(&back) {
             assert_eq!(a.stamp_ns(), b.stamp_ns());
             match (a, b) {
-                (Sample::Joints { positions_rad: x, .. }, Sample::Joints { positions_rad: y, .. }) => assert_eq!(x, y),
+                (
+                    Sample::Joints {
+                        positions_rad: x, ..
+                    },
+                    Sample::Joints {
+                        positions_rad: y, ..
+                    },
+                ) => assert_eq!(x, y),
                 (Sample::Plan { plan: x, .. }, Sample::Plan { plan: y, .. }) => assert_eq!(x, y),
                 (Sample::Frame { frame: x, .. }, Sample::Frame { frame: y, .. }) => {
                     assert_eq!((x.width, x.height), (y.width, y.height));
-                    let worst = x.rgb.iter().zip(&y.rgb).map(|(&p, &q)| (i32::from(p) - i32::from(q)).abs()).max();
+                    let worst = x
+                        .rgb
+                        .iter()
+                        .zip(&y.rgb)
+                        .map(|(&p, &q)| (i32::from(p) - i32::from(q)).abs())
+                        .max();
                     assert!(worst.unwrap_or(0) <= 6, "JPEG error {worst:?}");
                 }
                 _ => panic!("sample kinds differ: {a:?} vs {b:?}"),

@@ -224,11 +224,18 @@ impl RosBridge {
 }
 
 /// Convert each new message of `rx` once and hand it to `feed`.
-fn forward<M, T, F>(mut rx: Latest<M>, feed: StreamFeed<T>, mut shutdown: Shutdown, convert: F) -> JoinHandle<()>
+fn forward<M, T, F>(
+    mut rx: Latest<M>,
+    feed: StreamFeed<T>,
+    mut shutdown: Shutdown,
+    convert: F,
+) -> JoinHandle<()>
 where
     M: Send + Sync + 'static,
     T: Send + Sync + 'static,
-    F: Fn(&crate::sources::ros::Received<M>) -> Result<(i64, T), crate::window::WindowError> + Send + 'static,
+    F: Fn(&crate::sources::ros::Received<M>) -> Result<(i64, T), crate::window::WindowError>
+        + Send
+        + 'static,
 {
     tokio::spawn(async move {
         loop {

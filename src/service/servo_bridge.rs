@@ -17,12 +17,16 @@ use crate::sources::StreamFeed;
 pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String)>) {
     let mut details = vec![
         ("cycles".to_string(), snapshot.cycles.to_string()),
-        ("complete_cycles".to_string(), snapshot.complete_cycles.to_string()),
+        (
+            "complete_cycles".to_string(),
+            snapshot.complete_cycles.to_string(),
+        ),
     ];
     let mut errors = 0;
     for bus in &snapshot.buses {
         let servo_errors: u64 = bus.servo_errors.iter().map(|(_, n)| n).sum();
-        let bus_errors = bus.timeouts + bus.bad_checksums + bus.bad_packets + bus.io_errors + servo_errors;
+        let bus_errors =
+            bus.timeouts + bus.bad_checksums + bus.bad_packets + bus.io_errors + servo_errors;
         errors += bus_errors;
         let b = &bus.name;
         details.extend([
@@ -42,7 +46,11 @@ pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String
 }
 
 /// Start the servo reader; its readings feed `feed` until `shutdown`.
-pub fn start(config: &Config, feed: StreamFeed<Vec<f32>>, mut shutdown: Shutdown) -> Result<SourceHandle, ServiceError> {
+pub fn start(
+    config: &Config,
+    feed: StreamFeed<Vec<f32>>,
+    mut shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
     let section = config
         .dynamixel
         .as_ref()

@@ -49,10 +49,13 @@ pub fn decode_raw(
     match format {
         // The same decoder and resize as `/head_camera/image_raw/compressed`
         // and the recordings.
-        PixelFormat::Mjpeg => decode_compressed("jpeg", data, size).map_err(|e| CameraError::Jpeg(e.to_string())),
+        PixelFormat::Mjpeg => {
+            decode_compressed("jpeg", data, size).map_err(|e| CameraError::Jpeg(e.to_string()))
+        }
         PixelFormat::Yuyv => {
             let rgb = yuyv_to_rgb(width, height, data)?;
-            let frame = Frame::from_rgb(width, height, rgb).map_err(|e| CameraError::Frame(e.to_string()))?;
+            let frame = Frame::from_rgb(width, height, rgb)
+                .map_err(|e| CameraError::Frame(e.to_string()))?;
             resize_area(&frame, size).map_err(|e| CameraError::Frame(e.to_string()))
         }
     }
@@ -103,7 +106,9 @@ mod capture {
     use std::time::Duration;
 
     use nokhwa::pixel_format::RgbFormat;
-    use nokhwa::utils::{CameraFormat, CameraIndex, FrameFormat, RequestedFormat, RequestedFormatType, Resolution};
+    use nokhwa::utils::{
+        CameraFormat, CameraIndex, FrameFormat, RequestedFormat, RequestedFormatType, Resolution,
+    };
     use nokhwa::Camera;
 
     use super::decode_raw;
@@ -115,7 +120,10 @@ mod capture {
     /// The V4L2 index of `/dev/videoN` (nokhwa addresses cameras by index).
     fn index_of(device: &std::path::Path) -> CameraIndex {
         let name = device.to_string_lossy();
-        match name.strip_prefix("/dev/video").and_then(|n| n.parse::<u32>().ok()) {
+        match name
+            .strip_prefix("/dev/video")
+            .and_then(|n| n.parse::<u32>().ok())
+        {
             Some(i) => CameraIndex::Index(i),
             None => CameraIndex::String(name.into_owned()),
         }
@@ -126,7 +134,11 @@ mod capture {
             PixelFormat::Mjpeg => FrameFormat::MJPEG,
             PixelFormat::Yuyv => FrameFormat::YUYV,
         };
-        let format = CameraFormat::new(Resolution::new(config.width, config.height), fourcc, config.fps);
+        let format = CameraFormat::new(
+            Resolution::new(config.width, config.height),
+            fourcc,
+            config.fps,
+        );
         let requested = RequestedFormat::new::<RgbFormat>(RequestedFormatType::Exact(format));
         let mut camera = Camera::new(index_of(&config.device), requested)?;
         camera.open_stream()?;
@@ -171,7 +183,13 @@ mod capture {
                         };
                         let stamp_ns = crate::tick::unix_now_ns();
                         let res = buffer.resolution();
-                        match decode_raw(config.format, res.width(), res.height(), buffer.buffer(), size) {
+                        match decode_raw(
+                            config.format,
+                            res.width(),
+                            res.height(),
+                            buffer.buffer(),
+                            size,
+                        ) {
                             Ok(frame) => feed.send(stamp_ns, Arc::new(frame)),
                             Err(e) => feed.error("decode", &e),
                         }
@@ -230,7 +248,9 @@ mod tests {
     }
 
     fn close(a: [u8; 3], b: [u8; 3], tol: i32) -> bool {
-        a.iter().zip(b).all(|(&x, y)| (i32::from(x) - i32::from(y)).abs() <= tol)
+        a.iter()
+            .zip(b)
+            .all(|(&x, y)| (i32::from(x) - i32::from(y)).abs() <= tol)
     }
 
     #[test]
@@ -250,13 +270,29 @@ mod tests {
     #[test]
     fn yuyv_frame_becomes_a_square_model_frame() {
         let (w, h, rgb) = test_card();
-        let frame = decode_raw(PixelFormat::Yuyv, w, h, &rgb_to_yuyv(w, h, &rgb), 64).expect("decodes");
-        assert_eq!((frame.width, frame.height, frame.rgb.len()), (64, 64, 64 * 64 * 3));
+        let frame =
+            decode_raw(PixelFormat::Yuyv, w, h, &rgb_to_yuyv(w, h, &rgb), 64).expect("decodes");
+        assert_eq!(
+            (frame.width, frame.height, frame.rgb.len()),
+            (64, 64, 64 * 64 * 3)
+        );
         // The whole picture is squeezed to a square: the red/blue edge stays in the middle.
-        assert!(close(pixel(&frame, 10, 50), [210, 30, 20], 4), "{:?}", pixel(&frame, 10, 50));
-        assert!(close(pixel(&frame, 54, 50), [25, 40, 220], 4), "{:?}", pixel(&frame, 54, 50));
+        assert!(
+            close(pixel(&frame, 10, 50), [210, 30, 20], 4),
+            "{:?}",
+            pixel(&frame, 10, 50)
+        );
+        assert!(
+            close(pixel(&frame, 54, 50), [25, 40, 220], 4),
+            "{:?}",
+            pixel(&frame, 54, 50)
+        );
         // Green band: rows 0..120 of 480 -> rows 0..16 of 64.
-        assert!(close(pixel(&frame, 32, 5), [20, 200, 30], 4), "{:?}", pixel(&frame, 32, 5));
+        assert!(
+            close(pixel(&frame, 32, 5), [20, 200, 30], 4),
+            "{:?}",
+            pixel(&frame, 32, 5)
+        );
     }
 
     #[test]
@@ -268,8 +304,16 @@ mod tests {
             .expect("encode");
         let frame = decode_raw(PixelFormat::Mjpeg, w, h, &jpeg, 64).expect("decodes");
         assert_eq!((frame.width, frame.height), (64, 64));
-        assert!(close(pixel(&frame, 10, 50), [210, 30, 20], 8), "{:?}", pixel(&frame, 10, 50));
-        assert!(close(pixel(&frame, 54, 50), [25, 40, 220], 8), "{:?}", pixel(&frame, 54, 50));
+        assert!(
+            close(pixel(&frame, 10, 50), [210, 30, 20], 8),
+            "{:?}",
+            pixel(&frame, 10, 50)
+        );
+        assert!(
+            close(pixel(&frame, 54, 50), [25, 40, 220], 8),
+            "{:?}",
+            pixel(&frame, 54, 50)
+        );
     }
 
     #[test]
@@ -285,7 +329,13 @@ mod tests {
             Err(CameraError::Size { .. })
         ));
         assert!(matches!(
-            decode_raw(PixelFormat::Mjpeg, w, h, &[0xFF, 0xD8, 0xFF, 0x00, 1, 2, 3], 64),
+            decode_raw(
+                PixelFormat::Mjpeg,
+                w,
+                h,
+                &[0xFF, 0xD8, 0xFF, 0x00, 1, 2, 3],
+                64
+            ),
             Err(CameraError::Jpeg(_))
         ));
     }

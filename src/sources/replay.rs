@@ -74,7 +74,10 @@ impl ReplayRecording {
 /// A sample moved `offset_ns` later in time (plans move every point).
 pub fn shifted(sample: &Sample, offset_ns: i64) -> Sample {
     match sample {
-        Sample::Joints { stamp_ns, positions_rad } => Sample::Joints {
+        Sample::Joints {
+            stamp_ns,
+            positions_rad,
+        } => Sample::Joints {
             stamp_ns: stamp_ns + offset_ns,
             positions_rad: positions_rad.clone(),
         },
@@ -137,7 +140,8 @@ where
         let stamp_ns = sample.stamp_ns();
         if let Pacing::Speed(speed) = pacing {
             let t0 = *first_ns.get_or_insert(stamp_ns);
-            let due = wall_start + Duration::from_secs_f64(((stamp_ns - t0) as f64 / 1e9 / speed).max(0.0));
+            let due = wall_start
+                + Duration::from_secs_f64(((stamp_ns - t0) as f64 / 1e9 / speed).max(0.0));
             tokio::select! {
                 () = tokio::time::sleep_until(due.into()) => {}
                 () = shutdown.recv() => {

@@ -33,7 +33,12 @@ pub fn write_models(dir: &Path, joints: &[String]) {
         (Ablation::EP, "ep.fgm"),
         (Ablation::P, "p.fgm"),
     ] {
-        let config = ModelConfig::lite(N_TICKS, joints.len(), HORIZONS_TICKS.to_vec(), FRAME_SIZE as usize);
+        let config = ModelConfig::lite(
+            N_TICKS,
+            joints.len(),
+            HORIZONS_TICKS.to_vec(),
+            FRAME_SIZE as usize,
+        );
         let mut meta = ModelMeta::new(config.clone(), ablation, RATE_HZ, joints.to_vec());
         meta.trained_on = "untrained (test)".into();
         let emp = Emp::new(&config, ablation, &device);
@@ -132,7 +137,11 @@ pub fn parse_lines(stdout: &[u8]) -> Vec<Line> {
     text.lines()
         .filter(|l| l.starts_with("tick "))
         .map(|l| {
-            let tick = l.split_whitespace().nth(1).and_then(|t| t.parse().ok()).expect("tick");
+            let tick = l
+                .split_whitespace()
+                .nth(1)
+                .and_then(|t| t.parse().ok())
+                .expect("tick");
             let ablation = l.split_whitespace().nth(3).expect("ablation").to_string();
             let rest = l.splitn(5, ' ').nth(4).expect("rest");
             let valid = rest.starts_with("valid");
@@ -141,8 +150,15 @@ pub fn parse_lines(stdout: &[u8]) -> Vec<Line> {
                 .and_then(|r| r.split_once(") p=["))
                 .map(|(r, _)| r.to_string())
                 .unwrap_or_default();
-            let p_text = l.split_once("p=[").and_then(|(_, r)| r.split_once(']')).expect("p").0;
-            let probabilities = p_text.split_whitespace().map(|p| p.parse().expect("prob")).collect();
+            let p_text = l
+                .split_once("p=[")
+                .and_then(|(_, r)| r.split_once(']'))
+                .expect("p")
+                .0;
+            let probabilities = p_text
+                .split_whitespace()
+                .map(|p| p.parse().expect("prob"))
+                .collect();
             let imminent = l.ends_with("imminent=true");
             Line {
                 tick,
