@@ -5,6 +5,9 @@
 //! -> outputs (ROS 2, safety latch, diagnostics, recorder). Training
 //! (`train`) builds its windows with the same `window` code the daemon uses.
 
+pub mod config;
+pub mod daemon_bench;
+pub mod forecast;
 pub mod frame;
 pub mod model;
 pub mod msgs;
@@ -12,7 +15,9 @@ pub mod outputs;
 pub mod recording;
 pub mod robot;
 pub mod ros;
+pub mod service;
 pub mod shutdown;
 pub mod sources;
+pub mod tick;
 pub mod train;
 pub mod window;

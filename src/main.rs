@@ -1,36 +1,84 @@
-//! The `fall-guard` command line: parses arguments and calls the library.
+//! The `fall-guard` command line: parses arguments and dispatches to the
+//! library; nothing else happens here.
 
+use anyhow::Result;
 use clap::{Parser, Subcommand};
 
-#[derive(Parser)]
-#[command(
-    name = "fall-guard",
-    version,
-    about = "Forecasts falls of a walking Poppy Humanoid (EMP)"
-)]
+use fall_guard::service;
+
+#[derive(Debug, Parser)]
+#[command(name = "fall-guard", version, about = "Forecasts falls of a walking Poppy Humanoid and publishes them on ROS 2")]
 struct Cli {
     #[command(subcommand)]
     command: Command,
 }
 
-#[derive(Subcommand)]
+#[derive(Debug, Subcommand)]
 enum Command {
     /// Train a model (or the logistic baseline) on a data set.
     Train(fall_guard::train::cli::TrainArgs),
     /// Evaluate model files on a split; or forecast one recording per tick.
     Eval(fall_guard::train::cli::EvalArgs),
+    /// Run the onboard daemon (servos, camera and plan in; forecasts out on ROS 2).
+    Run(service::RunArgs),
+    /// Replay an MCAP recording through the daemon with recorded time.
+    Replay(service::ReplayArgs),
+    /// Record the live streams as an MCAP recording.
+    Record(service::RecordArgs),
+    /// Mark the fall onset of a recording (in place).
+    Label(service::LabelArgs),
+    /// Benchmark the daemon: sensor-to-publish latency and memory while replaying at maximum speed.
+    BenchDaemon(fall_guard::daemon_bench::BenchDaemonArgs),
     /// Per-tick latency and training throughput of the network.
     Bench(fall_guard::train::bench::BenchArgs),
 }
 
-fn main() -> anyhow::Result<()> {
+fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    // Logs go to stderr: stdout carries the forecasts of `replay`.
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_env_filter(filter)
         .with_writer(std::io::stderr)
         .init();
-    match Cli::parse().command {
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    init_logging();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    match cli.command {
         Command::Train(args) => fall_guard::train::cli::run_train(&args)?,
         Command::Eval(args) => fall_guard::train::cli::run_eval(&args)?,
+        Command::Run(args) => {
+            runtime.block_on(service::run(args))?;
+        }
+        Command::Replay(args) => {
+            let report = runtime.block_on(service::replay(args))?;
+            if report.interrupted {
+                anyhow::bail!("replay of {} interrupted", report.recording.display());
+            }
+        }
+        Command::Record(args) => {
+            let summary = runtime.block_on(service::record(args))?;
+            eprintln!(
+                "recorded {} joint states, {} frames, {} plans over {:.1} s",
+                summary.counts[0],
+                summary.counts[1],
+                summary.counts[2],
+                summary.duration_ns as f64 / 1e9
+            );
+        }
+        Command::Label(args) => match service::label(&args)? {
+            Some(onset_ns) => eprintln!("{}: fall onset at log time {onset_ns} ns", args.recording.display()),
+            None => eprintln!("{}: labelled as not falling", args.recording.display()),
+        },
+        Command::BenchDaemon(args) => {
+            runtime.block_on(fall_guard::daemon_bench::run(args))?;
+        }
         Command::Bench(args) => {
             fall_guard::train::bench::run_bench(&args)?;
         }

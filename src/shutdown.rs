@@ -46,6 +46,12 @@ impl Shutdown {
         *self.receiver.borrow()
     }
 
+    /// The underlying channel (true = stop), for components that take a
+    /// plain `watch::Receiver<bool>` (the servo reader).
+    pub fn watch(&self) -> watch::Receiver<bool> {
+        self.receiver.clone()
+    }
+
     /// Wait until shutdown is requested. Returns at once if it already was,
     /// or if the trigger was dropped (nobody can ask any more: stop too).
     pub async fn recv(&mut self) {

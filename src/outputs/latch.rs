@@ -12,7 +12,9 @@ use thiserror::Error;
 
 #[derive(Debug, Error, PartialEq)]
 pub enum LatchError {
-    #[error("release threshold {release} must be below the trigger threshold {trigger}, both in [0, 1]")]
+    #[error(
+        "release threshold {release} must be below the trigger threshold {trigger}, both in [0, 1]"
+    )]
     Thresholds { trigger: f32, release: f32 },
 }
 
@@ -29,7 +31,11 @@ pub struct SafetyLatch {
 
 impl SafetyLatch {
     /// A latch watching `probabilities[horizon_index]`, off at start.
-    pub fn new(horizon_index: usize, trigger: f32, release: f32) -> Result<SafetyLatch, LatchError> {
+    pub fn new(
+        horizon_index: usize,
+        trigger: f32,
+        release: f32,
+    ) -> Result<SafetyLatch, LatchError> {
         let in_unit = |p: f32| (0.0..=1.0).contains(&p);
         if !(in_unit(trigger) && in_unit(release) && release < trigger) {
             return Err(LatchError::Thresholds { trigger, release });
@@ -54,10 +60,18 @@ impl SafetyLatch {
         if !self.imminent && p >= self.trigger {
             self.imminent = true;
             self.triggers += 1;
-            tracing::warn!(probability = p, trigger = self.trigger, "fall imminent: latch on");
+            tracing::warn!(
+                probability = p,
+                trigger = self.trigger,
+                "fall imminent: latch on"
+            );
         } else if self.imminent && p < self.release {
             self.imminent = false;
-            tracing::info!(probability = p, release = self.release, "fall no longer imminent: latch off");
+            tracing::info!(
+                probability = p,
+                release = self.release,
+                "fall no longer imminent: latch off"
+            );
         }
         self.imminent
     }
@@ -86,7 +100,10 @@ mod tests {
     #[test]
     fn triggers_at_threshold_and_releases_only_below_release() {
         let mut latch = SafetyLatch::new(1, 0.7, 0.4).expect("valid");
-        let states = run(&mut latch, &[0.1, 0.69, 0.7, 0.5, 0.41, 0.4, 0.39, 0.6, 0.69, 0.71]);
+        let states = run(
+            &mut latch,
+            &[0.1, 0.69, 0.7, 0.5, 0.41, 0.4, 0.39, 0.6, 0.69, 0.71],
+        );
         assert_eq!(
             states,
             [false, false, true, true, true, true, false, false, false, true]

@@ -19,6 +19,7 @@
 //!   one [`StatusEntry`] per input stream and one for the model.
 
 pub mod latch;
+pub mod recorder;
 pub mod ros;
 
 use std::sync::{Arc, Mutex};
@@ -194,10 +195,7 @@ impl DiagnosticsSnapshot {
                 ("ticks".to_string(), m.ticks.to_string()),
                 ("forecasts".to_string(), m.forecasts.to_string()),
                 ("model_switches".to_string(), m.switches.to_string()),
-                (
-                    "ring".to_string(),
-                    format!("{}/{}", m.ring_ticks, m.ring_capacity),
-                ),
+                ("ring".to_string(), format!("{}/{}", m.ring_ticks, m.ring_capacity)),
                 ("fall_imminent".to_string(), m.imminent.to_string()),
                 ("latch_horizon_ms".to_string(), m.latch_horizon_ms.to_string()),
             ],
@@ -388,9 +386,7 @@ mod tests {
             .contains(&("last_sample_age_ms".into(), "none".into())));
         assert!(statuses[0].values.contains(&("timeout".into(), "2".into())));
         assert_eq!(statuses[1].name, "fall_guard: model");
-        assert!(statuses[1]
-            .values
-            .contains(&("active_model".into(), "P".into())));
+        assert!(statuses[1].values.contains(&("active_model".into(), "P".into())));
         assert!(statuses[1].values.contains(&("ring".into(), "10/60".into())));
     }
 }

@@ -1,6 +1,6 @@
 //! Input streams, each behind one small interface: a source (servo bus,
 //! ROS 2 subscription, camera, replay) turns an outside stream into
-//! timestamped [`Sample`]s and hands over only its **latest** one through a
+//! timestamped [`Stamped`] values and hands over only its **latest** one through a
 //! [`StreamFeed`] (a `tokio::sync::watch` channel, never a queue), counting
 //! samples and errors in shared [`StreamStats`]. The tick reads the other end,
 //! a [`StreamTap`], once per tick.
@@ -14,7 +14,6 @@
 //! - camera: `crate::frame::Frame`, already S x S;
 //! - plan: `crate::window::Plan`.
 
-pub mod dynamixel;
 pub mod ros;
 
 use std::fmt;
@@ -23,6 +22,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use tokio::sync::watch;
+
+pub mod camera;
+pub mod dynamixel;
+pub mod replay;
 
 /// The three input streams of the model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -57,7 +60,7 @@ impl fmt::Display for StreamKind {
 
 /// One value of a stream with its time.
 #[derive(Debug, Clone)]
-pub struct Sample<T> {
+pub struct Stamped<T> {
     /// Time the value applies to, on the tick clock (see module docs).
     pub stamp_ns: i64,
     /// When the daemon received it (for sensor-to-publish latency).
@@ -74,6 +77,9 @@ pub struct StreamStats {
     error_kinds: Mutex<Vec<(String, u64)>>,
     /// Free-form state of the source ("connected", "reopening /dev/ttyACM0").
     state: Mutex<String>,
+    /// Errors and key-values kept by the source itself (servo bus counters).
+    external_errors: AtomicU64,
+    external_details: Mutex<Vec<(String, String)>>,
 }
 
 /// A copy of [`StreamStats`] at one instant.
@@ -83,6 +89,8 @@ pub struct StreamStatsSnapshot {
     pub errors: u64,
     pub error_kinds: Vec<(String, u64)>,
     pub state: String,
+    /// Source-kept counters, as diagnostic key-values.
+    pub details: Vec<(String, String)>,
 }
 
 impl StreamStats {
@@ -111,10 +119,18 @@ impl StreamStats {
         *self.state.lock().unwrap_or_else(|e| e.into_inner()) = state.into();
     }
 
+    /// Replace the counters a source keeps itself (its error total is added
+    /// to this stream's errors).
+    pub fn set_external(&self, errors: u64, details: Vec<(String, String)>) {
+        self.external_errors.store(errors, Ordering::Relaxed);
+        *self.external_details.lock().unwrap_or_else(|e| e.into_inner()) = details;
+    }
+
     pub fn snapshot(&self) -> StreamStatsSnapshot {
         StreamStatsSnapshot {
             samples: self.samples.load(Ordering::Relaxed),
-            errors: self.errors.load(Ordering::Relaxed),
+            errors: self.errors.load(Ordering::Relaxed) + self.external_errors.load(Ordering::Relaxed),
+            details: self.external_details.lock().unwrap_or_else(|e| e.into_inner()).clone(),
             error_kinds: self
                 .error_kinds
                 .lock()
@@ -129,7 +145,7 @@ impl StreamStats {
 #[derive(Debug)]
 pub struct StreamFeed<T> {
     kind: StreamKind,
-    sender: Arc<watch::Sender<Option<Arc<Sample<T>>>>>,
+    sender: Arc<watch::Sender<Option<Arc<Stamped<T>>>>>,
     stats: Arc<StreamStats>,
 }
 
@@ -137,7 +153,7 @@ pub struct StreamFeed<T> {
 #[derive(Debug)]
 pub struct StreamTap<T> {
     kind: StreamKind,
-    receiver: watch::Receiver<Option<Arc<Sample<T>>>>,
+    receiver: watch::Receiver<Option<Arc<Stamped<T>>>>,
     stats: Arc<StreamStats>,
 }
 
@@ -186,7 +202,7 @@ impl<T> StreamFeed<T> {
 
     /// Hand over a new latest value (replaces the previous one).
     pub fn send(&self, stamp_ns: i64, value: T) {
-        self.send_sample(Sample {
+        self.send_sample(Stamped {
             stamp_ns,
             received: Instant::now(),
             value,
@@ -194,7 +210,7 @@ impl<T> StreamFeed<T> {
     }
 
     /// Hand over a sample built by the caller (replay sets `received` itself).
-    pub fn send_sample(&self, sample: Sample<T>) {
+    pub fn send_sample(&self, sample: Stamped<T>) {
         self.stats.record_sample();
         // `send_replace` never fails, even with no receiver left.
         self.sender.send_replace(Some(Arc::new(sample)));
@@ -220,12 +236,19 @@ impl<T> StreamTap<T> {
     }
 
     /// The latest sample, if any arrived yet.
-    pub fn latest(&self) -> Option<Arc<Sample<T>>> {
+    pub fn latest(&self) -> Option<Arc<Stamped<T>>> {
         self.receiver.borrow().clone()
     }
 
     pub fn stats(&self) -> &Arc<StreamStats> {
         &self.stats
+    }
+
+    /// Wait for a sample newer than the last one seen through this tap
+    /// (`None` once the source is gone).
+    pub async fn changed(&mut self) -> Option<Arc<Stamped<T>>> {
+        self.receiver.changed().await.ok()?;
+        self.receiver.borrow_and_update().clone()
     }
 }
 

@@ -1,0 +1,673 @@
+//! The daemon's TOML configuration, read and validated once at start.
+//!
+//! A file enters through [`Config::load`] (or [`Config::parse`] for the
+//! embedded default, `config/replay.toml`); every key is known
+//! (`deny_unknown_fields`), every value is checked, and an error names the
+//! file and the key: `config/replay.toml: [model].horizon_ms: expected one of
+//! the model's horizons 500, 1000, 1500, 2000, got 700`. Checks that need the
+//! loaded model (horizons, joints) run in [`Config::check_against_model`],
+//! with the same error shape. Relative paths are relative to the config
+//! file's directory (to the working directory for the embedded default).
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use thiserror::Error;
+
+use crate::sources::dynamixel::DynamixelConfig;
+
+/// The default replay configuration, compiled into the binary.
+pub const EMBEDDED_REPLAY_CONFIG: &str = include_str!("../config/replay.toml");
+/// The name the embedded default reports in errors.
+pub const EMBEDDED_REPLAY_NAME: &str = "config/replay.toml (embedded)";
+
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("{file}: cannot read the config: {source}")]
+    Read {
+        file: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Not TOML, or a key/value of the wrong shape.
+    #[error("{file}{at}: {key}: {message}", at = .line.map(|l| format!(":{l}")).unwrap_or_default())]
+    Syntax {
+        file: String,
+        line: Option<usize>,
+        key: String,
+        message: String,
+    },
+    /// A well-formed value that is not acceptable.
+    #[error("{file}: {key}: {message}")]
+    Value {
+        file: String,
+        key: String,
+        message: String,
+    },
+}
+
+impl ConfigError {
+    /// The key the error is about (`[model].horizon_ms`), for tests and logs.
+    pub fn key(&self) -> Option<&str> {
+        match self {
+            ConfigError::Read { .. } => None,
+            ConfigError::Syntax { key, .. } | ConfigError::Value { key, .. } => Some(key),
+        }
+    }
+}
+
+/// The whole file.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    pub robot: RobotConfig,
+    pub model: ModelConfig,
+    pub streams: StreamsConfig,
+    /// The servo buses when `[streams].joints = "dynamixel"`; the section's
+    /// keys belong to the servo source (`sources/dynamixel.rs`).
+    #[serde(default)]
+    pub dynamixel: Option<DynamixelConfig>,
+    #[serde(default)]
+    pub camera: Option<CameraConfig>,
+    #[serde(default)]
+    pub replay: Option<ReplayConfig>,
+    #[serde(default)]
+    pub ros: RosConfig,
+    #[serde(default)]
+    pub output: OutputConfig,
+    /// Where the file came from (for error messages); not a key.
+    #[serde(skip)]
+    pub origin: String,
+    /// Directory relative paths are resolved against; not a key.
+    #[serde(skip)]
+    pub base_dir: PathBuf,
+}
+
+/// `[robot]`
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RobotConfig {
+    /// Name of this robot: the `hardware_id` of every diagnostic status.
+    pub name: String,
+    /// Joint table: only `"poppy_humanoid"` is built in.
+    #[serde(default = "default_joint_table")]
+    pub joints: String,
+}
+
+fn default_joint_table() -> String {
+    "poppy_humanoid".to_string()
+}
+
+/// `[model]`: the network files and the safety latch on its output.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ModelConfig {
+    /// Directory of the model files (relative to the config file).
+    #[serde(default = "default_model_dir")]
+    pub dir: PathBuf,
+    /// The full network; required.
+    pub emp: PathBuf,
+    /// Fallbacks used when a stream is lost (camera lost: MP, plan lost: EP,
+    /// both: P). Optional: without one, that loss leaves forecasts invalid.
+    #[serde(default)]
+    pub mp: Option<PathBuf>,
+    #[serde(default)]
+    pub ep: Option<PathBuf>,
+    #[serde(default)]
+    pub p: Option<PathBuf>,
+    /// Horizon watched by the safety latch (`/fall_guard/fall_imminent`), ms;
+    /// must be one of the model's horizons.
+    pub horizon_ms: u32,
+    /// Latch turns on when the probability at `horizon_ms` reaches this.
+    pub trigger: f32,
+    /// Latch turns off only when it drops below this (< `trigger`).
+    pub release: f32,
+}
+
+fn default_model_dir() -> PathBuf {
+    PathBuf::from("models")
+}
+
+/// Where the joint angles come from.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum JointsSource {
+    /// The daemon owns the servo buses (`[dynamixel]`).
+    Dynamixel,
+    /// Another driver owns them; read `/joint_states`.
+    Ros,
+}
+
+/// Where head-camera frames come from.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum CameraSource {
+    /// Open the camera directly (`[camera]`, cargo feature `camera-v4l`).
+    V4l2,
+    /// `/head_camera/image_raw/compressed`.
+    Ros,
+    /// No camera: the daemon runs MP (or P).
+    None,
+}
+
+/// Where the planned trajectory comes from.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum PlanSource {
+    /// `/planned_trajectory`.
+    Ros,
+    /// No planner: the daemon runs EP (or P).
+    None,
+}
+
+/// `[streams]`: the source of each stream for `run`/`record`, and when a
+/// stream counts as stale (not valid, and lost for model choice). `replay`
+/// ignores the sources (everything comes from the recording) but keeps the
+/// staleness limits.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct StreamsConfig {
+    pub joints: JointsSource,
+    pub camera: CameraSource,
+    pub plan: PlanSource,
+    /// A stream whose latest sample is older than this at a tick is stale.
+    pub joints_stale_ms: u32,
+    pub camera_stale_ms: u32,
+    pub plan_stale_ms: u32,
+}
+
+/// Pixel format asked from a V4L2 camera.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum PixelFormat {
+    Mjpeg,
+    Yuyv,
+}
+
+/// `[camera]`: the head camera when `[streams].camera = "v4l2"`.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    /// `/dev/videoN`.
+    pub device: PathBuf,
+    pub format: PixelFormat,
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+}
+
+/// `[replay]`: defaults of `fall-guard replay` (the command line wins).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ReplayConfig {
+    /// The MCAP recording to replay (relative to the config file).
+    pub recording: PathBuf,
+    /// Recorded time runs this many times faster than real time.
+    #[serde(default = "one_f64")]
+    pub speed: f64,
+    /// Run as fast as inference allows (ignores `speed`).
+    #[serde(default)]
+    pub max_speed: bool,
+}
+
+fn one_f64() -> f64 {
+    1.0
+}
+
+/// `[ros]`: the ROS 2 node (inputs from ROS and every output).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RosConfig {
+    /// Publish outputs on ROS 2 (inputs from ROS need it too).
+    #[serde(default = "yes")]
+    pub enabled: bool,
+    #[serde(default = "default_node_name")]
+    pub node_name: String,
+    /// Prefix of every topic, e.g. `/poppy` (the launch file sets it).
+    #[serde(default = "default_namespace")]
+    pub namespace: String,
+    /// DDS domain; absent: `ROS_DOMAIN_ID`, else 0.
+    #[serde(default)]
+    pub domain_id: Option<u16>,
+    /// Only talk on 127.0.0.1; absent: `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`.
+    #[serde(default)]
+    pub localhost_only: Option<bool>,
+    #[serde(default)]
+    pub topics: TopicsConfig,
+}
+
+impl Default for RosConfig {
+    fn default() -> Self {
+        RosConfig {
+            enabled: true,
+            node_name: default_node_name(),
+            namespace: default_namespace(),
+            domain_id: None,
+            localhost_only: None,
+            topics: TopicsConfig::default(),
+        }
+    }
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn default_node_name() -> String {
+    "fall_guard".to_string()
+}
+fn default_namespace() -> String {
+    "/".to_string()
+}
+
+/// `[ros.topics]`: topic names (relative names get the namespace).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct TopicsConfig {
+    pub joint_states: String,
+    pub planned_trajectory: String,
+    pub camera: String,
+    pub forecast: String,
+    pub fall_imminent: String,
+    pub horizons_ms: String,
+    pub diagnostics: String,
+}
+
+impl Default for TopicsConfig {
+    fn default() -> Self {
+        TopicsConfig {
+            joint_states: "joint_states".into(),
+            planned_trajectory: "planned_trajectory".into(),
+            camera: "head_camera/image_raw/compressed".into(),
+            forecast: "fall_guard/forecast".into(),
+            fall_imminent: "fall_guard/fall_imminent".into(),
+            horizons_ms: "fall_guard/horizons_ms".into(),
+            diagnostics: "/diagnostics".into(),
+        }
+    }
+}
+
+/// `[output]`
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct OutputConfig {
+    /// Print one line per forecast on stdout.
+    pub print_forecasts: bool,
+    /// Period of `/diagnostics`.
+    pub diagnostics_period_ms: u32,
+}
+
+impl Default for OutputConfig {
+    fn default() -> Self {
+        OutputConfig {
+            print_forecasts: false,
+            diagnostics_period_ms: 1000,
+        }
+    }
+}
+
+/// The horizons and joints of the loaded model, as far as the config cares.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelFacts {
+    pub horizons_ms: Vec<u32>,
+    pub joint_names: Vec<String>,
+}
+
+/// `a.b[1].c` -> `[a].b[1].c`; a top-level key stays bare.
+fn format_key(path: &str) -> String {
+    if path.is_empty() || path == "." {
+        return "(top level)".to_string();
+    }
+    match path.split_once('.') {
+        Some((table, rest)) => format!("[{table}].{rest}"),
+        None => format!("[{path}]"),
+    }
+}
+
+impl Config {
+    /// Read and validate a config file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            file: file.clone(),
+            source,
+        })?;
+        let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Config::parse(&text, &file, &base)
+    }
+
+    /// The embedded `config/replay.toml`, relative to the working directory.
+    pub fn embedded_replay() -> Result<Config, ConfigError> {
+        Config::parse(EMBEDDED_REPLAY_CONFIG, EMBEDDED_REPLAY_NAME, Path::new(""))
+    }
+
+    /// Parse and validate `text`; `origin` names it in errors, `base_dir`
+    /// resolves relative paths.
+    pub fn parse(text: &str, origin: &str, base_dir: &Path) -> Result<Config, ConfigError> {
+        let syntax = |line: Option<usize>, key: String, message: String| ConfigError::Syntax {
+            file: origin.to_string(),
+            line,
+            key,
+            message,
+        };
+        let line_of = |span: Option<std::ops::Range<usize>>| {
+            span.map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1)
+        };
+        let deserializer = toml::Deserializer::parse(text).map_err(|e| {
+            syntax(
+                line_of(e.span()),
+                "(syntax)".into(),
+                e.message().trim().to_string(),
+            )
+        })?;
+        let mut config: Config = serde_path_to_error::deserialize(deserializer).map_err(|e| {
+            let path = e.path().to_string();
+            let inner = e.inner();
+            let message = inner.message().trim().to_string();
+            // An unknown key is reported at its table: name the key itself.
+            let field = message
+                .strip_prefix("unknown field `")
+                .and_then(|m| m.split_once('`'))
+                .map(|(field, _)| field);
+            let key = match field {
+                Some(field) if path == "." || path.is_empty() => field.to_string(),
+                // The path may stop at the table or already name the key.
+                Some(field) if !path.ends_with(field) => format!("{}.{field}", format_key(&path)),
+                _ => format_key(&path),
+            };
+            syntax(line_of(inner.span()), key, message)
+        })?;
+        config.origin = origin.to_string();
+        config.base_dir = base_dir.to_path_buf();
+        config.validate()?;
+        Ok(config)
+    }
+
+    fn value_error(&self, key: &str, message: impl fmt::Display) -> ConfigError {
+        ConfigError::Value {
+            file: self.origin.clone(),
+            key: key.to_string(),
+            message: message.to_string(),
+        }
+    }
+
+    /// Checks that need nothing but the file.
+    fn validate(&self) -> Result<(), ConfigError> {
+        if self.robot.name.trim().is_empty() {
+            return Err(self.value_error("[robot].name", "must not be empty"));
+        }
+        if self.robot.joints != "poppy_humanoid" {
+            return Err(self.value_error(
+                "[robot].joints",
+                format!(
+                    "expected one of the built-in joint tables \"poppy_humanoid\", got {:?}",
+                    self.robot.joints
+                ),
+            ));
+        }
+        let m = &self.model;
+        for (key, p) in [
+            ("[model].trigger", m.trigger),
+            ("[model].release", m.release),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(
+                    self.value_error(key, format!("expected a probability in [0, 1], got {p}"))
+                );
+            }
+        }
+        if m.release >= m.trigger {
+            return Err(self.value_error(
+                "[model].release",
+                format!(
+                    "expected below [model].trigger = {} (hysteresis), got {}",
+                    m.trigger, m.release
+                ),
+            ));
+        }
+        let s = &self.streams;
+        for (key, ms) in [
+            ("[streams].joints_stale_ms", s.joints_stale_ms),
+            ("[streams].camera_stale_ms", s.camera_stale_ms),
+            ("[streams].plan_stale_ms", s.plan_stale_ms),
+        ] {
+            if ms == 0 || ms > 60_000 {
+                return Err(self.value_error(key, format!("expected 1 to 60000 ms, got {ms}")));
+            }
+        }
+        if s.joints == JointsSource::Dynamixel {
+            match &self.dynamixel {
+                None => {
+                    return Err(self.value_error(
+                        "[dynamixel]",
+                        "missing: [streams].joints = \"dynamixel\" needs the servo buses",
+                    ))
+                }
+                Some(d) if d.buses.is_empty() => {
+                    return Err(self.value_error("[dynamixel].buses", "needs at least one bus"))
+                }
+                Some(_) => {}
+            }
+        }
+        if s.camera == CameraSource::V4l2 {
+            let Some(c) = &self.camera else {
+                return Err(self.value_error(
+                    "[camera]",
+                    "missing: [streams].camera = \"v4l2\" needs the camera device",
+                ));
+            };
+            for (key, v) in [
+                ("[camera].width", c.width),
+                ("[camera].height", c.height),
+                ("[camera].fps", c.fps),
+            ] {
+                if v == 0 {
+                    return Err(self.value_error(key, "must be positive"));
+                }
+            }
+            if c.format == PixelFormat::Yuyv && c.width % 2 != 0 {
+                return Err(self.value_error(
+                    "[camera].width",
+                    format!("YUYV needs an even width, got {}", c.width),
+                ));
+            }
+        }
+        if !self.ros.namespace.starts_with('/') {
+            return Err(self.value_error(
+                "[ros].namespace",
+                format!(
+                    "expected an absolute namespace like \"/poppy\", got {:?}",
+                    self.ros.namespace
+                ),
+            ));
+        }
+        if let Some(r) = &self.replay {
+            if !(r.speed.is_finite() && r.speed > 0.0) {
+                return Err(self.value_error(
+                    "[replay].speed",
+                    format!("expected a positive factor, got {}", r.speed),
+                ));
+            }
+        }
+        if self.output.diagnostics_period_ms < 10 {
+            return Err(self.value_error(
+                "[output].diagnostics_period_ms",
+                format!(
+                    "expected at least 10, got {}",
+                    self.output.diagnostics_period_ms
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Checks against the loaded model: the latch horizon must be one of
+    /// the model's, and the model's joints must be the robot's.
+    pub fn check_against_model(
+        &self,
+        facts: &ModelFacts,
+        robot_joints: &[String],
+    ) -> Result<(), ConfigError> {
+        if !facts.horizons_ms.contains(&self.model.horizon_ms) {
+            let list: Vec<String> = facts.horizons_ms.iter().map(u32::to_string).collect();
+            return Err(self.value_error(
+                "[model].horizon_ms",
+                format!(
+                    "expected one of the model's horizons {}, got {}",
+                    list.join(", "),
+                    self.model.horizon_ms
+                ),
+            ));
+        }
+        if facts.joint_names != robot_joints {
+            let first_difference = facts
+                .joint_names
+                .iter()
+                .zip(robot_joints)
+                .position(|(a, b)| a != b)
+                .unwrap_or(facts.joint_names.len().min(robot_joints.len()));
+            return Err(self.value_error(
+                "[model].emp",
+                format!(
+                    "the model's {} joints do not match the robot {:?}'s {} joints (first difference at index {}: model {:?}, robot {:?})",
+                    facts.joint_names.len(),
+                    self.robot.joints,
+                    robot_joints.len(),
+                    first_difference,
+                    facts.joint_names.get(first_difference),
+                    robot_joints.get(first_difference),
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Override `[ros].namespace` (from the command line named `origin`).
+    pub fn set_namespace(&mut self, namespace: &str, origin: &str) -> Result<(), ConfigError> {
+        if !namespace.starts_with('/') {
+            return Err(ConfigError::Value {
+                file: origin.to_string(),
+                key: "[ros].namespace".to_string(),
+                message: format!(
+                    "expected an absolute namespace like \"/poppy\", got {namespace:?}"
+                ),
+            });
+        }
+        self.ros.namespace = namespace.to_string();
+        Ok(())
+    }
+
+    /// A path from the config, resolved against the config's directory.
+    pub fn resolve(&self, path: &Path) -> PathBuf {
+        if path.is_absolute() {
+            path.to_path_buf()
+        } else {
+            self.base_dir.join(path)
+        }
+    }
+
+    /// A model file (`[model].dir` joined with the name), resolved.
+    pub fn model_path(&self, file: &Path) -> PathBuf {
+        self.resolve(&self.model.dir.join(file))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(text: &str) -> Result<Config, ConfigError> {
+        Config::parse(text, "test.toml", Path::new("/cfg"))
+    }
+
+    #[test]
+    fn embedded_replay_config_is_valid() {
+        let config = Config::embedded_replay().expect("embedded config parses");
+        assert!(config.replay.is_some());
+        assert_eq!(config.origin, EMBEDDED_REPLAY_NAME);
+    }
+
+    #[test]
+    fn shipped_robot_config_is_valid() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/poppy_humanoid.toml");
+        let config = Config::load(&path).expect("robot config parses");
+        assert_eq!(config.streams.joints, JointsSource::Dynamixel);
+        assert_eq!(config.dynamixel.expect("buses").buses.len(), 2);
+    }
+
+    #[test]
+    fn unknown_key_is_named_with_its_table_and_line() {
+        let text =
+            EMBEDDED_REPLAY_CONFIG.replace("horizon_ms = 1000", "horizon_ms = 1000\nhorizn = 3");
+        let err = parse(&text).expect_err("unknown key");
+        assert_eq!(err.key(), Some("[model].horizn"));
+        let shown = err.to_string();
+        assert!(shown.starts_with("test.toml:"), "{shown}");
+        assert!(shown.contains("unknown field `horizn`"), "{shown}");
+    }
+
+    #[test]
+    fn wrong_type_names_the_key() {
+        let text = EMBEDDED_REPLAY_CONFIG.replace("trigger = 0.7", "trigger = \"high\"");
+        let err = parse(&text).expect_err("wrong type");
+        assert_eq!(err.key(), Some("[model].trigger"), "{err}");
+    }
+
+    #[test]
+    fn bad_enum_value_names_the_key() {
+        let text = EMBEDDED_REPLAY_CONFIG.replace("camera = \"none\"", "camera = \"usb\"");
+        let err = parse(&text).expect_err("bad source");
+        assert_eq!(err.key(), Some("[streams].camera"), "{err}");
+        assert!(err.to_string().contains("v4l2"), "{err}");
+    }
+
+    #[test]
+    fn hysteresis_must_be_ordered() {
+        let text = EMBEDDED_REPLAY_CONFIG.replace("release = 0.4", "release = 0.8");
+        let err = parse(&text).expect_err("release above trigger");
+        assert_eq!(err.key(), Some("[model].release"));
+    }
+
+    #[test]
+    fn missing_section_is_named() {
+        let text = EMBEDDED_REPLAY_CONFIG.replace("[streams]", "[streamz]");
+        let err = parse(&text).expect_err("missing streams");
+        assert!(err.to_string().contains("streams"), "{err}");
+    }
+
+    #[test]
+    fn horizon_must_be_one_of_the_models() {
+        let config = Config::embedded_replay().expect("parses");
+        let mut config = config;
+        config.model.horizon_ms = 700;
+        let facts = ModelFacts {
+            horizons_ms: vec![500, 1000, 1500, 2000],
+            joint_names: vec!["a".into()],
+        };
+        let err = config
+            .check_against_model(&facts, &["a".to_string()])
+            .expect_err("700 is not a horizon");
+        assert_eq!(
+            err.to_string(),
+            "config/replay.toml (embedded): [model].horizon_ms: expected one of the model's horizons 500, 1000, 1500, 2000, got 700"
+        );
+        config.model.horizon_ms = 1000;
+        let err = config
+            .check_against_model(&facts, &["b".to_string()])
+            .expect_err("joint mismatch");
+        assert!(
+            err.to_string().contains("first difference at index 0"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn relative_paths_resolve_against_the_config_dir() {
+        let config = parse(EMBEDDED_REPLAY_CONFIG).expect("parses");
+        assert_eq!(
+            config.model_path(Path::new("emp.bpk")),
+            Path::new("/cfg/models/emp.bpk")
+        );
+    }
+}

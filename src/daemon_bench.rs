@@ -1,0 +1,201 @@
+//! `fall-guard bench-daemon`: the whole daemon pipeline replaying a
+//! recording at maximum speed, over and over (each pass shifted in time so
+//! the tick grid runs on), for a given wall time. Measures the
+//! sensor-to-publish latency of every forecast (from the moment the tick's
+//! newest sample entered the daemon to the moment a publisher had the
+//! forecast: the ROS 2 publisher when `[ros].enabled`, else a bus subscriber
+//! standing in for it), inference latency, and resident memory (RSS from
+//! `/proc/self/statm`) once a second, to show it does not grow.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use serde::Serialize;
+
+use crate::forecast::percentiles_ms;
+use crate::service::ros_bridge::RosBridge;
+use crate::service::{load_config, ReplaySetup, ServiceError};
+use crate::shutdown::ShutdownTrigger;
+use crate::sources::replay::{replay_samples, shifted, Pacing};
+
+#[derive(Debug, Clone, Args)]
+pub struct BenchDaemonArgs {
+    /// Config file; without it, the embedded config/replay.toml.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Recording to loop; without it, `[replay].recording`.
+    #[arg(long)]
+    pub recording: Option<PathBuf>,
+    /// Wall time to run, seconds.
+    #[arg(long, default_value_t = 120.0)]
+    pub duration_s: f64,
+    /// Also write the report as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// What the bench measured.
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchReport {
+    pub recording: String,
+    pub wall_s: f64,
+    pub passes: u64,
+    pub ticks: u64,
+    pub forecasts: u64,
+    pub overruns: u64,
+    pub ticks_per_s: f64,
+    pub publish_latency_p50_ms: f64,
+    pub publish_latency_p99_ms: f64,
+    pub publish_latency_max_ms: f64,
+    /// Worst per-second inference p50 / p99 over the run.
+    pub inference_p50_ms: f64,
+    pub inference_p99_ms: f64,
+    pub rss_first_mb: f64,
+    pub rss_after_10s_mb: f64,
+    pub rss_max_mb: f64,
+    pub rss_last_mb: f64,
+    pub published_via: &'static str,
+}
+
+/// Resident set size of this process, MiB (Linux).
+pub fn rss_mb() -> f64 {
+    let page = 4096.0;
+    std::fs::read_to_string("/proc/self/statm")
+        .ok()
+        .and_then(|s| {
+            s.split_whitespace()
+                .nth(1)
+                .and_then(|v| v.parse::<f64>().ok())
+        })
+        .map_or(0.0, |pages| pages * page / (1024.0 * 1024.0))
+}
+
+pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
+    let mut config = load_config(args.config.as_deref())?;
+    config.output.print_forecasts = false;
+    let recording = match (&args.recording, &config.replay) {
+        (Some(p), _) => p.clone(),
+        (None, Some(r)) => config.resolve(&r.recording),
+        (None, None) => return Err(ServiceError::Usage("bench-daemon: pass --recording".into())),
+    };
+    let ros = config.ros.enabled;
+    let mut setup = ReplaySetup::new(config, &recording, false)?;
+    let trigger = Arc::new(ShutdownTrigger::new().0);
+    let mut shutdown = trigger.subscribe();
+    let mut bridge = if ros {
+        Some(RosBridge::start(&setup.config)?)
+    } else {
+        None
+    };
+    let publisher = match bridge.as_mut() {
+        Some(b) => Some(b.start_outputs(
+            &setup.config,
+            &setup.models,
+            &setup.bus,
+            trigger.subscribe(),
+        )?),
+        None => None,
+    };
+    // Without ROS, a subscriber stands in for the publisher.
+    let mut stand_in = (!ros).then(|| setup.bus.subscribe());
+    let mut stop = trigger.subscribe();
+    let stand_in_task = tokio::spawn(async move {
+        let Some(sub) = stand_in.as_mut() else { return };
+        loop {
+            tokio::select! {
+                r = sub.forecasts.recv() => match r {
+                    Ok(f) => sub.published(&f),
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(_) => return,
+                },
+                () = stop.recv() => return,
+            }
+        }
+    });
+    let mut diagnostics = setup.bus.subscribe().diagnostics;
+    let started = Instant::now();
+    let rss_first = rss_mb();
+    let rss = Arc::new(std::sync::Mutex::new(Vec::<(f64, f64)>::new()));
+    let rss_log = Arc::clone(&rss);
+    let mut rss_stop = trigger.subscribe();
+    let rss_task = tokio::spawn(async move {
+        let mut every = tokio::time::interval(Duration::from_secs(1));
+        loop {
+            tokio::select! {
+                _ = every.tick() => {
+                    if let Ok(mut v) = rss_log.lock() { v.push((started.elapsed().as_secs_f64(), rss_mb())); }
+                }
+                () = rss_stop.recv() => return,
+            }
+        }
+    });
+    let span = setup.recording.end_ns - setup.recording.start_ns
+        + (1e9 / setup.models.spec().rate_hz) as i64;
+    let mut passes = 0u64;
+    let mut latencies: Vec<u32> = Vec::new();
+    let (mut inf_p50, mut inf_p99) = (0.0f64, 0.0f64);
+    while started.elapsed().as_secs_f64() < args.duration_s && !shutdown.is_shutdown() {
+        let offset = passes as i64 * span;
+        let samples = setup.recording.samples.iter().map(|s| shifted(s, offset));
+        replay_samples(
+            &mut setup.tick_loop,
+            samples,
+            setup.recording.end_ns + offset,
+            Pacing::MaxSpeed,
+            &setup.stats,
+            &mut shutdown,
+        )
+        .await;
+        passes += 1;
+        latencies.extend(setup.bus.latency().take_us());
+        while let Ok(d) = diagnostics.try_recv() {
+            inf_p50 = inf_p50.max(d.model.inference_p50_ms.unwrap_or(0.0));
+            inf_p99 = inf_p99.max(d.model.inference_p99_ms.unwrap_or(0.0));
+        }
+    }
+    let wall_s = started.elapsed().as_secs_f64();
+    let counters = setup.tick_loop.finish().await;
+    trigger.fire();
+    let _ = stand_in_task.await;
+    let _ = rss_task.await;
+    if let Some(p) = publisher {
+        let _ = p.await;
+    }
+    drop(bridge);
+    latencies.extend(setup.bus.latency().take_us());
+    let max = latencies.iter().copied().max().unwrap_or(0);
+    let (p50, p99) = percentiles_ms(&mut latencies).unwrap_or((0.0, 0.0));
+    let rss = rss.lock().map(|v| v.clone()).unwrap_or_default();
+    let after_10 = rss
+        .iter()
+        .find(|(t, _)| *t >= 10.0)
+        .map_or(rss_first, |x| x.1);
+    let report = BenchReport {
+        recording: recording.display().to_string(),
+        wall_s,
+        passes,
+        ticks: counters.ticks,
+        forecasts: counters.dispatched,
+        overruns: counters.overruns,
+        ticks_per_s: counters.ticks as f64 / wall_s,
+        publish_latency_p50_ms: p50,
+        publish_latency_p99_ms: p99,
+        publish_latency_max_ms: f64::from(max) / 1000.0,
+        inference_p50_ms: inf_p50,
+        inference_p99_ms: inf_p99,
+        rss_first_mb: rss_first,
+        rss_after_10s_mb: after_10,
+        rss_max_mb: rss.iter().map(|x| x.1).fold(rss_first, f64::max),
+        rss_last_mb: rss.last().map_or(rss_first, |x| x.1),
+        published_via: if ros { "ros2" } else { "bus subscriber" },
+    };
+    let text = serde_json::to_string_pretty(&report).unwrap_or_default();
+    println!("{text}");
+    if let Some(path) = &args.json {
+        std::fs::write(path, &text)
+            .map_err(|e| ServiceError::Usage(format!("{}: {e}", path.display())))?;
+    }
+    Ok(report)
+}

@@ -1,0 +1,710 @@
+//! Per-tick inference: which network runs (degradation when a stream is
+//! lost), the inference thread, its latency statistics, and the validity of
+//! each forecast.
+//!
+//! Data enters as one [`InferenceJob`] per dispatched tick (built by
+//! `tick.rs`: the window of the last N ticks for the chosen ablation, whether
+//! it is valid and why not). The inference thread runs the network
+//! ([`LoadedModel::forecast_arrays`]), feeds the [`SafetyLatch`], and sends
+//! one [`ForecastOutput`] per job to the [`OutputBus`] (and to stdout when
+//! asked). A job is only handed over while the thread is idle: an inference
+//! that overruns makes the tick loop skip ticks and count them, never queue.
+//!
+//! Model choice ([`ModelChoice`]): camera lost -> MP, plan lost -> EP, both
+//! -> P; a lost stream counts as back once it has been fresh for a whole
+//! window (N ticks), so that the bigger network never sees a window of held,
+//! stale values. Each switch is logged and counted.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use thiserror::Error;
+use tokio::sync::Notify;
+
+use crate::config::{Config, ConfigError, ModelFacts};
+use crate::model::{Ablation, LoadedModel, ModelError};
+use crate::outputs::latch::SafetyLatch;
+use crate::outputs::{ForecastOutput, OutputBus};
+use crate::window::{Streams, TickInput, Window, WindowSpec};
+
+#[derive(Debug, Error)]
+pub enum ForecastError {
+    #[error("{key}: {file}: {source}")]
+    Load {
+        key: String,
+        file: PathBuf,
+        #[source]
+        source: ModelError,
+    },
+    #[error("{key}: {file} holds a {found} network, expected {expected}")]
+    WrongAblation {
+        key: String,
+        file: PathBuf,
+        found: Ablation,
+        expected: Ablation,
+    },
+    #[error("{key}: {file} does not fit this robot: {source}")]
+    Incompatible {
+        key: String,
+        file: PathBuf,
+        #[source]
+        source: ModelError,
+    },
+    #[error("{key}: {file}: {what} differs from [model].emp ({emp}): the fallbacks must share the window")]
+    Mismatch {
+        key: String,
+        file: PathBuf,
+        what: &'static str,
+        emp: String,
+    },
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("cannot start the inference thread: {0}")]
+    Thread(std::io::Error),
+}
+
+/// The name of an ablation as published ("EMP", "MP", ...).
+pub fn ablation_name(ablation: Ablation) -> &'static str {
+    match ablation {
+        Ablation::P => "P",
+        Ablation::MP => "MP",
+        Ablation::EP => "EP",
+        Ablation::EMP => "EMP",
+    }
+}
+
+/// The streams a window for `ablation` must hold.
+pub fn needs(ablation: Ablation) -> Streams {
+    Streams {
+        joints: true,
+        plan: ablation.uses_plan(),
+        frames: ablation.uses_vision(),
+    }
+}
+
+/// The networks of one configuration: EMP and the fallbacks that are
+/// configured, all on the same window.
+#[derive(Debug)]
+pub struct ModelSet {
+    models: Vec<LoadedModel>,
+    spec: WindowSpec,
+    horizons_ms: Vec<u32>,
+}
+
+impl ModelSet {
+    /// Loads `[model].emp` and the configured fallbacks, refusing a file
+    /// that is not the ablation its key names, does not fit the robot's
+    /// joints, or does not share EMP's window; checks `[model].horizon_ms`.
+    pub fn load(config: &Config, robot_joints: &[String]) -> Result<ModelSet, ForecastError> {
+        let m = &config.model;
+        let entries = [
+            ("[model].emp", Some(&m.emp), Ablation::EMP),
+            ("[model].mp", m.mp.as_ref(), Ablation::MP),
+            ("[model].ep", m.ep.as_ref(), Ablation::EP),
+            ("[model].p", m.p.as_ref(), Ablation::P),
+        ];
+        let mut models: Vec<LoadedModel> = Vec::new();
+        for (key, file, expected) in entries {
+            let Some(file) = file else { continue };
+            let path = config.model_path(file);
+            let model = LoadedModel::load(&path).map_err(|source| ForecastError::Load {
+                key: key.to_string(),
+                file: path.clone(),
+                source,
+            })?;
+            let meta = &model.meta;
+            if meta.ablation != expected {
+                return Err(ForecastError::WrongAblation {
+                    key: key.to_string(),
+                    file: path,
+                    found: meta.ablation,
+                    expected,
+                });
+            }
+            meta.check_compatible_with(
+                robot_joints,
+                meta.rate_hz,
+                meta.n_ticks,
+                meta.config.max_horizon_ticks(),
+                meta.frame_size,
+            )
+            .map_err(|source| ForecastError::Incompatible {
+                key: key.to_string(),
+                file: path.clone(),
+                source,
+            })?;
+            if let Some(emp) = models.first() {
+                let e = &emp.meta;
+                let what = if e.n_ticks != meta.n_ticks {
+                    Some("window length N")
+                } else if (e.rate_hz - meta.rate_hz).abs() > 1e-9 {
+                    Some("tick rate")
+                } else if e.horizons_ticks != meta.horizons_ticks {
+                    Some("horizons")
+                } else {
+                    None
+                };
+                if let Some(what) = what {
+                    return Err(ForecastError::Mismatch {
+                        key: key.to_string(),
+                        file: path,
+                        what,
+                        emp: emp.path.display().to_string(),
+                    });
+                }
+            }
+            tracing::info!(key, file = %path.display(), ablation = ablation_name(meta.ablation),
+                trained_on = %meta.trained_on, best_epoch = meta.best_epoch, "network ready");
+            models.push(model);
+        }
+        let emp = &models[0].meta;
+        let tick_ms = 1000.0 / emp.rate_hz;
+        let horizons_ms: Vec<u32> = emp
+            .horizons_ticks
+            .iter()
+            .map(|&h| (h as f64 * tick_ms).round() as u32)
+            .collect();
+        config.check_against_model(
+            &ModelFacts {
+                horizons_ms: horizons_ms.clone(),
+                joint_names: emp.joint_names.clone(),
+            },
+            robot_joints,
+        )?;
+        let spec = WindowSpec {
+            n_ticks: emp.n_ticks,
+            max_horizon_ticks: emp.config.max_horizon_ticks(),
+            rate_hz: emp.rate_hz,
+            joint_names: emp.joint_names.clone(),
+            frame_size: emp.frame_size,
+        };
+        Ok(ModelSet {
+            models,
+            spec,
+            horizons_ms,
+        })
+    }
+
+    /// Wraps networks already in memory (tests, benches); the first is EMP.
+    pub fn from_models(models: Vec<LoadedModel>) -> ModelSet {
+        let emp = &models[0].meta;
+        let tick_ms = 1000.0 / emp.rate_hz;
+        ModelSet {
+            spec: WindowSpec {
+                n_ticks: emp.n_ticks,
+                max_horizon_ticks: emp.config.max_horizon_ticks(),
+                rate_hz: emp.rate_hz,
+                joint_names: emp.joint_names.clone(),
+                frame_size: emp.frame_size,
+            },
+            horizons_ms: emp
+                .horizons_ticks
+                .iter()
+                .map(|&h| (h as f64 * tick_ms).round() as u32)
+                .collect(),
+            models,
+        }
+    }
+
+    pub fn spec(&self) -> &WindowSpec {
+        &self.spec
+    }
+
+    pub fn horizons_ms(&self) -> &[u32] {
+        &self.horizons_ms
+    }
+
+    /// Which ablations are loaded.
+    pub fn available(&self) -> Vec<Ablation> {
+        self.models.iter().map(|m| m.meta.ablation).collect()
+    }
+
+    pub fn get(&self, ablation: Ablation) -> Option<&LoadedModel> {
+        self.models.iter().find(|m| m.meta.ablation == ablation)
+    }
+
+    /// File of a loaded ablation.
+    pub fn file(&self, ablation: Ablation) -> Option<&Path> {
+        self.get(ablation).map(|m| m.path.as_path())
+    }
+}
+
+/// Which streams are fresh (not stale) at one tick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Freshness {
+    pub joints: bool,
+    pub camera: bool,
+    pub plan: bool,
+}
+
+/// Chooses the network per tick from stream freshness (see module docs).
+#[derive(Debug, Clone)]
+pub struct ModelChoice {
+    available: Vec<Ablation>,
+    active: Ablation,
+    /// Consecutive fresh ticks of camera and plan.
+    camera_run: usize,
+    plan_run: usize,
+    window_ticks: usize,
+    switches: u64,
+}
+
+/// Preference order: the most informed network first.
+const PREFERENCE: [Ablation; 4] = [Ablation::EMP, Ablation::MP, Ablation::EP, Ablation::P];
+
+impl ModelChoice {
+    pub fn new(available: Vec<Ablation>, window_ticks: usize) -> ModelChoice {
+        ModelChoice {
+            available,
+            active: Ablation::EMP,
+            camera_run: 0,
+            plan_run: 0,
+            window_ticks,
+            switches: 0,
+        }
+    }
+
+    pub fn active(&self) -> Ablation {
+        self.active
+    }
+
+    pub fn switches(&self) -> u64 {
+        self.switches
+    }
+
+    /// Update with one tick's freshness; returns the new ablation if it changed.
+    pub fn update(&mut self, fresh: Freshness) -> Option<Ablation> {
+        self.camera_run = if fresh.camera { self.camera_run + 1 } else { 0 };
+        self.plan_run = if fresh.plan { self.plan_run + 1 } else { 0 };
+        // A stream the active network reads may stay as long as it is fresh;
+        // one it does not read must be back for a whole window first.
+        let usable = |uses: bool, active_uses: bool, fresh: bool, run: usize| {
+            !uses
+                || if active_uses {
+                    fresh
+                } else {
+                    run >= self.window_ticks
+                }
+        };
+        let current = self.active;
+        let choice = PREFERENCE.into_iter().find(|&a| {
+            self.available.contains(&a)
+                && usable(
+                    a.uses_vision(),
+                    current.uses_vision(),
+                    fresh.camera,
+                    self.camera_run,
+                )
+                && usable(
+                    a.uses_plan(),
+                    current.uses_plan(),
+                    fresh.plan,
+                    self.plan_run,
+                )
+        });
+        match choice {
+            Some(next) if next != current => {
+                self.active = next;
+                self.switches += 1;
+                tracing::warn!(
+                    from = ablation_name(current),
+                    to = ablation_name(next),
+                    camera_fresh = fresh.camera,
+                    plan_fresh = fresh.plan,
+                    "model switch"
+                );
+                Some(next)
+            }
+            _ => None,
+        }
+    }
+}
+
+/// p50/p99 of a set of durations in µs (nearest rank), in ms.
+pub fn percentiles_ms(samples_us: &mut [u32]) -> Option<(f64, f64)> {
+    if samples_us.is_empty() {
+        return None;
+    }
+    samples_us.sort_unstable();
+    let rank = |q: f64| {
+        let i = ((q * samples_us.len() as f64).ceil() as usize).clamp(1, samples_us.len()) - 1;
+        f64::from(samples_us[i]) / 1000.0
+    };
+    Some((rank(0.50), rank(0.99)))
+}
+
+/// One tick handed to the inference thread.
+#[derive(Debug)]
+pub struct InferenceJob {
+    pub tick: i64,
+    pub stamp_ns: i64,
+    pub ablation: Ablation,
+    /// The ring (N consecutive ticks, oldest first); empty while it fills.
+    /// The window is cut from it on the inference thread, off the runtime.
+    pub ticks: Vec<TickInput>,
+    pub valid: bool,
+    pub invalid_reason: String,
+    pub sensed_at: Instant,
+}
+
+/// What the inference thread reports to the diagnostics.
+#[derive(Debug, Default)]
+pub struct InferenceStats {
+    /// Inference latencies since the last diagnostics snapshot, µs.
+    pub latencies_us: Vec<u32>,
+    pub forecasts: u64,
+    pub errors: u64,
+    pub imminent: bool,
+    pub latch_triggers: u64,
+}
+
+/// Latencies kept between two diagnostics snapshots, at most.
+const MAX_LATENCIES: usize = 4096;
+
+/// The inference thread and its hand-over slot.
+#[derive(Debug)]
+pub struct Inference {
+    jobs: Option<mpsc::SyncSender<InferenceJob>>,
+    busy: Arc<AtomicBool>,
+    idle: Arc<Notify>,
+    dead: Arc<AtomicBool>,
+    stats: Arc<Mutex<InferenceStats>>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl Inference {
+    /// Starts the thread. It owns the networks and the latch, and sends every
+    /// result to `bus` (and prints it when `print` is set).
+    pub fn spawn(
+        models: Arc<ModelSet>,
+        latch: SafetyLatch,
+        bus: OutputBus,
+        print: bool,
+    ) -> Result<Inference, ForecastError> {
+        let (tx, rx) = mpsc::sync_channel::<InferenceJob>(1);
+        let busy = Arc::new(AtomicBool::new(false));
+        let idle = Arc::new(Notify::new());
+        let stats = Arc::new(Mutex::new(InferenceStats::default()));
+        let dead = Arc::new(AtomicBool::new(false));
+        let (t_busy, t_idle, t_stats, t_dead) = (
+            Arc::clone(&busy),
+            Arc::clone(&idle),
+            Arc::clone(&stats),
+            Arc::clone(&dead),
+        );
+        let handle = std::thread::Builder::new()
+            .name("inference".into())
+            .spawn(move || {
+                inference_loop(
+                    &models, latch, &bus, print, &rx, &t_busy, &t_idle, &t_stats, &t_dead,
+                )
+            })
+            .map_err(ForecastError::Thread)?;
+        Ok(Inference {
+            jobs: Some(tx),
+            busy,
+            idle,
+            dead,
+            stats,
+            handle: Some(handle),
+        })
+    }
+
+    /// Hands `job` over if the thread is idle; gives it back if it is still
+    /// busy with the previous tick (an overrun: the caller skips the tick).
+    pub fn try_dispatch(&self, job: InferenceJob) -> Result<(), InferenceJob> {
+        if self.busy.swap(true, Ordering::AcqRel) {
+            return Err(job);
+        }
+        match &self.jobs {
+            Some(tx) => tx.try_send(job).map_err(|e| {
+                self.busy.store(false, Ordering::Release);
+                match e {
+                    mpsc::TrySendError::Full(j) | mpsc::TrySendError::Disconnected(j) => j,
+                }
+            }),
+            None => Err(job),
+        }
+    }
+
+    /// Wait until the previous job is done (replay at maximum speed).
+    pub async fn wait_idle(&self) {
+        loop {
+            let notified = self.idle.notified();
+            if !self.busy.load(Ordering::Acquire) || self.is_dead() {
+                return;
+            }
+            notified.await;
+        }
+    }
+
+    /// True once the thread has ended (a panic in the network).
+    pub fn is_dead(&self) -> bool {
+        self.dead.load(Ordering::Acquire)
+    }
+
+    pub fn stats(&self) -> &Arc<Mutex<InferenceStats>> {
+        &self.stats
+    }
+
+    /// Let the last job finish and stop the thread.
+    pub fn finish(mut self) {
+        self.jobs = None;
+        if let Some(handle) = self.handle.take() {
+            if handle.join().is_err() {
+                tracing::error!("inference thread panicked");
+            }
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn inference_loop(
+    models: &ModelSet,
+    mut latch: SafetyLatch,
+    bus: &OutputBus,
+    print: bool,
+    jobs: &mpsc::Receiver<InferenceJob>,
+    busy: &AtomicBool,
+    idle: &Notify,
+    stats: &Mutex<InferenceStats>,
+    dead: &AtomicBool,
+) {
+    let mut logged_error = false;
+    let _alive = AliveGuard { busy, idle, dead };
+    while let Ok(job) = jobs.recv() {
+        let mut valid = job.valid;
+        let mut invalid_reason = job.invalid_reason;
+        let mut probabilities = Vec::new();
+        let mut latency_us = None;
+        if !job.ticks.is_empty() {
+            let started = Instant::now();
+            match whole_window_forecast(models, job.ablation, &job.ticks) {
+                Ok(p) => {
+                    latency_us =
+                        Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
+                    probabilities = p;
+                }
+                Err(ForecastFailure::Input(e)) => {
+                    valid = false;
+                    invalid_reason = e;
+                }
+                Err(ForecastFailure::Model(e)) => {
+                    if !logged_error {
+                        tracing::error!(tick = job.tick, error = %e, "inference failed (logged once, counted in /diagnostics)");
+                        logged_error = true;
+                    }
+                    valid = false;
+                    invalid_reason = format!("inference failed: {e}");
+                    if let Ok(mut s) = stats.lock() {
+                        s.errors += 1;
+                    }
+                }
+            }
+        }
+        let imminent = latch.update(&probabilities, valid);
+        let output = ForecastOutput {
+            tick: job.tick,
+            stamp_ns: job.stamp_ns,
+            probabilities,
+            horizons_ms: models.horizons_ms().to_vec(),
+            valid,
+            imminent,
+            ablation: ablation_name(job.ablation),
+            invalid_reason,
+            sensed_at: job.sensed_at,
+        };
+        if print {
+            print_forecast(&output);
+        }
+        {
+            let mut s = stats.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(us) = latency_us {
+                if s.latencies_us.len() < MAX_LATENCIES {
+                    s.latencies_us.push(us);
+                }
+                s.forecasts += 1;
+            }
+            s.imminent = imminent;
+            s.latch_triggers = latch.triggers();
+        }
+        bus.send_forecast(output);
+        busy.store(false, Ordering::Release);
+        idle.notify_one();
+    }
+}
+
+/// Why a forecast could not be computed.
+#[derive(Debug)]
+enum ForecastFailure {
+    /// The window lacks something (a stream never seen in it): not valid.
+    Input(String),
+    /// The network refused or failed: an error.
+    Model(ModelError),
+}
+
+/// The forecast of `ablation` for the window `ticks` (N consecutive ticks),
+/// cut by the one window builder and run through the whole-window forward.
+///
+/// The model's `StreamingForecaster` (per-frame caching) is not used: in
+/// this build its second forecast panics in burn ("Asymmetric padding is not
+/// yet supported for conv3d"); see the report.
+fn whole_window_forecast(
+    models: &ModelSet,
+    ablation: Ablation,
+    ticks: &[TickInput],
+) -> Result<Vec<f32>, ForecastFailure> {
+    let window = Window::from_ticks(ticks.iter(), models.spec(), needs(ablation))
+        .map_err(|e| ForecastFailure::Input(e.to_string()))?;
+    let model = models.get(ablation).ok_or_else(|| {
+        ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation)))
+    })?;
+    model
+        .forecast_arrays(&window.joints, &window.plan, &window.frames)
+        .map_err(ForecastFailure::Model)
+}
+
+/// Marks the inference thread idle and dead when it ends, even by a panic,
+/// so that nothing waits for it forever.
+struct AliveGuard<'a> {
+    busy: &'a AtomicBool,
+    idle: &'a Notify,
+    dead: &'a AtomicBool,
+}
+
+impl Drop for AliveGuard<'_> {
+    fn drop(&mut self) {
+        self.dead.store(true, Ordering::Release);
+        self.busy.store(false, Ordering::Release);
+        self.idle.notify_one();
+        if std::thread::panicking() {
+            tracing::error!("inference thread panicked: forecasts stop, the daemon exits");
+        }
+    }
+}
+
+/// One line per forecast on stdout, for a person watching a replay:
+/// `tick 120 t=4.000s EMP valid p=[0.012 0.034 0.101 0.230] imminent=false`.
+pub fn format_forecast(f: &ForecastOutput) -> String {
+    let probabilities: Vec<String> = f.probabilities.iter().map(|p| format!("{p:.4}")).collect();
+    let validity = if f.valid {
+        "valid".to_string()
+    } else {
+        format!("invalid({})", f.invalid_reason)
+    };
+    format!(
+        "tick {} t={:.3}s {} {} p=[{}] imminent={}",
+        f.tick,
+        f.stamp_ns as f64 / 1e9,
+        f.ablation,
+        validity,
+        probabilities.join(" "),
+        f.imminent
+    )
+}
+
+fn print_forecast(f: &ForecastOutput) {
+    let mut out = std::io::stdout().lock();
+    // A closed stdout (a pipe whose reader left) must not stop the daemon.
+    let _ = writeln!(out, "{}", format_forecast(f));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const FRESH: Freshness = Freshness {
+        joints: true,
+        camera: true,
+        plan: true,
+    };
+
+    fn all() -> Vec<Ablation> {
+        vec![Ablation::EMP, Ablation::MP, Ablation::EP, Ablation::P]
+    }
+
+    #[test]
+    fn degrades_per_lost_stream_and_returns_after_a_full_window() {
+        let mut choice = ModelChoice::new(all(), 3);
+        assert_eq!(choice.update(FRESH), None);
+        assert_eq!(choice.active(), Ablation::EMP);
+        let no_camera = Freshness {
+            camera: false,
+            ..FRESH
+        };
+        assert_eq!(choice.update(no_camera), Some(Ablation::MP));
+        let neither = Freshness {
+            camera: false,
+            plan: false,
+            ..FRESH
+        };
+        assert_eq!(choice.update(neither), Some(Ablation::P));
+        let no_plan = Freshness {
+            plan: false,
+            ..FRESH
+        };
+        // Camera back: it must stay fresh for 3 ticks before EP takes over.
+        assert_eq!(choice.update(no_plan), None);
+        assert_eq!(choice.update(no_plan), None);
+        assert_eq!(choice.update(no_plan), Some(Ablation::EP));
+        // Plan back for 3 ticks: EMP again.
+        assert_eq!(choice.update(FRESH), None);
+        assert_eq!(choice.update(FRESH), None);
+        assert_eq!(choice.update(FRESH), Some(Ablation::EMP));
+        assert_eq!(choice.switches(), 4);
+    }
+
+    #[test]
+    fn a_missing_fallback_keeps_the_next_best() {
+        let mut choice = ModelChoice::new(vec![Ablation::EMP, Ablation::P], 2);
+        assert_eq!(
+            choice.update(Freshness {
+                camera: false,
+                ..FRESH
+            }),
+            Some(Ablation::P)
+        );
+        // With only EMP, losing the camera leaves EMP active (forecasts invalid).
+        let mut only = ModelChoice::new(vec![Ablation::EMP], 2);
+        assert_eq!(
+            only.update(Freshness {
+                camera: false,
+                ..FRESH
+            }),
+            None
+        );
+        assert_eq!(only.active(), Ablation::EMP);
+    }
+
+    #[test]
+    fn percentiles_use_nearest_rank() {
+        let mut v: Vec<u32> = (1..=100).map(|x| x * 1000).collect();
+        assert_eq!(percentiles_ms(&mut v), Some((50.0, 99.0)));
+        assert_eq!(percentiles_ms(&mut []), None);
+        assert_eq!(percentiles_ms(&mut [7000]), Some((7.0, 7.0)));
+    }
+
+    #[test]
+    fn forecast_line_shows_tick_time_model_and_validity() {
+        let f = ForecastOutput {
+            tick: 120,
+            stamp_ns: 4_000_000_000,
+            probabilities: vec![0.0123, 0.5],
+            horizons_ms: vec![500, 1000],
+            valid: false,
+            imminent: true,
+            ablation: "MP",
+            invalid_reason: "camera stale".into(),
+            sensed_at: Instant::now(),
+        };
+        assert_eq!(
+            format_forecast(&f),
+            "tick 120 t=4.000s MP invalid(camera stale) p=[0.0123 0.5000] imminent=true"
+        );
+    }
+}

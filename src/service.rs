@@ -1,0 +1,631 @@
+//! The daemon assembled: config -> networks -> sources -> tick -> inference
+//! thread -> outputs, for the subcommands `run`, `replay`, `record` and
+//! `label`.
+//!
+//! Each subcommand has a clap `Args` struct and an async `execute` here;
+//! `main.rs` only parses and dispatches. Shutdown is a value
+//! ([`Shutdown`]) handed to every task; SIGINT/SIGTERM, the end of a replay,
+//! or a failed task fire it. sd-notify READY/WATCHDOG come from the tick
+//! loop (`tick.rs`), so a hung tick gets the service restarted by systemd.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use clap::Args;
+use thiserror::Error;
+use tokio::task::JoinHandle;
+
+use crate::config::{CameraSource, Config, ConfigError, JointsSource, PlanSource};
+use crate::forecast::{ablation_name, ForecastError, Inference, ModelSet};
+use crate::frame::Frame;
+use crate::outputs::latch::{LatchError, SafetyLatch};
+use crate::outputs::recorder::Recorder;
+use crate::outputs::OutputBus;
+use crate::recording::RecordingError;
+use crate::robot::JointTable;
+use crate::shutdown::{Shutdown, ShutdownTrigger};
+use crate::sources::replay::{replay_samples, Pacing, ReplayError, ReplayRecording};
+use crate::sources::{stream, StreamFeed, StreamKind, StreamStats, StreamTap};
+use crate::tick::{LiveTaps, StreamSlot, TickCounters, TickLoop, TickSettings};
+use crate::window::{Plan, Sample, WindowError};
+
+#[derive(Debug, Error)]
+pub enum ServiceError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Forecast(#[from] ForecastError),
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
+    #[error(transparent)]
+    Recording(#[from] RecordingError),
+    #[error(transparent)]
+    Window(#[from] WindowError),
+    #[error("{key}: {source}")]
+    Latch {
+        key: &'static str,
+        #[source]
+        source: LatchError,
+    },
+    #[error("{0}")]
+    Source(String),
+    #[error("{0}")]
+    Usage(String),
+}
+
+/// `fall-guard run`: the onboard daemon.
+#[derive(Debug, Clone, Args)]
+pub struct RunArgs {
+    /// The config file (see config/poppy_humanoid.toml).
+    #[arg(long, default_value = "/etc/fall-guard/poppy_humanoid.toml")]
+    pub config: PathBuf,
+    /// ROS namespace for every relative topic (overrides `[ros].namespace`).
+    #[arg(long)]
+    pub namespace: Option<String>,
+}
+
+/// `fall-guard replay`: the daemon on a recording, with recorded time.
+#[derive(Debug, Clone, Args)]
+pub struct ReplayArgs {
+    /// Config file; without it, the embedded config/replay.toml.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// MCAP recording; without it, `[replay].recording` of the config.
+    #[arg(long)]
+    pub recording: Option<PathBuf>,
+    /// Recorded time runs this many times faster than real time.
+    #[arg(long, conflicts_with = "max_speed")]
+    pub speed: Option<f64>,
+    /// As fast as inference allows (every tick forecast, none skipped).
+    #[arg(long)]
+    pub max_speed: bool,
+    /// Do not print one line per forecast on stdout.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// `fall-guard record`: record the live streams as an MCAP recording.
+#[derive(Debug, Clone, Args)]
+pub struct RecordArgs {
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Output file (.mcap).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Stop after this many seconds (default: until Ctrl-C / SIGTERM).
+    #[arg(long)]
+    pub duration_s: Option<f64>,
+}
+
+/// `fall-guard label`: mark the fall onset of a recording, in place.
+#[derive(Debug, Clone, Args)]
+pub struct LabelArgs {
+    /// The recording to label.
+    pub recording: PathBuf,
+    /// Seconds after the recording's first message when the fall starts.
+    #[arg(long, required_unless_present = "no_fall", conflicts_with = "no_fall")]
+    pub fall_at: Option<f64>,
+    /// The episode does not fall.
+    #[arg(long)]
+    pub no_fall: bool,
+}
+
+/// Load a config file, or the embedded replay default.
+pub fn load_config(path: Option<&Path>) -> Result<Config, ConfigError> {
+    match path {
+        Some(p) => Config::load(p),
+        None => Config::embedded_replay(),
+    }
+}
+
+/// Fire `trigger` on SIGINT or SIGTERM.
+pub fn shutdown_on_signals(trigger: Arc<ShutdownTrigger>) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        let terminate = async {
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(mut s) => {
+                    s.recv().await;
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot listen for SIGTERM");
+                    std::future::pending::<()>().await;
+                }
+            }
+        };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => tracing::info!("SIGINT: shutting down"),
+            () = terminate => tracing::info!("SIGTERM: shutting down"),
+        }
+        trigger.fire();
+    })
+}
+
+/// The robot's joint names, model order.
+pub fn robot_joints(config: &Config) -> Vec<String> {
+    // `[robot].joints` is validated to be the one built-in table.
+    let _ = &config.robot.joints;
+    JointTable::poppy_humanoid().names()
+}
+
+/// The safety latch of `[model]`, on the index of `[model].horizon_ms`.
+pub fn latch_for(config: &Config, models: &ModelSet) -> Result<SafetyLatch, ServiceError> {
+    let index = models
+        .horizons_ms()
+        .iter()
+        .position(|&h| h == config.model.horizon_ms)
+        .ok_or_else(|| {
+            ServiceError::Usage(format!(
+                "{}: [model].horizon_ms {} is not a model horizon",
+                config.origin, config.model.horizon_ms
+            ))
+        })?;
+    SafetyLatch::new(index, config.model.trigger, config.model.release).map_err(|source| {
+        ServiceError::Latch {
+            key: "[model].release",
+            source,
+        }
+    })
+}
+
+/// The tick settings of `config` for streams with these sources and stats.
+pub fn tick_settings(
+    config: &Config,
+    sources: [(String, bool, Arc<StreamStats>); 3],
+) -> TickSettings {
+    let s = &config.streams;
+    let stale_ms = [s.joints_stale_ms, s.camera_stale_ms, s.plan_stale_ms];
+    let mut i = 0;
+    let streams = sources.map(|(source, configured, stats)| {
+        let slot = StreamSlot {
+            kind: StreamKind::ALL[i],
+            source,
+            configured,
+            stale_ns: i64::from(stale_ms[i]) * 1_000_000,
+            stats,
+        };
+        i += 1;
+        slot
+    });
+    TickSettings {
+        streams,
+        diagnostics_period_ns: i64::from(config.output.diagnostics_period_ms) * 1_000_000,
+        hardware_id: config.robot.name.clone(),
+        latch_horizon_ms: config.model.horizon_ms,
+    }
+}
+
+/// What a replay did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReplayReport {
+    pub recording: PathBuf,
+    pub samples: u64,
+    pub counters: TickCounters,
+    pub final_ablation: &'static str,
+    pub interrupted: bool,
+}
+
+/// Everything a replay needs, set up (used by `replay` and the bench).
+pub struct ReplaySetup {
+    pub config: Config,
+    pub models: Arc<ModelSet>,
+    pub recording: ReplayRecording,
+    pub bus: OutputBus,
+    pub stats: [Arc<StreamStats>; 3],
+    pub tick_loop: TickLoop,
+}
+
+impl ReplaySetup {
+    /// Load networks and recording, start the inference thread.
+    pub fn new(config: Config, recording: &Path, print: bool) -> Result<ReplaySetup, ServiceError> {
+        let joints = robot_joints(&config);
+        let models = Arc::new(ModelSet::load(&config, &joints)?);
+        let recording = ReplayRecording::open(recording, models.spec())?;
+        let bus = OutputBus::new();
+        let latch = latch_for(&config, &models)?;
+        let inference = Inference::spawn(Arc::clone(&models), latch, bus.clone(), print)?;
+        let stats: [Arc<StreamStats>; 3] =
+            std::array::from_fn(|_| Arc::new(StreamStats::default()));
+        let source = format!("replay {}", recording.path.display());
+        let settings = tick_settings(
+            &config,
+            [
+                (source.clone(), true, Arc::clone(&stats[0])),
+                (source.clone(), true, Arc::clone(&stats[1])),
+                (source, true, Arc::clone(&stats[2])),
+            ],
+        );
+        let tick_loop = TickLoop::new(Arc::clone(&models), inference, settings, bus.clone())?;
+        Ok(ReplaySetup {
+            config,
+            models,
+            recording,
+            bus,
+            stats,
+            tick_loop,
+        })
+    }
+}
+
+/// `fall-guard replay`.
+pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
+    let config = load_config(args.config.as_deref())?;
+    let replay_defaults = config.replay.clone();
+    let recording = match (&args.recording, &replay_defaults) {
+        (Some(p), _) => p.clone(),
+        (None, Some(r)) => config.resolve(&r.recording),
+        (None, None) => {
+            return Err(ServiceError::Usage(format!(
+                "{}: no recording: pass --recording PATH or set [replay].recording",
+                config.origin
+            )))
+        }
+    };
+    let pacing = if args.max_speed
+        || replay_defaults.as_ref().is_some_and(|r| r.max_speed) && args.speed.is_none()
+    {
+        Pacing::MaxSpeed
+    } else {
+        let speed = args
+            .speed
+            .or(replay_defaults.map(|r| r.speed))
+            .unwrap_or(1.0);
+        if !(speed.is_finite() && speed > 0.0) {
+            return Err(ServiceError::Usage(format!(
+                "--speed {speed}: expected a positive factor"
+            )));
+        }
+        Pacing::Speed(speed)
+    };
+    let print = config.output.print_forecasts && !args.quiet;
+    let ros_enabled = config.ros.enabled;
+    let mut setup = ReplaySetup::new(config, &recording, print)?;
+    let trigger = Arc::new(ShutdownTrigger::new().0);
+    let mut shutdown = trigger.subscribe();
+    let signals = shutdown_on_signals(Arc::clone(&trigger));
+    let mut ros = if ros_enabled {
+        Some(RosBridge::start(&setup.config)?)
+    } else {
+        None
+    };
+    let publisher = match ros.as_mut() {
+        Some(bridge) => Some(bridge.start_outputs(
+            &setup.config,
+            &setup.models,
+            &setup.bus,
+            trigger.subscribe(),
+        )?),
+        None => None,
+    };
+    tracing::info!(recording = %recording.display(), ?pacing, "replay started");
+    let samples = setup.recording.samples.clone();
+    let summary = replay_samples(
+        &mut setup.tick_loop,
+        samples,
+        setup.recording.end_ns,
+        pacing,
+        &setup.stats,
+        &mut shutdown,
+    )
+    .await;
+    let final_ablation = ablation_name(setup.tick_loop.active());
+    let counters = setup.tick_loop.finish().await;
+    trigger.fire();
+    if let Some(p) = publisher {
+        let _ = p.await;
+    }
+    drop(ros);
+    signals.abort();
+    if summary.inference_failed {
+        return Err(ServiceError::Source(format!(
+            "{}: inference stopped at tick {} (the network panicked, see the log)",
+            recording.display(),
+            counters.ticks
+        )));
+    }
+    tracing::info!(
+        ticks = counters.ticks,
+        dispatched = counters.dispatched,
+        overruns = counters.overruns,
+        "replay finished"
+    );
+    Ok(ReplayReport {
+        recording,
+        samples: summary.samples,
+        counters,
+        final_ablation,
+        interrupted: summary.interrupted,
+    })
+}
+
+/// The live streams: the source ends (for the sources) and the tick ends.
+pub struct LiveStreams {
+    pub joints: StreamFeed<Vec<f32>>,
+    pub camera: StreamFeed<Arc<Frame>>,
+    pub plan: StreamFeed<Arc<Plan>>,
+    pub taps: LiveTaps,
+}
+
+impl LiveStreams {
+    pub fn new() -> LiveStreams {
+        let (joints, joints_tap) = stream(StreamKind::Joints);
+        let (camera, camera_tap) = stream(StreamKind::Camera);
+        let (plan, plan_tap) = stream(StreamKind::Plan);
+        LiveStreams {
+            joints,
+            camera,
+            plan,
+            taps: LiveTaps {
+                joints: joints_tap,
+                camera: camera_tap,
+                plan: plan_tap,
+            },
+        }
+    }
+}
+
+impl Default for LiveStreams {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Names of the live sources, for diagnostics.
+fn source_names(config: &Config) -> [(String, bool); 3] {
+    let topics = &config.ros.topics;
+    let joints = match config.streams.joints {
+        JointsSource::Dynamixel => {
+            let ports: Vec<String> = config
+                .dynamixel
+                .as_ref()
+                .map(|d| d.buses.values().map(|b| b.port.clone()).collect())
+                .unwrap_or_default();
+            format!("dynamixel {}", ports.join(" "))
+        }
+        JointsSource::Ros => format!("ros {}", topics.joint_states),
+    };
+    let camera = match config.streams.camera {
+        CameraSource::V4l2 => (
+            format!(
+                "v4l2 {}",
+                config
+                    .camera
+                    .as_ref()
+                    .map(|c| c.device.display().to_string())
+                    .unwrap_or_default()
+            ),
+            true,
+        ),
+        CameraSource::Ros => (format!("ros {}", topics.camera), true),
+        CameraSource::None => ("none".to_string(), false),
+    };
+    let plan = match config.streams.plan {
+        PlanSource::Ros => (format!("ros {}", topics.planned_trajectory), true),
+        PlanSource::None => ("none".to_string(), false),
+    };
+    [(joints, true), camera, plan]
+}
+
+/// Start the configured live sources feeding `streams` (ROS 2 ones on `ros`).
+fn start_sources(
+    config: &Config,
+    models: &ModelSet,
+    streams: &LiveStreams,
+    ros: Option<&mut RosBridge>,
+    shutdown: &ShutdownTrigger,
+) -> Result<Vec<SourceHandle>, ServiceError> {
+    let mut handles = Vec::new();
+    if config.streams.joints == JointsSource::Dynamixel {
+        handles.push(servo_bridge::start(
+            config,
+            streams.joints.clone(),
+            shutdown.subscribe(),
+        )?);
+    }
+    if config.streams.camera == CameraSource::V4l2 {
+        handles.push(start_camera(
+            config,
+            models,
+            streams.camera.clone(),
+            shutdown.subscribe(),
+        )?);
+    }
+    let wanted = InputsWanted {
+        joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
+        camera: (config.streams.camera == CameraSource::Ros).then(|| streams.camera.clone()),
+        plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
+    };
+    if wanted.any() {
+        let bridge = ros.ok_or_else(|| {
+            ServiceError::Usage(format!(
+                "{}: [streams] reads from ROS 2 but [ros].enabled = false",
+                config.origin
+            ))
+        })?;
+        let tasks = bridge.start_inputs(config, models.spec(), wanted, shutdown.subscribe())?;
+        handles.extend(tasks.into_iter().map(SourceHandle::Task));
+    }
+    Ok(handles)
+}
+
+/// A running source.
+pub enum SourceHandle {
+    Thread(std::thread::JoinHandle<()>),
+    Task(JoinHandle<()>),
+}
+
+impl SourceHandle {
+    async fn join(self) {
+        match self {
+            SourceHandle::Thread(t) => {
+                let _ = tokio::task::spawn_blocking(move || t.join()).await;
+            }
+            SourceHandle::Task(t) => {
+                let _ = t.await;
+            }
+        }
+    }
+}
+
+#[cfg(feature = "camera-v4l")]
+fn start_camera(
+    config: &Config,
+    models: &ModelSet,
+    feed: StreamFeed<Arc<Frame>>,
+    shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
+    let camera = config
+        .camera
+        .clone()
+        .ok_or_else(|| ServiceError::Usage(format!("{}: [camera] missing", config.origin)))?;
+    crate::sources::camera::spawn_camera(camera, models.spec().frame_size, feed, shutdown)
+        .map(SourceHandle::Thread)
+        .map_err(|e| ServiceError::Source(format!("cannot start the camera thread: {e}")))
+}
+
+#[cfg(not(feature = "camera-v4l"))]
+fn start_camera(
+    config: &Config,
+    _models: &ModelSet,
+    _feed: StreamFeed<Arc<Frame>>,
+    _shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
+    Err(ServiceError::Usage(format!(
+        "{}: [streams].camera = \"v4l2\" needs a build with cargo feature `camera-v4l`",
+        config.origin
+    )))
+}
+
+/// `fall-guard run`.
+pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
+    let mut config = Config::load(&args.config)?;
+    if let Some(ns) = &args.namespace {
+        config.set_namespace(ns, "--namespace")?;
+    }
+    let joints = robot_joints(&config);
+    let models = Arc::new(ModelSet::load(&config, &joints)?);
+    let bus = OutputBus::new();
+    let latch = latch_for(&config, &models)?;
+    let inference = Inference::spawn(
+        Arc::clone(&models),
+        latch,
+        bus.clone(),
+        config.output.print_forecasts,
+    )?;
+    let trigger = Arc::new(ShutdownTrigger::new().0);
+    let signals = shutdown_on_signals(Arc::clone(&trigger));
+    let streams = LiveStreams::new();
+    let names = source_names(&config);
+    let stats = [
+        Arc::clone(streams.joints.stats()),
+        Arc::clone(streams.camera.stats()),
+        Arc::clone(streams.plan.stats()),
+    ];
+    let [(j, jc), (c, cc), (p, pc)] = names;
+    let [sj, sc, sp] = stats;
+    let settings = tick_settings(&config, [(j, jc, sj), (c, cc, sc), (p, pc, sp)]);
+    let mut ros = if config.ros.enabled {
+        Some(RosBridge::start(&config)?)
+    } else {
+        None
+    };
+    let publisher = match ros.as_mut() {
+        Some(bridge) => Some(bridge.start_outputs(&config, &models, &bus, trigger.subscribe())?),
+        None => None,
+    };
+    let sources = start_sources(&config, &models, &streams, ros.as_mut(), &trigger)?;
+    let tick_loop = TickLoop::new(Arc::clone(&models), inference, settings, bus.clone())?;
+    tracing::info!(config = %args.config.display(), rate_hz = models.spec().rate_hz,
+        n_ticks = models.spec().n_ticks, "fall-guard running");
+    let (counters, inference_died) =
+        crate::tick::run_live(tick_loop, streams.taps.clone(), trigger.subscribe()).await;
+    let _ = sd_notify::notify(false, &[sd_notify::NotifyState::Stopping]);
+    trigger.fire();
+    for s in sources {
+        s.join().await;
+    }
+    if let Some(p) = publisher {
+        let _ = p.await;
+    }
+    drop(ros);
+    signals.abort();
+    if inference_died {
+        return Err(ServiceError::Source(
+            "inference stopped (the network panicked, see the log)".into(),
+        ));
+    }
+    Ok(counters)
+}
+
+/// `fall-guard record`.
+pub async fn record(
+    args: RecordArgs,
+) -> Result<crate::outputs::recorder::RecordSummary, ServiceError> {
+    let config = Config::load(&args.config)?;
+    let joints = robot_joints(&config);
+    let models = ModelSet::load(&config, &joints)?;
+    let trigger = Arc::new(ShutdownTrigger::new().0);
+    let signals = shutdown_on_signals(Arc::clone(&trigger));
+    let streams = LiveStreams::new();
+    let mut ros = if config.ros.enabled {
+        Some(RosBridge::start(&config)?)
+    } else {
+        None
+    };
+    let sources = start_sources(&config, &models, &streams, ros.as_mut(), &trigger)?;
+    let mut recorder = Recorder::create(
+        &args.out,
+        joints,
+        &config.robot.joints,
+        models.spec().rate_hz,
+    )?;
+    let mut shutdown = trigger.subscribe();
+    let deadline = args
+        .duration_s
+        .map(|s| tokio::time::Instant::now() + std::time::Duration::from_secs_f64(s.max(0.0)));
+    let LiveTaps {
+        mut joints,
+        mut camera,
+        mut plan,
+    } = streams.taps.clone();
+    let result: Result<(), ServiceError> = loop {
+        let sample = tokio::select! {
+            () = shutdown.recv() => break Ok(()),
+            () = async { match deadline { Some(d) => tokio::time::sleep_until(d).await, None => std::future::pending().await } } => break Ok(()),
+            Some(s) = changed(&mut joints) => Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() },
+            Some(s) = changed(&mut camera) => Sample::Frame { stamp_ns: s.stamp_ns, frame: Arc::clone(&s.value) },
+            Some(s) = changed(&mut plan) => Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) },
+        };
+        if let Err(e) = recorder.record(&sample) {
+            break Err(e.into());
+        }
+    };
+    trigger.fire();
+    let summary = recorder.finish();
+    for s in sources {
+        s.join().await;
+    }
+    drop(ros);
+    signals.abort();
+    result?;
+    Ok(summary?)
+}
+
+async fn changed<T>(tap: &mut StreamTap<T>) -> Option<Arc<crate::sources::Stamped<T>>> {
+    tap.changed().await
+}
+
+/// `fall-guard label`.
+pub fn label(args: &LabelArgs) -> Result<Option<i64>, ServiceError> {
+    let fall_at = if args.no_fall { None } else { args.fall_at };
+    if !args.no_fall && fall_at.is_none() {
+        return Err(ServiceError::Usage(
+            "label: pass --fall-at SECONDS or --no-fall".into(),
+        ));
+    }
+    Ok(crate::recording::label(&args.recording, fall_at)?)
+}
+
+pub mod ros_bridge;
+pub mod servo_bridge;
+
+use ros_bridge::{InputsWanted, RosBridge};

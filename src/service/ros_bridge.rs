@@ -1,0 +1,259 @@
+//! The daemon's side of the ROS 2 seam: one node ([`RosBridge`]) whose
+//! publishers (`outputs::ros`) are fed from the [`OutputBus`], and whose
+//! subscriptions (`sources::ros`) are turned into model-form samples on the
+//! live [`StreamFeed`]s, converted once per message with the same functions
+//! a replay uses (`window::joints_from_msg`, `frame_from_msg`,
+//! `Plan::from_msg`).
+//!
+//! The node honours `ROS_DOMAIN_ID` and `ROS_AUTOMATIC_DISCOVERY_RANGE`
+//! (`ROS_LOCALHOST_ONLY`), unless `[ros].domain_id` / `[ros].localhost_only`
+//! set them in the config.
+
+use std::sync::Arc;
+
+use tokio::sync::broadcast::error::RecvError;
+use tokio::task::JoinHandle;
+
+use crate::config::Config;
+use crate::forecast::ModelSet;
+use crate::frame::Frame;
+use crate::outputs::ros::{Health, ModelHealth, OutputTopics, RosOutputs, StreamHealth};
+use crate::outputs::{DiagnosticLevel, DiagnosticsSnapshot, OutputBus};
+use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
+use crate::service::ServiceError;
+use crate::shutdown::Shutdown;
+use crate::sources::ros::{InputTopics, Latest, RosInputs};
+use crate::sources::StreamFeed;
+use crate::window::{frame_from_msg, joints_from_msg, Plan, WindowSpec};
+
+impl From<RosError> for ServiceError {
+    fn from(e: RosError) -> Self {
+        ServiceError::Source(format!("ROS 2: {e}"))
+    }
+}
+
+/// The node settings: the environment, overridden by `[ros]`.
+pub fn settings(config: &Config) -> Result<RosSettings, RosError> {
+    let ros = &config.ros;
+    RosSettings::from_vars(&ros.namespace, &ros.node_name, |var| {
+        if var == DOMAIN_ID_ENV {
+            if let Some(id) = ros.domain_id {
+                return Some(id.to_string());
+            }
+        }
+        if var == DISCOVERY_RANGE_ENV {
+            match ros.localhost_only {
+                Some(true) => return Some("LOCALHOST".into()),
+                Some(false) => return Some("SUBNET".into()),
+                None => {}
+            }
+        }
+        std::env::var(var).ok()
+    })
+}
+
+/// The daemon's ROS 2 node; drop it after the tasks it started have ended.
+pub struct RosBridge {
+    node: RosNode,
+    inputs: Option<RosInputs>,
+}
+
+/// The live streams that come from ROS 2 (`None`: another source feeds it).
+pub struct InputsWanted {
+    pub joints: Option<StreamFeed<Vec<f32>>>,
+    pub camera: Option<StreamFeed<Arc<Frame>>>,
+    pub plan: Option<StreamFeed<Arc<Plan>>>,
+}
+
+impl InputsWanted {
+    pub fn any(&self) -> bool {
+        self.joints.is_some() || self.camera.is_some() || self.plan.is_some()
+    }
+}
+
+fn level(level: DiagnosticLevel) -> crate::outputs::ros::DiagnosticLevel {
+    use crate::outputs::ros::DiagnosticLevel as L;
+    match level {
+        DiagnosticLevel::Ok => L::Ok,
+        DiagnosticLevel::Warn => L::Warn,
+        DiagnosticLevel::Error => L::Error,
+        DiagnosticLevel::Stale => L::Stale,
+    }
+}
+
+/// The ROS layer's health report from a diagnostics snapshot.
+pub fn health(snapshot: &DiagnosticsSnapshot) -> Health {
+    let m = &snapshot.model;
+    Health {
+        stamp_ns: snapshot.stamp_ns,
+        streams: snapshot
+            .streams
+            .iter()
+            .map(|s| StreamHealth {
+                name: s.stream.to_string(),
+                level: level(s.level),
+                message: format!("{} ({})", s.message, s.source),
+                rate_hz: s.rate_hz,
+                age_ms: s.last_sample_age_ms,
+                errors: s.errors,
+            })
+            .collect(),
+        model: ModelHealth {
+            level: level(m.level),
+            message: m.message.clone(),
+            inference_p50_ms: m.inference_p50_ms.unwrap_or(f64::NAN),
+            inference_p99_ms: m.inference_p99_ms.unwrap_or(f64::NAN),
+            overruns: m.overruns,
+            active_model: m.active_ablation.to_string(),
+            valid: m.valid,
+        },
+    }
+}
+
+impl RosBridge {
+    /// Start the node (DDS participant, spinner).
+    pub fn start(config: &Config) -> Result<RosBridge, ServiceError> {
+        let settings = settings(config)?;
+        Ok(RosBridge {
+            node: RosNode::start(&settings)?,
+            inputs: None,
+        })
+    }
+
+    /// Publish what the bus carries until `shutdown`.
+    pub fn start_outputs(
+        &mut self,
+        config: &Config,
+        models: &ModelSet,
+        bus: &OutputBus,
+        mut shutdown: Shutdown,
+    ) -> Result<JoinHandle<()>, ServiceError> {
+        let t = &config.ros.topics;
+        let topics = OutputTopics {
+            forecast: t.forecast.clone(),
+            horizons_ms: t.horizons_ms.clone(),
+            fall_imminent: t.fall_imminent.clone(),
+            diagnostics: t.diagnostics.clone(),
+            joint_states: None,
+        };
+        let horizons: Vec<f32> = models.horizons_ms().iter().map(|&h| h as f32).collect();
+        let outputs = RosOutputs::new(&mut self.node, &topics, &horizons, &config.robot.name)?;
+        let mut sub = bus.subscribe();
+        Ok(tokio::spawn(async move {
+            let mut imminent: Option<bool> = None;
+            loop {
+                tokio::select! {
+                    f = sub.forecasts.recv() => match f {
+                        Ok(f) => {
+                            if !f.probabilities.is_empty() {
+                                let _ = outputs.publish_forecast(&f.probabilities);
+                            }
+                            if imminent != Some(f.imminent) {
+                                imminent = Some(f.imminent);
+                                let _ = outputs.publish_fall_imminent(f.imminent);
+                            }
+                            sub.published(&f);
+                        }
+                        Err(RecvError::Lagged(n)) => tracing::warn!(lost = n, "ROS 2 publisher fell behind: forecasts dropped"),
+                        Err(RecvError::Closed) => break,
+                    },
+                    d = sub.diagnostics.recv() => match d {
+                        Ok(d) => { let _ = outputs.publish_diagnostics(&health(&d)); }
+                        Err(RecvError::Lagged(_)) => {}
+                        Err(RecvError::Closed) => break,
+                    },
+                    () = shutdown.recv() => break,
+                }
+            }
+            // Drain what is already produced, so the last ticks go out too.
+            while let Ok(f) = sub.forecasts.try_recv() {
+                if !f.probabilities.is_empty() {
+                    let _ = outputs.publish_forecast(&f.probabilities);
+                }
+                if imminent != Some(f.imminent) {
+                    imminent = Some(f.imminent);
+                    let _ = outputs.publish_fall_imminent(f.imminent);
+                }
+                sub.published(&f);
+            }
+        }))
+    }
+
+    /// Subscribe to the wanted topics and feed the live streams until `shutdown`.
+    pub fn start_inputs(
+        &mut self,
+        config: &Config,
+        spec: &WindowSpec,
+        wanted: InputsWanted,
+        shutdown: Shutdown,
+    ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
+        let t = &config.ros.topics;
+        let topics = InputTopics {
+            joint_states: wanted.joints.as_ref().map(|_| t.joint_states.clone()),
+            planned_trajectory: wanted.plan.as_ref().map(|_| t.planned_trajectory.clone()),
+            camera: wanted.camera.as_ref().map(|_| t.camera.clone()),
+        };
+        let inputs = RosInputs::start(&mut self.node, &topics)?;
+        let mut tasks = Vec::new();
+        if let (Some(rx), Some(feed)) = (inputs.joint_states.clone(), wanted.joints) {
+            let names = spec.joint_names.clone();
+            tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
+                let stamp = r.msg.header.stamp.to_ns();
+                let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
+                joints_from_msg(&r.msg, &names).map(|j| (stamp_ns, j))
+            }));
+        }
+        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), wanted.camera) {
+            let size = spec.frame_size;
+            tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
+                let stamp = r.msg.header.stamp.to_ns();
+                let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
+                frame_from_msg(&r.msg, size).map(|f| (stamp_ns, Arc::new(f)))
+            }));
+        }
+        if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), wanted.plan) {
+            let names = spec.joint_names.clone();
+            // A plan is known from the moment it arrives: stamped on receipt.
+            tasks.push(forward(rx, feed, shutdown, move |r| {
+                Plan::from_msg(&r.msg, &names).map(|p| (r.received_ns, Arc::new(p)))
+            }));
+        }
+        self.inputs = Some(inputs);
+        Ok(tasks)
+    }
+}
+
+/// Convert each new message of `rx` once and hand it to `feed`.
+fn forward<M, T, F>(
+    mut rx: Latest<M>,
+    feed: StreamFeed<T>,
+    mut shutdown: Shutdown,
+    convert: F,
+) -> JoinHandle<()>
+where
+    M: Send + Sync + 'static,
+    T: Send + Sync + 'static,
+    F: Fn(&crate::sources::ros::Received<M>) -> Result<(i64, T), crate::window::WindowError>
+        + Send
+        + 'static,
+{
+    tokio::spawn(async move {
+        loop {
+            tokio::select! {
+                changed = rx.changed() => {
+                    if changed.is_err() {
+                        feed.stats().set_state("subscription ended");
+                        return;
+                    }
+                }
+                () = shutdown.recv() => return,
+            }
+            let latest = rx.borrow_and_update().clone();
+            let Some(received) = latest else { continue };
+            match convert(&received) {
+                Ok((stamp_ns, value)) => feed.send(stamp_ns, value),
+                Err(e) => feed.error("bad message", &e),
+            }
+        }
+    })
+}

@@ -1,0 +1,172 @@
+//! Replay of an MCAP recording through the daemon, with recorded time.
+//!
+//! The recording is read once ([`Recording::open`]; errors name the file and
+//! byte offset), its messages become model-form samples with the same
+//! conversion training uses ([`samples_from_recording`]), and each sample is
+//! pushed into the [`TickLoop`] at its log time: paced at `speed` times real
+//! time, or as fast as inference allows ([`Pacing::MaxSpeed`], lock-step: no
+//! tick skipped). After the samples the tick loop is identical to live.
+//! Counters of each replayed stream go to the same [`StreamStats`] the
+//! diagnostics read for live sources.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use thiserror::Error;
+
+use crate::recording::{Recording, RecordingError};
+use crate::shutdown::Shutdown;
+use crate::sources::StreamStats;
+use crate::tick::TickLoop;
+use crate::window::{samples_from_recording, Plan, Sample, WindowError, WindowSpec};
+
+#[derive(Debug, Error)]
+pub enum ReplayError {
+    #[error(transparent)]
+    Recording(#[from] RecordingError),
+    #[error(transparent)]
+    Window(#[from] WindowError),
+    #[error("{}: the recording has no messages", .0.display())]
+    Empty(PathBuf),
+}
+
+/// How fast recorded time runs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Pacing {
+    /// `x` times real time (1.0: as recorded).
+    Speed(f64),
+    /// As fast as inference allows; every tick gets a forecast.
+    MaxSpeed,
+}
+
+/// A recording, read and converted, ready to replay (possibly many times).
+#[derive(Debug, Clone)]
+pub struct ReplayRecording {
+    pub path: PathBuf,
+    pub samples: Vec<Sample>,
+    /// Log time of the last message, ns.
+    pub end_ns: i64,
+    pub start_ns: i64,
+    /// Fall onset from the episode metadata (`None`: no fall, or unlabelled).
+    pub fall_onset_ns: Option<i64>,
+}
+
+impl ReplayRecording {
+    pub fn open(path: &Path, spec: &WindowSpec) -> Result<ReplayRecording, ReplayError> {
+        let rec = Recording::open(path)?;
+        let samples = samples_from_recording(&rec, spec)?;
+        let (Some(start_ns), Some(end_ns)) = (rec.start_ns(), rec.end_ns()) else {
+            return Err(ReplayError::Empty(path.to_path_buf()));
+        };
+        tracing::info!(recording = %path.display(), samples = samples.len(),
+            duration_s = (end_ns - start_ns) as f64 / 1e9, "recording loaded for replay");
+        Ok(ReplayRecording {
+            path: path.to_path_buf(),
+            samples,
+            end_ns,
+            start_ns,
+            fall_onset_ns: rec.episode.as_ref().and_then(|e| e.fall_onset_ns),
+        })
+    }
+}
+
+/// A sample moved `offset_ns` later in time (plans move every point).
+pub fn shifted(sample: &Sample, offset_ns: i64) -> Sample {
+    match sample {
+        Sample::Joints {
+            stamp_ns,
+            positions_rad,
+        } => Sample::Joints {
+            stamp_ns: stamp_ns + offset_ns,
+            positions_rad: positions_rad.clone(),
+        },
+        Sample::Frame { stamp_ns, frame } => Sample::Frame {
+            stamp_ns: stamp_ns + offset_ns,
+            frame: Arc::clone(frame),
+        },
+        Sample::Plan { stamp_ns, plan } => Sample::Plan {
+            stamp_ns: stamp_ns + offset_ns,
+            plan: Arc::new(Plan {
+                stamp_ns: plan.stamp_ns + offset_ns,
+                times_ns: plan.times_ns.iter().map(|t| t + offset_ns).collect(),
+                positions_rad: plan.positions_rad.clone(),
+                n_joints: plan.n_joints,
+            }),
+        },
+    }
+}
+
+/// What one replay did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ReplaySummary {
+    pub samples: u64,
+    pub interrupted: bool,
+    /// The inference thread ended (a panic in the network): replay stopped.
+    pub inference_failed: bool,
+}
+
+fn stream_index(sample: &Sample) -> usize {
+    match sample {
+        Sample::Joints { .. } => 0,
+        Sample::Frame { .. } => 1,
+        Sample::Plan { .. } => 2,
+    }
+}
+
+/// Push `samples` (sorted by stamp) through `tick_loop` with recorded time,
+/// then advance to `end_ns`. `stats` (joints, camera, plan) count samples.
+pub async fn replay_samples<I>(
+    tick_loop: &mut TickLoop,
+    samples: I,
+    end_ns: i64,
+    pacing: Pacing,
+    stats: &[Arc<StreamStats>; 3],
+    shutdown: &mut Shutdown,
+) -> ReplaySummary
+where
+    I: IntoIterator<Item = Sample>,
+{
+    let lockstep = pacing == Pacing::MaxSpeed;
+    let wall_start = Instant::now();
+    let mut first_ns: Option<i64> = None;
+    let mut summary = ReplaySummary::default();
+    let mut samples = samples.into_iter().peekable();
+    while let Some(sample) = samples.next() {
+        if shutdown.is_shutdown() {
+            summary.interrupted = true;
+            return summary;
+        }
+        let stamp_ns = sample.stamp_ns();
+        if let Pacing::Speed(speed) = pacing {
+            let t0 = *first_ns.get_or_insert(stamp_ns);
+            let due = wall_start
+                + Duration::from_secs_f64(((stamp_ns - t0) as f64 / 1e9 / speed).max(0.0));
+            tokio::select! {
+                () = tokio::time::sleep_until(due.into()) => {}
+                () = shutdown.recv() => {
+                    summary.interrupted = true;
+                    return summary;
+                }
+            }
+        }
+        stats[stream_index(&sample)].record_sample();
+        summary.samples += 1;
+        let sensed_at = Instant::now();
+        tick_loop.push_sample(sample);
+        // Every sample at this stamp is in: the tick at this stamp is final.
+        if samples.peek().is_none_or(|next| next.stamp_ns() > stamp_ns) {
+            tick_loop.advance_to(stamp_ns);
+        }
+        if tick_loop.pending_ticks() > 0 {
+            tick_loop.run_pending(sensed_at, lockstep).await;
+        }
+        if tick_loop.inference().is_dead() {
+            summary.inference_failed = true;
+            return summary;
+        }
+    }
+    tick_loop.advance_to(end_ns);
+    tick_loop.run_pending(Instant::now(), lockstep).await;
+    summary
+}

@@ -1,0 +1,177 @@
+//! Shared set-up of the daemon tests: small untrained networks (clearly
+//! labelled `trained_on = "untrained (test)"`), synthetic recordings written
+//! by the data plane's writer, configs, and running the real binary.
+
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use fall_guard::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
+use fall_guard::recording::synthetic::learnable_episode;
+use fall_guard::robot::JointTable;
+
+/// Window and horizons of the test networks: small, so a replay is quick.
+pub const N_TICKS: usize = 16;
+pub const HORIZONS_TICKS: [usize; 2] = [8, 16];
+/// 8 and 16 ticks at 30 Hz.
+pub const HORIZONS_MS: [u32; 2] = [267, 533];
+pub const FRAME_SIZE: u32 = 32;
+pub const RATE_HZ: f64 = 30.0;
+
+pub fn robot_joints() -> Vec<String> {
+    JointTable::poppy_humanoid().names()
+}
+
+/// Writes untrained EMP, MP, EP and P networks for `joints` into `dir`.
+pub fn write_models(dir: &Path, joints: &[String]) {
+    std::fs::create_dir_all(dir).expect("models dir");
+    let device = cpu_device();
+    for (ablation, file) in [
+        (Ablation::EMP, "emp.fgm"),
+        (Ablation::MP, "mp.fgm"),
+        (Ablation::EP, "ep.fgm"),
+        (Ablation::P, "p.fgm"),
+    ] {
+        let config = ModelConfig::lite(
+            N_TICKS,
+            joints.len(),
+            HORIZONS_TICKS.to_vec(),
+            FRAME_SIZE as usize,
+        );
+        let mut meta = ModelMeta::new(config.clone(), ablation, RATE_HZ, joints.to_vec());
+        meta.trained_on = "untrained (test)".into();
+        let emp = Emp::new(&config, ablation, &device);
+        save_model(&dir.join(file), &meta, &emp).expect("save model");
+    }
+}
+
+/// A synthetic episode of `n_ticks` at 30 Hz (falls when `falls`).
+pub fn write_recording(path: &Path, seed: u64, falls: bool, n_ticks: usize) {
+    learnable_episode(seed, falls, n_ticks, &robot_joints(), RATE_HZ, FRAME_SIZE)
+        .write(path)
+        .expect("write recording");
+}
+
+/// A replay config in `dir` using `models/` and `recording`.
+pub fn config_text(recording: &str) -> String {
+    format!(
+        r#"[robot]
+name = "test_robot"
+joints = "poppy_humanoid"
+
+[model]
+dir = "models"
+emp = "emp.fgm"
+mp = "mp.fgm"
+ep = "ep.fgm"
+p = "p.fgm"
+horizon_ms = 533
+trigger = 0.6
+release = 0.3
+
+[streams]
+joints = "ros"
+camera = "ros"
+plan = "ros"
+joints_stale_ms = 100
+camera_stale_ms = 100
+plan_stale_ms = 1500
+
+[replay]
+recording = "{recording}"
+max_speed = true
+
+[ros]
+enabled = false
+
+[output]
+print_forecasts = true
+diagnostics_period_ms = 1000
+"#
+    )
+}
+
+/// A scratch directory with models and a config; returns (dir, config path).
+pub struct Scene {
+    pub dir: tempfile::TempDir,
+    pub config: PathBuf,
+}
+
+impl Scene {
+    pub fn new(recording_name: &str) -> Scene {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_models(&dir.path().join("models"), &robot_joints());
+        let config = dir.path().join("replay.toml");
+        std::fs::write(&config, config_text(recording_name)).expect("config");
+        Scene { dir, config }
+    }
+
+    pub fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+}
+
+pub fn fall_guard(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_fall-guard"))
+        .args(args)
+        .env("RUST_LOG", "info")
+        .output()
+        .expect("run fall-guard")
+}
+
+/// One printed forecast line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Line {
+    pub tick: i64,
+    pub ablation: String,
+    pub valid: bool,
+    pub reason: String,
+    pub probabilities: Vec<f32>,
+    pub imminent: bool,
+}
+
+/// Parses `tick 120 t=4.000s EMP valid p=[0.0120 0.0340] imminent=false`.
+pub fn parse_lines(stdout: &[u8]) -> Vec<Line> {
+    let text = String::from_utf8_lossy(stdout);
+    text.lines()
+        .filter(|l| l.starts_with("tick "))
+        .map(|l| {
+            let tick = l
+                .split_whitespace()
+                .nth(1)
+                .and_then(|t| t.parse().ok())
+                .expect("tick");
+            let ablation = l.split_whitespace().nth(3).expect("ablation").to_string();
+            let rest = l.splitn(5, ' ').nth(4).expect("rest");
+            let valid = rest.starts_with("valid");
+            let reason = rest
+                .strip_prefix("invalid(")
+                .and_then(|r| r.split_once(") p=["))
+                .map(|(r, _)| r.to_string())
+                .unwrap_or_default();
+            let p_text = l
+                .split_once("p=[")
+                .and_then(|(_, r)| r.split_once(']'))
+                .expect("p")
+                .0;
+            let probabilities = p_text
+                .split_whitespace()
+                .map(|p| p.parse().expect("prob"))
+                .collect();
+            let imminent = l.ends_with("imminent=true");
+            Line {
+                tick,
+                ablation,
+                valid,
+                reason,
+                probabilities,
+                imminent,
+            }
+        })
+        .collect()
+}
+
+pub fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}

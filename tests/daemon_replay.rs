@@ -1,0 +1,217 @@
+//! The daemon replays real MCAP recordings end to end (the real binary):
+//! one forecast per tick once the ring is full, equal to an offline forward
+//! pass over the same windows, the safety latch consistent with its
+//! thresholds, and the model degrading and recovering when the camera
+//! stream disappears from the recording for a while.
+
+mod daemon_common;
+
+use daemon_common::*;
+use fall_guard::model::LoadedModel;
+use fall_guard::recording::{topics, Recording, RecordingWriter};
+use fall_guard::window::{EpisodeTicks, Streams, WindowSpec};
+
+fn spec() -> WindowSpec {
+    WindowSpec {
+        n_ticks: N_TICKS,
+        max_horizon_ticks: HORIZONS_TICKS[1],
+        rate_hz: RATE_HZ,
+        joint_names: robot_joints(),
+        frame_size: FRAME_SIZE,
+    }
+}
+
+#[test]
+fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
+    let scene = Scene::new("falling.mcap");
+    let recording = scene.path("falling.mcap");
+    write_recording(&recording, 7, true, 90);
+    let out = fall_guard(&[
+        "replay",
+        "--config",
+        scene.config.to_str().expect("utf8"),
+        "--max-speed",
+    ]);
+    assert!(out.status.success(), "replay failed: {}", stderr(&out));
+    let lines = parse_lines(&out.stdout);
+
+    let rec = Recording::open(&recording).expect("fixture reads");
+    let episode = EpisodeTicks::from_recording(&rec, &spec()).expect("ticks");
+    let first = episode.first_tick().expect("ticks");
+    assert_eq!(lines.len(), episode.ticks.len(), "one line per tick");
+    for (i, line) in lines.iter().enumerate() {
+        assert_eq!(line.tick, first + i as i64, "ticks are consecutive");
+        if i + 1 < N_TICKS {
+            assert!(
+                !line.valid,
+                "tick {} valid before the ring is full",
+                line.tick
+            );
+            assert!(line.reason.starts_with("ring filling"), "{line:?}");
+            assert!(line.probabilities.is_empty());
+        } else {
+            assert!(line.valid, "tick {} not valid: {}", line.tick, line.reason);
+            assert_eq!(line.ablation, "EMP");
+            assert_eq!(line.probabilities.len(), HORIZONS_MS.len());
+            assert!(
+                line.probabilities.windows(2).all(|w| w[0] <= w[1]),
+                "monotone: {line:?}"
+            );
+        }
+    }
+
+    // The same windows, cut offline and run through the same network.
+    let emp = LoadedModel::load(scene.path("models/emp.fgm")).expect("model");
+    for line in lines.iter().skip(N_TICKS - 1) {
+        let window = episode
+            .window_ending_at(line.tick, &spec(), Streams::ALL)
+            .expect("offline window");
+        let offline = emp
+            .forecast_arrays(&window.joints, &window.plan, &window.frames)
+            .expect("offline forward");
+        for (printed, exact) in line.probabilities.iter().zip(&offline) {
+            assert!(
+                (printed - exact).abs() <= 0.00005 + 1e-6,
+                "tick {}: {printed} vs {exact}",
+                line.tick
+            );
+        }
+    }
+
+    // The latch follows its thresholds (trigger 0.6, release 0.3) at 533 ms.
+    let mut on = false;
+    for line in lines.iter().filter(|l| l.valid) {
+        let p = line.probabilities[1];
+        if !on && p >= 0.6 {
+            on = true;
+        } else if on && p < 0.3 {
+            on = false;
+        }
+        // Rounded to 4 decimals in print: skip the ambiguous band.
+        if (p - 0.6).abs() > 1e-4 && (p - 0.3).abs() > 1e-4 {
+            assert_eq!(line.imminent, on, "latch at tick {}", line.tick);
+        }
+    }
+}
+
+/// Copies `src` to `dst` without the camera frames logged in `[from_ns, to_ns)`.
+fn drop_camera(src: &std::path::Path, dst: &std::path::Path, from_ns: i64, to_ns: i64) {
+    let rec = Recording::open(src).expect("read");
+    let mut w = RecordingWriter::create(dst).expect("create");
+    let mut i = (0, 0, 0);
+    loop {
+        let next = [
+            rec.joint_states.get(i.0).map(|m| (m.file_order, 0)),
+            rec.images.get(i.1).map(|m| (m.file_order, 1)),
+            rec.plans.get(i.2).map(|m| (m.file_order, 2)),
+        ]
+        .into_iter()
+        .flatten()
+        .min();
+        match next {
+            None => break,
+            Some((_, 0)) => {
+                let m = &rec.joint_states[i.0];
+                w.write(topics::JOINT_STATES, m.log_time_ns, &m.msg)
+                    .expect("write");
+                i.0 += 1;
+            }
+            Some((_, 1)) => {
+                let m = &rec.images[i.1];
+                if !(from_ns..to_ns).contains(&m.log_time_ns) {
+                    w.write(topics::HEAD_CAMERA, m.log_time_ns, &m.msg)
+                        .expect("write");
+                }
+                i.1 += 1;
+            }
+            Some(_) => {
+                let m = &rec.plans[i.2];
+                w.write(topics::PLANNED_TRAJECTORY, m.log_time_ns, &m.msg)
+                    .expect("write");
+                i.2 += 1;
+            }
+        }
+    }
+    w.write_episode(rec.episode().expect("meta")).expect("meta");
+    w.finish().expect("finish");
+}
+
+#[test]
+fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
+    let scene = Scene::new("no_camera.mcap");
+    let full = scene.path("full.mcap");
+    write_recording(&full, 3, false, 120);
+    // Camera gone from 1.5 s to 2.5 s (ticks 45..75).
+    drop_camera(
+        &full,
+        &scene.path("no_camera.mcap"),
+        1_500_000_000,
+        2_500_000_000,
+    );
+    let out = fall_guard(&[
+        "replay",
+        "--config",
+        scene.config.to_str().expect("utf8"),
+        "--max-speed",
+    ]);
+    assert!(out.status.success(), "replay failed: {}", stderr(&out));
+    let lines = parse_lines(&out.stdout);
+    let ablation_at = |tick: i64| {
+        lines
+            .iter()
+            .find(|l| l.tick == tick)
+            .map(|l| l.ablation.clone())
+    };
+    assert_eq!(ablation_at(40).as_deref(), Some("EMP"));
+    // Stale after 100 ms: MP from tick ~49 on, and its forecasts are valid.
+    let mp: Vec<&Line> = lines.iter().filter(|l| l.ablation == "MP").collect();
+    assert!(!mp.is_empty(), "no MP forecast");
+    let (first_mp, last_mp) = (mp[0].tick, mp[mp.len() - 1].tick);
+    assert!((45..=52).contains(&first_mp), "MP from tick {first_mp}");
+    assert!(mp.iter().all(|l| l.valid), "MP forecasts must be valid");
+    // Back to EMP only after a whole window of fresh frames (75 + 16).
+    assert!(
+        (75 + N_TICKS as i64 - 2..=75 + N_TICKS as i64 + 1).contains(&(last_mp + 1)),
+        "EMP again from tick {}",
+        last_mp + 1
+    );
+    assert_eq!(ablation_at(last_mp + 1).as_deref(), Some("EMP"));
+    assert!(lines
+        .iter()
+        .filter(|l| l.tick > last_mp)
+        .all(|l| l.ablation == "EMP" && l.valid));
+    let err = stderr(&out);
+    assert!(err.contains("model switch"), "switches are logged: {err}");
+}
+
+#[test]
+fn label_marks_the_fall_onset_in_place() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("walk.mcap");
+    write_recording(&path, 5, false, 60);
+    let out = fall_guard(&["label", path.to_str().expect("utf8"), "--fall-at", "1.5"]);
+    assert!(out.status.success(), "label failed: {}", stderr(&out));
+    let rec = Recording::open(&path).expect("read");
+    let start = rec.start_ns().expect("messages");
+    assert_eq!(
+        rec.episode().expect("meta").fall_onset_ns,
+        Some(start + 1_500_000_000)
+    );
+    let out = fall_guard(&["label", path.to_str().expect("utf8"), "--no-fall"]);
+    assert!(out.status.success(), "label failed: {}", stderr(&out));
+    assert_eq!(
+        Recording::open(&path)
+            .expect("read")
+            .episode()
+            .expect("meta")
+            .fall_onset_ns,
+        None
+    );
+    let out = fall_guard(&["label", path.to_str().expect("utf8"), "--fall-at", "99"]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("outside the recording"),
+        "{}",
+        stderr(&out)
+    );
+}
