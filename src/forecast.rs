@@ -4,8 +4,9 @@
 //!
 //! Data enters as one [`InferenceJob`] per dispatched tick (built by
 //! `tick.rs`: the window of the last N ticks for the chosen ablation, whether
-//! it is valid and why not). The inference thread runs the network
-//! ([`LoadedModel::forecast_arrays`]), feeds the [`SafetyLatch`], and sends
+//! it is valid and why not). The inference thread runs the network through
+//! one [`StreamingForecaster`] per ablation (per-frame work done once per
+//! frame, equal to the whole-window forward to 1e-5), feeds the [`SafetyLatch`], and sends
 //! one [`ForecastOutput`] per job to the [`OutputBus`] (and to stdout when
 //! asked). A job is only handed over while the thread is idle: an inference
 //! that overruns makes the tick loop skip ticks and count them, never queue.
@@ -27,10 +28,10 @@ use thiserror::Error;
 use tokio::sync::Notify;
 
 use crate::config::{Config, ConfigError, ModelFacts};
-use crate::model::{Ablation, LoadedModel, ModelError};
+use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
-use crate::window::{Streams, TickInput, Window, WindowSpec};
+use crate::window::{Streams, TickInput, WindowSpec};
 
 #[derive(Debug, Error)]
 pub enum ForecastError {
@@ -477,6 +478,7 @@ fn inference_loop(
 ) {
     let mut logged_error = false;
     let _alive = AliveGuard { busy, idle, dead };
+    let mut forecasters = Forecasters::new(models);
     while let Ok(job) = jobs.recv() {
         let mut valid = job.valid;
         let mut invalid_reason = job.invalid_reason;
@@ -484,7 +486,7 @@ fn inference_loop(
         let mut latency_us = None;
         if !job.ticks.is_empty() {
             let started = Instant::now();
-            match whole_window_forecast(models, job.ablation, &job.ticks) {
+            match forecasters.forecast(job.ablation, &job.ticks) {
                 Ok(p) => {
                     latency_us =
                         Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
@@ -548,25 +550,66 @@ enum ForecastFailure {
     Model(ModelError),
 }
 
-/// The forecast of `ablation` for the window `ticks` (N consecutive ticks),
-/// cut by the one window builder and run through the whole-window forward.
-///
-/// The model's `StreamingForecaster` (per-frame caching) is not used: in
-/// this build its second forecast panics in burn ("Asymmetric padding is not
-/// yet supported for conv3d"); see the report.
-fn whole_window_forecast(
-    models: &ModelSet,
-    ablation: Ablation,
-    ticks: &[TickInput],
-) -> Result<Vec<f32>, ForecastFailure> {
-    let window = Window::from_ticks(ticks.iter(), models.spec(), needs(ablation))
-        .map_err(|e| ForecastFailure::Input(e.to_string()))?;
-    let model = models.get(ablation).ok_or_else(|| {
-        ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation)))
-    })?;
-    model
-        .forecast_arrays(&window.joints, &window.plan, &window.frames)
-        .map_err(ForecastFailure::Model)
+/// One [`StreamingForecaster`] per loaded network, fed tick by tick: the
+/// per-frame work (low-pass, the vision slices that do not touch the
+/// window's edges) is done once per frame, not once per tick.
+struct Forecasters {
+    by_ablation: Vec<(Ablation, StreamingForecaster)>,
+}
+
+impl Forecasters {
+    fn new(models: &ModelSet) -> Forecasters {
+        Forecasters {
+            by_ablation: models
+                .models
+                .iter()
+                .map(|m| (m.meta.ablation, StreamingForecaster::new(m)))
+                .collect(),
+        }
+    }
+
+    /// The forecast of `ablation` for the window `ticks` (N consecutive
+    /// ticks, oldest first). Only the ticks the forecaster has not seen are
+    /// pushed: one per tick normally, the missed ones after an overrun, the
+    /// whole window after a model switch or a gap.
+    fn forecast(
+        &mut self,
+        ablation: Ablation,
+        ticks: &[TickInput],
+    ) -> Result<Vec<f32>, ForecastFailure> {
+        let forecaster = self
+            .by_ablation
+            .iter_mut()
+            .find(|(a, _)| *a == ablation)
+            .map(|(_, f)| f)
+            .ok_or_else(|| {
+                ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation)))
+            })?;
+        let first = ticks.first().map(|t| t.tick).unwrap_or_default();
+        let from = match forecaster.last_tick() {
+            Some(last) if last >= first - 1 && ticks.iter().any(|t| t.tick > last) => {
+                ticks.partition_point(|t| t.tick <= last)
+            }
+            _ => {
+                forecaster.reset();
+                0
+            }
+        };
+        for tick in &ticks[from..] {
+            if let Err(e) = forecaster.push(tick) {
+                // A window with a hole cannot be continued: start again next time.
+                forecaster.reset();
+                return Err(match e {
+                    ModelError::Input(m) => ForecastFailure::Input(m),
+                    other => ForecastFailure::Model(other),
+                });
+            }
+        }
+        forecaster.forecast().map_err(|e| match e {
+            ModelError::Input(m) => ForecastFailure::Input(m),
+            other => ForecastFailure::Model(other),
+        })
+    }
 }
 
 /// Marks the inference thread idle and dead when it ends, even by a panic,

@@ -29,6 +29,8 @@ enum Command {
     Label(service::LabelArgs),
     /// Benchmark the daemon: sensor-to-publish latency and memory while replaying at maximum speed.
     BenchDaemon(fall_guard::daemon_bench::BenchDaemonArgs),
+    /// Rewrite a model file with its weights in half precision (f16).
+    Half(fall_guard::train::cli::HalfArgs),
     /// Per-tick latency and training throughput of the network.
     Bench(fall_guard::train::bench::BenchArgs),
 }
@@ -40,6 +42,8 @@ fn init_logging() {
     tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        // No colour codes into journald or a pipe.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
 }
 
@@ -53,6 +57,7 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Train(args) => fall_guard::train::cli::run_train(&args)?,
         Command::Eval(args) => fall_guard::train::cli::run_eval(&args)?,
+        Command::Half(args) => fall_guard::train::cli::run_half(&args)?,
         Command::Run(args) => {
             runtime.block_on(service::run(args))?;
         }

@@ -244,8 +244,43 @@ impl ModelMeta {
     }
 }
 
-/// Writes `meta` and the weights of `model` to `path` (one file).
+/// How the weights are stored in a model file. Loading accepts either: the
+/// weights are cast to the network's f32 on load.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WeightPrecision {
+    /// f32, as trained.
+    #[default]
+    Full,
+    /// IEEE half precision (f16): half the file size; what it costs in
+    /// accuracy is measured in the model card.
+    Half,
+}
+
+/// Casts every float parameter to one dtype.
+struct CastParams(burn::tensor::DType);
+
+impl burn::module::ModuleMapper for CastParams {
+    fn map_float<const D: usize>(
+        &mut self,
+        param: burn::module::Param<Tensor<D>>,
+    ) -> burn::module::Param<Tensor<D>> {
+        let dtype = self.0;
+        param.map(|t| t.cast(dtype))
+    }
+}
+
+/// Writes `meta` and the weights of `model` to `path` (one file), in f32.
 pub fn save_model(path: &Path, meta: &ModelMeta, model: &Emp) -> Result<(), ModelError> {
+    save_model_as(path, meta, model, WeightPrecision::Full)
+}
+
+/// Writes `meta` and the weights of `model` to `path` at `precision`.
+pub fn save_model_as(
+    path: &Path,
+    meta: &ModelMeta,
+    model: &Emp,
+    precision: WeightPrecision,
+) -> Result<(), ModelError> {
     let io = |source| ModelError::Io {
         path: path.to_path_buf(),
         source,
@@ -254,9 +289,11 @@ pub fn save_model(path: &Path, meta: &ModelMeta, model: &Emp) -> Result<(), Mode
         path: path.to_path_buf(),
         message: e.to_string(),
     })?;
+    let mut model = model.clone().valid();
+    if precision == WeightPrecision::Half {
+        model = model.map(&mut CastParams(burn::tensor::DType::F16));
+    }
     let weights = model
-        .clone()
-        .valid()
         .into_record()
         .into_bytes()
         .map_err(|e| ModelError::Weights {
@@ -326,12 +363,12 @@ pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelE
     let w_len =
         u64::from_le_bytes(take(8, "weights length")?.try_into().expect("8 bytes")) as usize;
     let weights = take(w_len, "weights")?.to_vec();
-    let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(weights)).map_err(|e| {
-        ModelError::Weights {
+    let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(weights))
+        .map_err(|e| ModelError::Weights {
             path: p(),
             message: e.to_string(),
-        }
-    })?;
+        })?
+        .cast_to_module_dtype();
     let model = Emp::new(&meta.config, meta.ablation, device)
         .try_load_record(record)
         .map_err(|e| ModelError::Weights {

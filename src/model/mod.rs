@@ -17,7 +17,9 @@ pub mod vision;
 
 pub use config::{Ablation, ModelConfig};
 pub use emp::{Emp, EmpInference, EmpInput};
-pub use file::{save_model, EpochRecord, LoadedModel, ModelError, ModelMeta};
+pub use file::{
+    save_model, save_model_as, EpochRecord, LoadedModel, ModelError, ModelMeta, WeightPrecision,
+};
 pub use streaming::StreamingForecaster;
 
 use burn::prelude::Device;

@@ -79,6 +79,11 @@ impl StreamingForecaster {
         self.cache.iter_mut().for_each(HashMap::clear);
     }
 
+    /// The last tick pushed, if any.
+    pub fn last_tick(&self) -> Option<i64> {
+        self.ticks.back().map(|t| t.tick)
+    }
+
     /// Whether `N` consecutive ticks are in the window.
     pub fn is_full(&self) -> bool {
         self.ticks.len() == self.model.meta.n_ticks

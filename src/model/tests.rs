@@ -220,6 +220,37 @@ fn save_then_load_gives_identical_outputs() {
 }
 
 #[test]
+fn half_precision_file_is_smaller_and_forecasts_alike() {
+    let cfg = small_config();
+    let dir = tempfile::tempdir().unwrap();
+    let (meta, emp) = model(&cfg, Ablation::EMP);
+    let full = dir.path().join("full.bpk");
+    let half = dir.path().join("half.bpk");
+    save_model(&full, &meta, &emp).unwrap();
+    save_model_as(&half, &meta, &emp, WeightPrecision::Half).unwrap();
+    let size = |p: &std::path::Path| std::fs::metadata(p).unwrap().len() as f64;
+    assert!(
+        size(&half) < 0.6 * size(&full),
+        "half {} bytes vs full {} bytes",
+        size(&half),
+        size(&full)
+    );
+    let w = window(&cfg, 11);
+    let a = LoadedModel::load(&full)
+        .unwrap()
+        .forecast_arrays(&w.joints, &w.plan, &w.frames)
+        .unwrap();
+    let b = LoadedModel::load(&half)
+        .unwrap()
+        .forecast_arrays(&w.joints, &w.plan, &w.frames)
+        .unwrap();
+    assert_ne!(a, b, "the weights were not rounded");
+    for (x, y) in a.iter().zip(&b) {
+        assert!((x - y).abs() < 5e-3, "full {a:?} vs half {b:?}");
+    }
+}
+
+#[test]
 fn load_errors_name_the_file() {
     let cfg = small_config();
     let dir = tempfile::tempdir().unwrap();

@@ -145,9 +145,7 @@ impl RosBridge {
                 tokio::select! {
                     f = sub.forecasts.recv() => match f {
                         Ok(f) => {
-                            if !f.probabilities.is_empty() {
-                                let _ = outputs.publish_forecast(&f.probabilities);
-                            }
+                            let _ = outputs.publish_forecast(&published_probabilities(&f));
                             if imminent != Some(f.imminent) {
                                 imminent = Some(f.imminent);
                                 let _ = outputs.publish_fall_imminent(f.imminent);
@@ -167,9 +165,7 @@ impl RosBridge {
             }
             // Drain what is already produced, so the last ticks go out too.
             while let Ok(f) = sub.forecasts.try_recv() {
-                if !f.probabilities.is_empty() {
-                    let _ = outputs.publish_forecast(&f.probabilities);
-                }
+                let _ = outputs.publish_forecast(&published_probabilities(&f));
                 if imminent != Some(f.imminent) {
                     imminent = Some(f.imminent);
                     let _ = outputs.publish_fall_imminent(f.imminent);
@@ -220,6 +216,19 @@ impl RosBridge {
         }
         self.inputs = Some(inputs);
         Ok(tasks)
+    }
+}
+
+/// What goes on `/fall_guard/forecast` for one tick: the probabilities, or
+/// NaN for every horizon when none could be computed (the ring is filling,
+/// a stream the network needs is missing). The forecast is published every
+/// tick either way, so that a subscriber can tell silence from "safe";
+/// `/diagnostics` (model status, key `valid`) says why it is not valid.
+pub fn published_probabilities(f: &crate::outputs::ForecastOutput) -> Vec<f32> {
+    if f.probabilities.len() == f.horizons_ms.len() {
+        f.probabilities.clone()
+    } else {
+        vec![f32::NAN; f.horizons_ms.len()]
     }
 }
 

@@ -482,3 +482,34 @@ pub fn per_tick_forecast(
     w.flush()?;
     Ok(lines)
 }
+
+/// `fall-guard half`: the same model file with its weights in half precision.
+#[derive(Debug, clap::Args)]
+pub struct HalfArgs {
+    /// Model file to convert (f32 or already half).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Output model file.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Rewrites a model file with f16 weights (metadata unchanged), then loads
+/// it back to check it reads.
+pub fn run_half(args: &HalfArgs) -> anyhow::Result<()> {
+    let device = crate::model::cpu_device();
+    let (meta, emp) = crate::model::file::load_emp(&args.model, &device)
+        .with_context(|| format!("reading {}", args.model.display()))?;
+    crate::model::save_model_as(&args.out, &meta, &emp, crate::model::WeightPrecision::Half)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    LoadedModel::load(&args.out).with_context(|| format!("reading back {}", args.out.display()))?;
+    let size = |p: &Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
+    eprintln!(
+        "{} ({} bytes) -> {} ({} bytes, f16 weights)",
+        args.model.display(),
+        size(&args.model),
+        args.out.display(),
+        size(&args.out)
+    );
+    Ok(())
+}

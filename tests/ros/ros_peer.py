@@ -14,6 +14,12 @@ them without parsing ROS text output:
              {"event": "published", "topic": T, "n": N}  after each publish
            then keeps publishing the streaming topics until killed or --timeout.
 
+  walk     act as a robot's driver and planner for --joints (comma list):
+           JointStates at 30 Hz stamped with the current time, and every
+           second a new JointTrajectory (transient local) that starts now and
+           runs 4 s ahead, the joints swaying slowly; prints
+             {"event": "published", "topic": T, "n": N}  now and then.
+
 Each subscription is given as TOPIC:TYPE:QOS, with TYPE like
 std_msgs/msg/Bool and QOS one of the profile names of fall-guard's
 interfaces.md: sensor_data, forecast, latched, diagnostics.
@@ -49,6 +55,15 @@ QOS = {
         durability=DurabilityPolicy.VOLATILE,
         history=HistoryPolicy.KEEP_LAST,
         depth=1,
+    ),
+    # A subscriber that logs every forecast: compatible with the forecast
+    # publisher (reliable, volatile) but buffering on its side, so a test
+    # process that is descheduled for a moment loses nothing.
+    "forecast_log": QoSProfile(
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=300,
     ),
     "latched": QoSProfile(
         reliability=ReliabilityPolicy.RELIABLE,
@@ -192,6 +207,52 @@ def publish(args):
     return 0
 
 
+def sway(names, t):
+    """A slow, small sway of every joint (radians) at time t (s)."""
+    return [0.05 * math.sin(0.8 * t + 0.3 * j) for j in range(len(names))]
+
+
+def walk(args):
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    names = args.joints.split(",")
+    node = rclpy.create_node("fall_guard_test_walker")
+    joints = node.create_publisher(JointState, args.joint_states, QOS["sensor_data"])
+    plans = node.create_publisher(JointTrajectory, args.planned_trajectory, QOS["latched"])
+    start = time.time()
+    deadline = time.monotonic() + args.timeout
+    i = 0
+    next_plan = 0.0
+    while time.monotonic() < deadline:
+        now = time.time()
+        now_ns = time.time_ns()
+        if now >= next_plan:
+            plan = JointTrajectory()
+            stamp(plan.header.stamp, now_ns)
+            plan.joint_names = names
+            for p in range(121):
+                dt_ns = p * 33_333_333
+                point = JointTrajectoryPoint()
+                point.positions = sway(names, now - start + dt_ns / 1e9)
+                point.time_from_start.sec = dt_ns // 1_000_000_000
+                point.time_from_start.nanosec = dt_ns % 1_000_000_000
+                plan.points.append(point)
+            plans.publish(plan)
+            emit({"event": "published", "topic": args.planned_trajectory, "n": int(now - start) + 1})
+            next_plan = now + 1.0
+        i += 1
+        js = JointState()
+        stamp(js.header.stamp, now_ns)
+        js.name = names
+        js.position = sway(names, now - start)
+        joints.publish(js)
+        if i == 1 or i % 30 == 0:
+            emit({"event": "published", "topic": args.joint_states, "n": i})
+        rclpy.spin_once(node, timeout_sec=args.period)
+    return 0
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="mode", required=True)
@@ -205,10 +266,17 @@ def main():
     pp.add_argument("--camera", default="/head_camera/image_raw/compressed")
     pp.add_argument("--period", type=float, default=0.033)
     pp.add_argument("--timeout", type=float, default=30.0)
+    wp = sub.add_parser("walk")
+    wp.add_argument("--joints", required=True, help="joint names, comma-separated")
+    wp.add_argument("--joint-states", default="/joint_states")
+    wp.add_argument("--planned-trajectory", default="/planned_trajectory")
+    wp.add_argument("--period", type=float, default=0.033)
+    wp.add_argument("--timeout", type=float, default=60.0)
     args = parser.parse_args()
     rclpy.init()
     try:
-        return listen(args) if args.mode == "listen" else publish(args)
+        modes = {"listen": listen, "publish": publish, "walk": walk}
+        return modes[args.mode](args)
     finally:
         rclpy.try_shutdown()
 

@@ -1,0 +1,358 @@
+//! The daemon (the real binary, with the networks shipped in `models/`)
+//! against real rclpy peers on loopback DDS:
+//!
+//! - replaying the bundled falling fixture, it publishes one forecast per
+//!   tick; every forecast after the ring fills reaches an rclpy subscriber,
+//!   equal to what `fall-guard eval --recording` computes offline for the
+//!   same ticks, and `/fall_guard/fall_imminent` turns true before the fall;
+//! - run live with `/joint_states` and `/planned_trajectory` coming from an
+//!   rclpy publisher (no camera), it forecasts with the MP network and says
+//!   so on `/diagnostics`.
+
+#[path = "ros/support.rs"]
+mod support;
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use serde_json::Value;
+use support::{domain_id, rclpy_python, Peer};
+
+mod daemon_common;
+use daemon_common::{parse_lines, robot_joints};
+
+const FALLING_FIXTURE: &str = "tests/fixtures/episode_00005.mcap";
+
+fn repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+/// The bundled replay config, pointed at absolute paths, on `domain`, loopback only.
+fn replay_config(dir: &Path, domain: u16, edit: impl Fn(String) -> String) -> PathBuf {
+    let text = std::fs::read_to_string(repo("config/replay.toml")).expect("config/replay.toml");
+    let models = repo("models");
+    let text = text
+        .replace(
+            "dir = \"models\"",
+            &format!("dir = \"{}\"", models.display()),
+        )
+        .replace(
+            &format!("recording = \"{FALLING_FIXTURE}\""),
+            &format!("recording = \"{}\"", repo(FALLING_FIXTURE).display()),
+        )
+        .replace(
+            "[ros]\nenabled = true",
+            &format!("[ros]\nenabled = true\ndomain_id = {domain}\nlocalhost_only = true"),
+        );
+    assert!(text.contains("localhost_only = true"), "config/replay.toml changed shape");
+    let text = edit(text);
+    let path = dir.join("fall_guard.toml");
+    std::fs::write(&path, text).expect("write config");
+    path
+}
+
+fn forecast_values(event: &Value) -> Vec<f32> {
+    event["msg"]["data"]
+        .as_array()
+        .expect("data")
+        .iter()
+        .map(|v| v.as_f64().map_or(f32::NAN, |x| x as f32))
+        .collect()
+}
+
+fn kv(status: &Value, key: &str) -> Option<String> {
+    status["values"]
+        .as_array()?
+        .iter()
+        .find(|v| v["key"] == key)
+        .and_then(|v| v["value"].as_str().map(str::to_owned))
+}
+
+fn msgs<'a>(events: &'a [Value], topic: &'a str) -> impl Iterator<Item = &'a Value> + 'a {
+    events
+        .iter()
+        .filter(move |e| e["event"] == "msg" && e["topic"] == topic)
+}
+
+/// The daemon as a child process whose stdout and stderr are read as they
+/// come (a full pipe would block its logging and stall it).
+struct Daemon {
+    child: std::process::Child,
+    readers: Vec<std::thread::JoinHandle<Vec<u8>>>,
+}
+
+impl Daemon {
+    fn start(args: &[&str]) -> Daemon {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
+            .args(args)
+            .env("RUST_LOG", "info,rustdds=warn,ros2_client=warn")
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start fall-guard");
+        let mut readers = Vec::new();
+        let out: Box<dyn std::io::Read + Send> = Box::new(child.stdout.take().expect("stdout"));
+        let err: Box<dyn std::io::Read + Send> = Box::new(child.stderr.take().expect("stderr"));
+        for mut pipe in [out, err] {
+            readers.push(std::thread::spawn(move || {
+                let mut buf = Vec::new();
+                let _ = pipe.read_to_end(&mut buf);
+                buf
+            }));
+        }
+        Daemon { child, readers }
+    }
+
+    /// Waits for it to exit by itself: (success, stdout, stderr).
+    fn wait(mut self) -> (bool, Vec<u8>, String) {
+        let status = self.child.wait().expect("wait for fall-guard");
+        let mut texts = self.readers.into_iter().map(|r| r.join().unwrap_or_default());
+        let stdout = texts.next().unwrap_or_default();
+        let stderr = String::from_utf8_lossy(&texts.next().unwrap_or_default()).into_owned();
+        (status.success(), stdout, stderr)
+    }
+
+    /// SIGTERM, as systemd stops it, then [`Daemon::wait`].
+    fn stop(self) -> (bool, Vec<u8>, String) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        self.wait()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
+    let test = "replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall";
+    let Some(python) = rclpy_python(test) else {
+        return;
+    };
+    let domain = domain_id(0);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let config = replay_config(dir.path(), domain, |t| t);
+
+    let mut listener = Peer::spawn(
+        &python,
+        domain,
+        &[
+            "listen",
+            "--sub",
+            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast_log",
+            "--sub",
+            "/fall_guard/fall_imminent:std_msgs/msg/Bool:latched",
+            "--timeout",
+            "120",
+        ],
+    );
+    let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
+    assert!(ready.is_some(), "rclpy listener did not start: {}", listener.stderr());
+
+    // Real time: the ring fills for 2 s, long enough for discovery.
+    let daemon = Daemon::start(&["replay", "--config", config.to_str().expect("utf8")]);
+    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
+        .await
+        .expect("join");
+    assert!(success, "replay failed: {stderr}");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let events = listener.drain();
+
+    // What the daemon computed, tick by tick. A tick whose inference would
+    // overrun (a loaded machine) is skipped and counted, never queued.
+    let lines = parse_lines(&stdout);
+    let finished = stderr
+        .lines()
+        .find(|l| l.contains("replay finished"))
+        .unwrap_or_else(|| panic!("no summary in: {stderr}"));
+    let count = |key: &str| -> usize {
+        let at = finished.find(&format!(" {key}=")).expect("key") + key.len() + 2;
+        finished[at..]
+            .split(|c: char| !c.is_ascii_digit())
+            .next()
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("{key} in {finished}"))
+    };
+    let (ticks, dispatched, overruns) = (count("ticks"), count("dispatched"), count("overruns"));
+    assert_eq!(ticks, dispatched + overruns, "{finished}");
+    assert_eq!(lines.len(), dispatched, "one forecast per dispatched tick");
+    let valid: Vec<_> = lines.iter().filter(|l| l.valid).collect();
+    assert!(
+        valid.len() > 50,
+        "{} valid ticks of {ticks} ({overruns} overran)",
+        valid.len()
+    );
+    let first_valid = valid[0].tick;
+    assert!(lines.iter().all(|l| l.valid || l.tick < first_valid));
+
+    // The same episode offline, through `fall-guard eval`.
+    let per_tick = dir.path().join("eval.jsonl");
+    let eval = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
+        .args(["eval", "--model"])
+        .arg(repo("models/emp.bpk"))
+        .arg("--recording")
+        .arg(repo(FALLING_FIXTURE))
+        .arg("--per-tick-out")
+        .arg(&per_tick)
+        .output()
+        .expect("run fall-guard eval");
+    assert!(eval.status.success(), "eval failed: {}", String::from_utf8_lossy(&eval.stderr));
+    let offline: std::collections::HashMap<i64, Vec<f32>> = std::fs::read_to_string(&per_tick)
+        .expect("per-tick output")
+        .lines()
+        .map(|l| {
+            let v: Value = serde_json::from_str(l).expect("json line");
+            let p = v["probabilities"]
+                .as_array()
+                .expect("probabilities")
+                .iter()
+                .map(|x| x.as_f64().expect("number") as f32)
+                .collect();
+            (v["tick"].as_i64().expect("tick"), p)
+        })
+        .collect();
+    assert_eq!(
+        offline.keys().min().copied(),
+        Some(first_valid),
+        "offline and the daemon fill the window at the same tick"
+    );
+
+    // rclpy got every forecast the daemon computed, in order (NaN while the
+    // ring filled), each equal to the offline one for its tick.
+    let received: Vec<(f64, Vec<f32>)> = msgs(&events, "/fall_guard/forecast")
+        .map(|e| (e["t"].as_f64().expect("t"), forecast_values(e)))
+        .collect();
+    let numbers: Vec<&(f64, Vec<f32>)> = received
+        .iter()
+        .filter(|(_, p)| p.iter().all(|v| !v.is_nan()))
+        .collect();
+    assert!(
+        received.len() > numbers.len(),
+        "the forecast is published while the ring fills too (NaN)"
+    );
+    assert_eq!(
+        numbers.len(),
+        valid.len(),
+        "every forecast after the ring filled reached rclpy"
+    );
+    for (line, (_, got)) in valid.iter().zip(&numbers) {
+        let want = &offline[&line.tick];
+        assert_eq!(got.len(), 4, "one probability per horizon");
+        for (g, w) in got.iter().zip(want) {
+            assert!(
+                (g - w).abs() <= 1e-5,
+                "tick {}: rclpy got {got:?}, eval computed {want:?}",
+                line.tick
+            );
+        }
+    }
+
+    // The safety signal: true before the fall onset (5.067 s: tick 152).
+    let onset_tick = 152;
+    let first_warned = lines
+        .iter()
+        .find(|l| l.imminent)
+        .map(|l| l.tick)
+        .expect("fall_imminent never turned true on a falling episode");
+    assert!(
+        first_warned < onset_tick,
+        "warned at tick {first_warned}, after the onset (tick {onset_tick})"
+    );
+    let true_at = msgs(&events, "/fall_guard/fall_imminent")
+        .find(|e| e["msg"]["data"] == true)
+        .and_then(|e| e["t"].as_f64())
+        .expect("rclpy never received fall_imminent = true");
+    let onset_forecast_at = valid
+        .iter()
+        .zip(&numbers)
+        .find(|(l, _)| l.tick >= onset_tick)
+        .map(|(_, (t, _))| *t)
+        .expect("a forecast at or after the onset");
+    assert!(
+        true_at < onset_forecast_at,
+        "fall_imminent reached rclpy {:.3} s after the onset tick's forecast",
+        true_at - onset_forecast_at
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rclpy_joint_states_and_plan_drive_the_daemon() {
+    let test = "rclpy_joint_states_and_plan_drive_the_daemon";
+    let Some(python) = rclpy_python(test) else {
+        return;
+    };
+    let domain = domain_id(1);
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The same config, run live: joints and plan from ROS 2, no camera.
+    let config = replay_config(dir.path(), domain, |t| t);
+    let text = std::fs::read_to_string(&config).expect("config");
+    assert!(text.contains("joints = \"ros\"") && text.contains("plan = \"ros\""));
+    assert!(text.contains("camera = \"none\""));
+
+    let mut listener = Peer::spawn(
+        &python,
+        domain,
+        &[
+            "listen",
+            "--sub",
+            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast",
+            "--sub",
+            "/diagnostics:diagnostic_msgs/msg/DiagnosticArray:diagnostics",
+            "--count",
+            "/fall_guard/forecast=150",
+            "--count",
+            "/diagnostics=4",
+            "--timeout",
+            "60",
+        ],
+    );
+    let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
+    assert!(ready.is_some(), "rclpy listener did not start: {}", listener.stderr());
+
+    let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
+    let joints = robot_joints().join(",");
+    let mut walker = Peer::spawn(&python, domain, &["walk", "--joints", &joints, "--timeout", "60"]);
+
+    let (done, seen) = listener.wait_for("done", Duration::from_secs(60)).await;
+    drop(walker.drain());
+    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
+        .await
+        .expect("join");
+    assert!(
+        done.is_some(),
+        "listener did not get its messages: {:?}\ndaemon: {stderr}\nwalker: {}",
+        seen.last(),
+        walker.stderr()
+    );
+    assert!(success, "daemon exit on SIGTERM: {stderr}");
+
+    // Forecasts: numbers once the ring is full, from the MP network.
+    let forecasts: Vec<Vec<f32>> = msgs(&seen, "/fall_guard/forecast").map(forecast_values).collect();
+    let numeric = forecasts.iter().filter(|p| p.iter().all(|v| v.is_finite())).count();
+    assert!(numeric >= 60, "{numeric} of {} forecasts were numbers", forecasts.len());
+    let lines = parse_lines(&stdout);
+    assert!(
+        lines.iter().any(|l| l.valid && l.ablation == "MP"),
+        "no valid MP forecast printed"
+    );
+
+    // Diagnostics: the streams are seen at their rate, the model is MP and valid.
+    let last = msgs(&seen, "/diagnostics").last().expect("diagnostics");
+    let status_list = last["msg"]["status"].as_array().expect("status");
+    let named = |suffix: &str| {
+        status_list
+            .iter()
+            .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(suffix)))
+            .unwrap_or_else(|| panic!("no '{suffix}' status in {last}"))
+    };
+    let joints_rate: f64 = kv(named(": joints"), "rate_hz")
+        .and_then(|r| r.parse().ok())
+        .expect("joints rate");
+    assert!(joints_rate > 15.0, "joint states at {joints_rate} Hz: {last}");
+    let plan_age = kv(named(": plan"), "age_ms").expect("plan age");
+    assert_ne!(plan_age, "never", "plan never seen: {last}");
+    let model = named(": model");
+    assert_eq!(kv(model, "active_model").as_deref(), Some("MP"), "{last}");
+    assert_eq!(kv(model, "valid").as_deref(), Some("true"), "{last}");
+}
