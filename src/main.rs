@@ -7,7 +7,11 @@ use clap::{Parser, Subcommand};
 use fall_guard::service;
 
 #[derive(Debug, Parser)]
-#[command(name = "fall-guard", version, about = "Forecasts falls of a walking Poppy Humanoid and publishes them on ROS 2")]
+#[command(
+    name = "fall-guard",
+    version,
+    about = "Forecasts falls of a walking Poppy Humanoid and publishes them on ROS 2"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -29,6 +33,8 @@ enum Command {
     Label(service::LabelArgs),
     /// Benchmark the daemon: sensor-to-publish latency and memory while replaying at maximum speed.
     BenchDaemon(fall_guard::daemon_bench::BenchDaemonArgs),
+    /// Warning lead time and false alarms of the safety latch on a split; choose its thresholds.
+    Warnings(fall_guard::train::warning::WarningsArgs),
     /// Rewrite a model file with its weights in half precision (f16).
     Half(fall_guard::train::cli::HalfArgs),
     /// Per-tick latency and training throughput of the network.
@@ -57,6 +63,7 @@ fn main() -> Result<()> {
     match cli.command {
         Command::Train(args) => fall_guard::train::cli::run_train(&args)?,
         Command::Eval(args) => fall_guard::train::cli::run_eval(&args)?,
+        Command::Warnings(args) => fall_guard::train::warning::run_warnings(&args)?,
         Command::Half(args) => fall_guard::train::cli::run_half(&args)?,
         Command::Run(args) => {
             runtime.block_on(service::run(args))?;
@@ -78,7 +85,10 @@ fn main() -> Result<()> {
             );
         }
         Command::Label(args) => match service::label(&args)? {
-            Some(onset_ns) => eprintln!("{}: fall onset at log time {onset_ns} ns", args.recording.display()),
+            Some(onset_ns) => eprintln!(
+                "{}: fall onset at log time {onset_ns} ns",
+                args.recording.display()
+            ),
             None => eprintln!("{}: labelled as not falling", args.recording.display()),
         },
         Command::BenchDaemon(args) => {

@@ -46,7 +46,10 @@ fn replay_config(dir: &Path, domain: u16, edit: impl Fn(String) -> String) -> Pa
             "[ros]\nenabled = true",
             &format!("[ros]\nenabled = true\ndomain_id = {domain}\nlocalhost_only = true"),
         );
-    assert!(text.contains("localhost_only = true"), "config/replay.toml changed shape");
+    assert!(
+        text.contains("localhost_only = true"),
+        "config/replay.toml changed shape"
+    );
     let text = edit(text);
     let path = dir.join("fall_guard.toml");
     std::fs::write(&path, text).expect("write config");
@@ -109,7 +112,10 @@ impl Daemon {
     /// Waits for it to exit by itself: (success, stdout, stderr).
     fn wait(mut self) -> (bool, Vec<u8>, String) {
         let status = self.child.wait().expect("wait for fall-guard");
-        let mut texts = self.readers.into_iter().map(|r| r.join().unwrap_or_default());
+        let mut texts = self
+            .readers
+            .into_iter()
+            .map(|r| r.join().unwrap_or_default());
         let stdout = texts.next().unwrap_or_default();
         let stderr = String::from_utf8_lossy(&texts.next().unwrap_or_default()).into_owned();
         (status.success(), stdout, stderr)
@@ -148,7 +154,11 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         ],
     );
     let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
-    assert!(ready.is_some(), "rclpy listener did not start: {}", listener.stderr());
+    assert!(
+        ready.is_some(),
+        "rclpy listener did not start: {}",
+        listener.stderr()
+    );
 
     // Real time: the ring fills for 2 s, long enough for discovery.
     let daemon = Daemon::start(&["replay", "--config", config.to_str().expect("utf8")]);
@@ -197,7 +207,11 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         .arg(&per_tick)
         .output()
         .expect("run fall-guard eval");
-    assert!(eval.status.success(), "eval failed: {}", String::from_utf8_lossy(&eval.stderr));
+    assert!(
+        eval.status.success(),
+        "eval failed: {}",
+        String::from_utf8_lossy(&eval.stderr)
+    );
     let offline: std::collections::HashMap<i64, Vec<f32>> = std::fs::read_to_string(&per_tick)
         .expect("per-tick output")
         .lines()
@@ -308,11 +322,19 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
         ],
     );
     let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
-    assert!(ready.is_some(), "rclpy listener did not start: {}", listener.stderr());
+    assert!(
+        ready.is_some(),
+        "rclpy listener did not start: {}",
+        listener.stderr()
+    );
 
     let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
     let joints = robot_joints().join(",");
-    let mut walker = Peer::spawn(&python, domain, &["walk", "--joints", &joints, "--timeout", "60"]);
+    let mut walker = Peer::spawn(
+        &python,
+        domain,
+        &["walk", "--joints", &joints, "--timeout", "60"],
+    );
 
     let (done, seen) = listener.wait_for("done", Duration::from_secs(60)).await;
     drop(walker.drain());
@@ -328,9 +350,18 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
     assert!(success, "daemon exit on SIGTERM: {stderr}");
 
     // Forecasts: numbers once the ring is full, from the MP network.
-    let forecasts: Vec<Vec<f32>> = msgs(&seen, "/fall_guard/forecast").map(forecast_values).collect();
-    let numeric = forecasts.iter().filter(|p| p.iter().all(|v| v.is_finite())).count();
-    assert!(numeric >= 60, "{numeric} of {} forecasts were numbers", forecasts.len());
+    let forecasts: Vec<Vec<f32>> = msgs(&seen, "/fall_guard/forecast")
+        .map(forecast_values)
+        .collect();
+    let numeric = forecasts
+        .iter()
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .count();
+    assert!(
+        numeric >= 60,
+        "{numeric} of {} forecasts were numbers",
+        forecasts.len()
+    );
     let lines = parse_lines(&stdout);
     assert!(
         lines.iter().any(|l| l.valid && l.ablation == "MP"),
@@ -349,7 +380,10 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
     let joints_rate: f64 = kv(named(": joints"), "rate_hz")
         .and_then(|r| r.parse().ok())
         .expect("joints rate");
-    assert!(joints_rate > 15.0, "joint states at {joints_rate} Hz: {last}");
+    assert!(
+        joints_rate > 15.0,
+        "joint states at {joints_rate} Hz: {last}"
+    );
     let plan_age = kv(named(": plan"), "age_ms").expect("plan age");
     assert_ne!(plan_age, "never", "plan never seen: {last}");
     let model = named(": model");

@@ -27,6 +27,8 @@ pub struct SafetyLatch {
     imminent: bool,
     /// Number of off -> on transitions since start.
     triggers: u64,
+    /// Log each switch (the daemon); off for offline analysis.
+    log: bool,
 }
 
 impl SafetyLatch {
@@ -46,7 +48,14 @@ impl SafetyLatch {
             release,
             imminent: false,
             triggers: 0,
+            log: true,
         })
+    }
+
+    /// The same latch without a log line per switch (offline replays of many episodes).
+    pub fn silent(mut self) -> SafetyLatch {
+        self.log = false;
+        self
     }
 
     /// Feed one tick's forecast; returns the state after it.
@@ -60,18 +69,22 @@ impl SafetyLatch {
         if !self.imminent && p >= self.trigger {
             self.imminent = true;
             self.triggers += 1;
-            tracing::warn!(
-                probability = p,
-                trigger = self.trigger,
-                "fall imminent: latch on"
-            );
+            if self.log {
+                tracing::warn!(
+                    probability = p,
+                    trigger = self.trigger,
+                    "fall imminent: latch on"
+                );
+            }
         } else if self.imminent && p < self.release {
             self.imminent = false;
-            tracing::info!(
-                probability = p,
-                release = self.release,
-                "fall no longer imminent: latch off"
-            );
+            if self.log {
+                tracing::info!(
+                    probability = p,
+                    release = self.release,
+                    "fall no longer imminent: latch off"
+                );
+            }
         }
         self.imminent
     }

@@ -195,9 +195,15 @@ impl DiagnosticsSnapshot {
                 ("ticks".to_string(), m.ticks.to_string()),
                 ("forecasts".to_string(), m.forecasts.to_string()),
                 ("model_switches".to_string(), m.switches.to_string()),
-                ("ring".to_string(), format!("{}/{}", m.ring_ticks, m.ring_capacity)),
+                (
+                    "ring".to_string(),
+                    format!("{}/{}", m.ring_ticks, m.ring_capacity),
+                ),
                 ("fall_imminent".to_string(), m.imminent.to_string()),
-                ("latch_horizon_ms".to_string(), m.latch_horizon_ms.to_string()),
+                (
+                    "latch_horizon_ms".to_string(),
+                    m.latch_horizon_ms.to_string(),
+                ),
             ],
         });
         out
@@ -386,7 +392,11 @@ mod tests {
             .contains(&("last_sample_age_ms".into(), "none".into())));
         assert!(statuses[0].values.contains(&("timeout".into(), "2".into())));
         assert_eq!(statuses[1].name, "fall_guard: model");
-        assert!(statuses[1].values.contains(&("active_model".into(), "P".into())));
-        assert!(statuses[1].values.contains(&("ring".into(), "10/60".into())));
+        assert!(statuses[1]
+            .values
+            .contains(&("active_model".into(), "P".into())));
+        assert!(statuses[1]
+            .values
+            .contains(&("ring".into(), "10/60".into())));
     }
 }

@@ -63,7 +63,7 @@ pub fn decode_raw(
 
 /// YUYV 4:2:2 (Y0 U Y1 V per two pixels, BT.601 limited range) -> RGB8.
 pub fn yuyv_to_rgb(width: u32, height: u32, data: &[u8]) -> Result<Vec<u8>, CameraError> {
-    if width == 0 || height == 0 || width % 2 != 0 {
+    if width == 0 || height == 0 || !width.is_multiple_of(2) {
         return Err(CameraError::Size {
             format: PixelFormat::Yuyv,
             width,

@@ -123,14 +123,22 @@ impl StreamStats {
     /// to this stream's errors).
     pub fn set_external(&self, errors: u64, details: Vec<(String, String)>) {
         self.external_errors.store(errors, Ordering::Relaxed);
-        *self.external_details.lock().unwrap_or_else(|e| e.into_inner()) = details;
+        *self
+            .external_details
+            .lock()
+            .unwrap_or_else(|e| e.into_inner()) = details;
     }
 
     pub fn snapshot(&self) -> StreamStatsSnapshot {
         StreamStatsSnapshot {
             samples: self.samples.load(Ordering::Relaxed),
-            errors: self.errors.load(Ordering::Relaxed) + self.external_errors.load(Ordering::Relaxed),
-            details: self.external_details.lock().unwrap_or_else(|e| e.into_inner()).clone(),
+            errors: self.errors.load(Ordering::Relaxed)
+                + self.external_errors.load(Ordering::Relaxed),
+            details: self
+                .external_details
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
             error_kinds: self
                 .error_kinds
                 .lock()

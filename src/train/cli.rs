@@ -447,9 +447,36 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Replays a recording tick by tick through the streaming forecaster, as the
-/// daemon would, and writes one JSON line per tick once the window is full:
-/// `{"tick", "stamp_ns", "probabilities"}`. Returns the number of lines.
+/// One forecast per tick of an episode, replayed tick by tick through the
+/// streaming forecaster as the daemon does, once the window is full:
+/// `(tick, stamp_ns, probabilities)`.
+pub fn forecast_ticks(
+    model: &LoadedModel,
+    episode: &EpisodeTicks,
+) -> anyhow::Result<Vec<(i64, i64, Vec<f32>)>> {
+    let needs = needs_of(Some(model.meta.ablation));
+    let mut stream = StreamingForecaster::new(model);
+    let mut out = Vec::with_capacity(episode.ticks.len());
+    for tick in &episode.ticks {
+        if !needs.present_in(tick) {
+            continue;
+        }
+        let at = || format!("{}: tick {}", episode.path.display(), tick.tick);
+        stream.push(tick).with_context(at)?;
+        if stream.is_full() {
+            out.push((
+                tick.tick,
+                tick.stamp_ns,
+                stream.forecast().with_context(at)?,
+            ));
+        }
+    }
+    Ok(out)
+}
+
+/// Replays a recording through [`forecast_ticks`] and writes one JSON line
+/// per tick once the window is full: `{"tick", "stamp_ns", "probabilities"}`.
+/// Returns the number of lines.
 pub fn per_tick_forecast(
     model: &LoadedModel,
     recording: &Path,
@@ -460,27 +487,18 @@ pub fn per_tick_forecast(
     let needs = needs_of(Some(model.meta.ablation));
     let episode = crate::train::dataset::load_episode(recording, &spec, needs)
         .with_context(|| format!("reading {}", recording.display()))?;
-    let mut stream = StreamingForecaster::new(model);
+    let forecasts = forecast_ticks(model, &episode)?;
     let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
     let mut w = std::io::BufWriter::new(file);
-    let mut lines = 0;
-    for tick in &episode.ticks {
-        if !needs.present_in(tick) {
-            continue;
-        }
-        stream.push(tick)?;
-        if stream.is_full() {
-            let p = stream.forecast()?;
-            serde_json::to_writer(
-                &mut w,
-                &serde_json::json!({"tick": tick.tick, "stamp_ns": tick.stamp_ns, "probabilities": p}),
-            )?;
-            w.write_all(b"\n")?;
-            lines += 1;
-        }
+    for (tick, stamp_ns, p) in &forecasts {
+        serde_json::to_writer(
+            &mut w,
+            &serde_json::json!({"tick": tick, "stamp_ns": stamp_ns, "probabilities": p}),
+        )?;
+        w.write_all(b"\n")?;
     }
     w.flush()?;
-    Ok(lines)
+    Ok(forecasts.len())
 }
 
 /// `fall-guard half`: the same model file with its weights in half precision.

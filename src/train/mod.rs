@@ -1,7 +1,8 @@
 //! Training and evaluation: data sets of recordings and the i.i.d. window
 //! sampler (data plane: `dataset`, `sampler`), and the network side: the
 //! training loop (`fit`), metrics, evaluation, plots, the logistic baseline,
-//! the `train`/`eval` commands (`cli`) and `bench`.
+//! the `train`/`eval` commands (`cli`), `bench`, and the safety figures of
+//! `warnings` (lead time, false alarms, thresholds).
 
 pub mod bench;
 pub mod cli;
@@ -12,6 +13,7 @@ pub mod logreg;
 pub mod metrics;
 pub mod plots;
 pub mod sampler;
+pub mod warning;
 
 pub use fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
 

@@ -1,0 +1,344 @@
+//! What a safety engineer asks of the forecaster, measured the way the
+//! daemon runs it: every episode of a split is replayed tick by tick through
+//! the streaming forecaster (as `fall-guard eval --recording`), the
+//! forecasts feed the daemon's own [`SafetyLatch`], and we count
+//!
+//! - on falling episodes: whether `fall_imminent` went true before the fall
+//!   onset, and the lead time (onset minus the first tick it went true);
+//! - on non-falling episodes: false alarms (latch off -> on) per minute.
+//!
+//! `fall-guard warnings --choose` picks the trigger / release thresholds on
+//! one split (the validation split: never the test split), reporting the
+//! whole grid; `--trigger/--release` evaluates fixed thresholds (the test
+//! split, with the thresholds chosen on validation).
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use serde::Serialize;
+
+use super::cli::{forecast_ticks, needs_of, spec_of};
+use super::dataset::{load_episode, Dataset, Split};
+use crate::model::LoadedModel;
+use crate::outputs::latch::SafetyLatch;
+
+/// `fall-guard warnings`.
+#[derive(Debug, clap::Args)]
+pub struct WarningsArgs {
+    /// Model file (EMP, MP, EP or P).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Data set directory (recordings + manifest.json).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Split to replay: choose thresholds on `validation`, report on `test`.
+    #[arg(long, default_value = "validation")]
+    pub split: Split,
+    /// Horizon the latch watches, ms (one of the model's horizons).
+    #[arg(long, default_value_t = 1000)]
+    pub horizon_ms: u32,
+    /// Latch on at or above this probability.
+    #[arg(long, default_value_t = 0.7)]
+    pub trigger: f32,
+    /// Latch off below this probability.
+    #[arg(long, default_value_t = 0.4)]
+    pub release: f32,
+    /// Search the thresholds on this split instead (trigger 0.30..0.95,
+    /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
+    /// false-alarm rate is within --max-false-alarms-per-min.
+    #[arg(long)]
+    pub choose: bool,
+    /// False-alarm budget for --choose, per minute of non-falling walking.
+    #[arg(long, default_value_t = 0.5)]
+    pub max_false_alarms_per_min: f64,
+    /// JSON report.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+/// The forecasts of one episode at the watched horizon.
+#[derive(Debug, Clone)]
+pub struct EpisodeForecasts {
+    pub name: String,
+    /// Tick stamps (ns) and probability at the horizon, once the window is full.
+    pub ticks: Vec<(i64, f32)>,
+    /// Fall onset stamp (ns), `None` for an episode that does not fall.
+    pub onset_ns: Option<i64>,
+}
+
+/// The warning figures of one threshold pair on a split.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct WarningStats {
+    pub trigger: f32,
+    pub release: f32,
+    pub falling_episodes: usize,
+    /// Falls with `fall_imminent` true before the onset.
+    pub warned: usize,
+    pub warned_share: f64,
+    /// Lead times of the warned falls, s.
+    pub lead_median_s: Option<f64>,
+    pub lead_p10_s: Option<f64>,
+    pub non_falling_episodes: usize,
+    /// Minutes of forecasts on non-falling episodes.
+    pub non_falling_minutes: f64,
+    pub false_alarms: u64,
+    pub false_alarms_per_min: f64,
+}
+
+/// Nearest-rank quantile of sorted values.
+fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
+    if sorted.is_empty() {
+        return None;
+    }
+    let i = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+    Some(sorted[i])
+}
+
+/// Runs the daemon's latch over every episode's forecasts.
+pub fn warning_stats(
+    episodes: &[EpisodeForecasts],
+    trigger: f32,
+    release: f32,
+    tick_s: f64,
+) -> anyhow::Result<WarningStats> {
+    let mut leads = Vec::new();
+    let (mut falling, mut warned, mut calm, mut minutes, mut alarms) = (0, 0, 0, 0.0, 0u64);
+    for ep in episodes {
+        // The latch sees one probability: index 0 of a one-element forecast.
+        let mut latch = SafetyLatch::new(0, trigger, release)
+            .with_context(|| format!("thresholds {trigger} / {release}"))?
+            .silent();
+        match ep.onset_ns {
+            Some(onset) => {
+                falling += 1;
+                let first = ep
+                    .ticks
+                    .iter()
+                    .take_while(|(stamp, _)| *stamp < onset)
+                    .find(|(_, p)| latch.update(&[*p], true));
+                if let Some((stamp, _)) = first {
+                    warned += 1;
+                    leads.push((onset - stamp) as f64 / 1e9);
+                }
+            }
+            None => {
+                calm += 1;
+                minutes += ep.ticks.len() as f64 * tick_s / 60.0;
+                for (_, p) in &ep.ticks {
+                    latch.update(&[*p], true);
+                }
+                alarms += latch.triggers();
+            }
+        }
+    }
+    leads.sort_by(f64::total_cmp);
+    Ok(WarningStats {
+        trigger,
+        release,
+        falling_episodes: falling,
+        warned,
+        warned_share: if falling > 0 {
+            warned as f64 / falling as f64
+        } else {
+            f64::NAN
+        },
+        lead_median_s: quantile(&leads, 0.5),
+        lead_p10_s: quantile(&leads, 0.1),
+        non_falling_episodes: calm,
+        non_falling_minutes: minutes,
+        false_alarms: alarms,
+        false_alarms_per_min: if minutes > 0.0 {
+            alarms as f64 / minutes
+        } else {
+            f64::NAN
+        },
+    })
+}
+
+/// The threshold grid of `--choose`.
+pub fn threshold_grid() -> Vec<(f32, f32)> {
+    (0..=13)
+        .map(|i| {
+            let trigger = 0.30 + 0.05 * i as f32;
+            (trigger, (trigger - 0.3).max(0.05))
+        })
+        .collect()
+}
+
+/// The lowest trigger within the false-alarm budget (the most falls warned).
+pub fn choose(grid: &[WarningStats], max_false_alarms_per_min: f64) -> Option<&WarningStats> {
+    grid.iter()
+        .filter(|s| s.false_alarms_per_min <= max_false_alarms_per_min)
+        .min_by(|a, b| a.trigger.total_cmp(&b.trigger))
+}
+
+/// Replays every episode of the split through the streaming forecaster.
+pub fn forecast_split(
+    model: &LoadedModel,
+    data: &Dataset,
+    split: Split,
+    horizon_index: usize,
+) -> anyhow::Result<Vec<EpisodeForecasts>> {
+    let spec = spec_of(&model.meta);
+    let needs = needs_of(Some(model.meta.ablation));
+    let mut out = Vec::new();
+    for path in data.paths(split) {
+        let episode = load_episode(&path, &spec, needs)
+            .with_context(|| format!("reading {}", path.display()))?;
+        let onset_ns = episode.fall_onset_tick.map(|t| episode.grid.stamp_ns(t));
+        let ticks = forecast_ticks(model, &episode)?
+            .into_iter()
+            .map(|(_, stamp_ns, p)| (stamp_ns, p[horizon_index]))
+            .collect();
+        out.push(EpisodeForecasts {
+            name: path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            ticks,
+            onset_ns,
+        });
+    }
+    Ok(out)
+}
+
+/// `fall-guard warnings`: prints a table, writes JSON with `--out`.
+pub fn run_warnings(args: &WarningsArgs) -> anyhow::Result<()> {
+    let model = LoadedModel::load(&args.model)
+        .with_context(|| format!("reading {}", args.model.display()))?;
+    let tick_s = 1.0 / model.meta.rate_hz;
+    let horizon_index = model
+        .meta
+        .horizons_ticks
+        .iter()
+        .position(|&h| (h as f64 * tick_s * 1000.0).round() as u32 == args.horizon_ms)
+        .with_context(|| {
+            format!(
+                "--horizon-ms {}: the model's horizons are {:?} ticks at {} Hz",
+                args.horizon_ms, model.meta.horizons_ticks, model.meta.rate_hz
+            )
+        })?;
+    let data = Dataset::open(&args.data)?;
+    let episodes = forecast_split(&model, &data, args.split, horizon_index)?;
+    let pairs = if args.choose {
+        threshold_grid()
+    } else {
+        vec![(args.trigger, args.release)]
+    };
+    let grid = pairs
+        .iter()
+        .map(|&(t, r)| warning_stats(&episodes, t, r, tick_s))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    println!(
+        "| trigger | release | falls warned | lead median s | lead p10 s | false alarms / min |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- |");
+    let opt = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.2}"));
+    for s in &grid {
+        println!(
+            "| {:.2} | {:.2} | {}/{} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) |",
+            s.trigger,
+            s.release,
+            s.warned,
+            s.falling_episodes,
+            100.0 * s.warned_share,
+            opt(s.lead_median_s),
+            opt(s.lead_p10_s),
+            s.false_alarms_per_min,
+            s.false_alarms,
+            s.non_falling_minutes
+        );
+    }
+    let chosen = if args.choose {
+        let c = choose(&grid, args.max_false_alarms_per_min);
+        match c {
+            Some(c) => println!(
+                "chosen on {}: trigger {:.2}, release {:.2} (false alarms <= {} / min)",
+                args.split, c.trigger, c.release, args.max_false_alarms_per_min
+            ),
+            None => println!(
+                "no threshold on the grid keeps false alarms within {} / min",
+                args.max_false_alarms_per_min
+            ),
+        }
+        c.cloned()
+    } else {
+        None
+    };
+    if let Some(out) = &args.out {
+        let report = serde_json::json!({
+            "model": args.model,
+            "data": args.data,
+            "split": args.split.name(),
+            "horizon_ms": args.horizon_ms,
+            "grid": grid,
+            "chosen": chosen,
+            "max_false_alarms_per_min": args.max_false_alarms_per_min,
+        });
+        std::fs::write(out, serde_json::to_vec_pretty(&report)?)
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn episode(ps: &[f32], onset_tick: Option<usize>) -> EpisodeForecasts {
+        let tick_ns = 33_333_333;
+        EpisodeForecasts {
+            name: "e".into(),
+            ticks: ps
+                .iter()
+                .enumerate()
+                .map(|(i, &p)| (i as i64 * tick_ns, p))
+                .collect(),
+            onset_ns: onset_tick.map(|t| t as i64 * tick_ns),
+        }
+    }
+
+    #[test]
+    fn lead_time_and_false_alarms_follow_the_latch() {
+        let tick_s = 1.0 / 30.0;
+        // Falls at tick 60; warned from tick 30 on: lead 1 s.
+        let mut warned = vec![0.1f32; 30];
+        warned.extend(vec![0.9f32; 40]);
+        // Falls at tick 60; only crosses after the onset: not warned.
+        let mut late = vec![0.1f32; 65];
+        late.extend(vec![0.9f32; 5]);
+        // Does not fall; two separate alarms (released in between).
+        let mut calm = vec![0.1f32; 1800];
+        calm[100] = 0.8;
+        calm[101] = 0.2;
+        calm[500] = 0.75;
+        let eps = vec![
+            episode(&warned, Some(60)),
+            episode(&late, Some(60)),
+            episode(&calm, None),
+        ];
+        let s = warning_stats(&eps, 0.7, 0.4, tick_s).unwrap();
+        assert_eq!((s.falling_episodes, s.warned), (2, 1));
+        assert!((s.lead_median_s.unwrap() - 1.0).abs() < 1e-6, "{s:?}");
+        assert_eq!(s.false_alarms, 2);
+        assert!((s.non_falling_minutes - 1.0).abs() < 1e-9);
+        assert!((s.false_alarms_per_min - 2.0).abs() < 1e-9);
+        // A higher trigger removes the alarms and the warning.
+        let s = warning_stats(&eps, 0.95, 0.5, tick_s).unwrap();
+        assert_eq!((s.warned, s.false_alarms), (0, 0));
+        assert!(s.lead_median_s.is_none());
+    }
+
+    #[test]
+    fn choose_takes_the_lowest_trigger_within_budget() {
+        let eps = vec![episode(&[0.1, 0.62, 0.1, 0.62, 0.1], None)];
+        let grid: Vec<WarningStats> = threshold_grid()
+            .into_iter()
+            .map(|(t, r)| warning_stats(&eps, t, r, 1.0).unwrap())
+            .collect();
+        // 5 ticks of 1 s: one alarm is 12 per min, over budget up to trigger 0.6.
+        let c = choose(&grid, 1.0).unwrap();
+        assert!((c.trigger - 0.65).abs() < 1e-6, "{c:?}");
+        assert!(threshold_grid().iter().all(|(t, r)| r < t && *r >= 0.05));
+    }
+}
