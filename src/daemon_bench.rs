@@ -34,6 +34,11 @@ pub struct BenchDaemonArgs {
     /// Also write the report as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Replay at this many times real time instead of maximum speed: the
+    /// sensor-to-publish latency as on the robot (at maximum speed a sample
+    /// also waits for the previous tick's inference).
+    #[arg(long)]
+    pub speed: Option<f64>,
 }
 
 /// What the bench measured.
@@ -57,6 +62,8 @@ pub struct BenchReport {
     pub rss_max_mb: f64,
     pub rss_last_mb: f64,
     pub published_via: &'static str,
+    /// `max` or the replay speed factor.
+    pub pacing: String,
 }
 
 /// Resident set size of this process, MiB (Linux).
@@ -133,6 +140,11 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
     });
     let span = setup.recording.end_ns - setup.recording.start_ns
         + (1e9 / setup.models.spec().rate_hz) as i64;
+    let pacing = match args.speed {
+        Some(x) if x.is_finite() && x > 0.0 => Pacing::Speed(x),
+        Some(x) => return Err(ServiceError::Usage(format!("--speed {x}: expected > 0"))),
+        None => Pacing::MaxSpeed,
+    };
     let mut passes = 0u64;
     let mut latencies: Vec<u32> = Vec::new();
     let (mut inf_p50, mut inf_p99) = (0.0f64, 0.0f64);
@@ -143,16 +155,24 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
             &mut setup.tick_loop,
             samples,
             setup.recording.end_ns + offset,
-            Pacing::MaxSpeed,
+            pacing,
             &setup.stats,
             &mut shutdown,
         )
         .await;
         passes += 1;
         latencies.extend(setup.bus.latency().take_us());
-        while let Ok(d) = diagnostics.try_recv() {
-            inf_p50 = inf_p50.max(d.model.inference_p50_ms.unwrap_or(0.0));
-            inf_p99 = inf_p99.max(d.model.inference_p99_ms.unwrap_or(0.0));
+        loop {
+            use tokio::sync::broadcast::error::TryRecvError;
+            match diagnostics.try_recv() {
+                Ok(d) => {
+                    inf_p50 = inf_p50.max(d.model.inference_p50_ms.unwrap_or(0.0));
+                    inf_p99 = inf_p99.max(d.model.inference_p99_ms.unwrap_or(0.0));
+                }
+                // Snapshots older than the channel holds are gone: read on.
+                Err(TryRecvError::Lagged(_)) => {}
+                Err(_) => break,
+            }
         }
     }
     let wall_s = started.elapsed().as_secs_f64();
@@ -190,6 +210,9 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
         rss_max_mb: rss.iter().map(|x| x.1).fold(rss_first, f64::max),
         rss_last_mb: rss.last().map_or(rss_first, |x| x.1),
         published_via: if ros { "ros2" } else { "bus subscriber" },
+        pacing: args
+            .speed
+            .map_or_else(|| "max".to_string(), |x| format!("{x}x real time")),
     };
     let text = serde_json::to_string_pretty(&report).unwrap_or_default();
     println!("{text}");

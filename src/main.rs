@@ -43,7 +43,10 @@ enum Command {
 
 fn init_logging() {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+        // DDS discovery chatter (rustdds, ros2-client) only from warnings up.
+        .unwrap_or_else(|_| {
+            tracing_subscriber::EnvFilter::new("info,rustdds=warn,ros2_client=warn")
+        });
     // Logs go to stderr: stdout carries the forecasts of `replay`.
     tracing_subscriber::fmt()
         .with_env_filter(filter)

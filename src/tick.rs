@@ -196,6 +196,13 @@ impl TickLoop {
         self.resampler.advance_to(now_ns, &mut self.pending);
     }
 
+    /// Stamp of the next tick to become final (`None` before the first sample).
+    pub fn next_tick_stamp(&self) -> Option<i64> {
+        self.resampler
+            .next_tick()
+            .map(|t| self.resampler.grid().stamp_ns(t))
+    }
+
     /// Ticks made final since the last call, waiting to be run.
     pub fn pending_ticks(&self) -> usize {
         self.pending.len()

@@ -390,3 +390,92 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
     assert_eq!(kv(model, "active_model").as_deref(), Some("MP"), "{last}");
     assert_eq!(kv(model, "valid").as_deref(), Some("true"), "{last}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn record_label_and_replay_live_ros_streams() {
+    let test = "record_label_and_replay_live_ros_streams";
+    let Some(python) = rclpy_python(test) else {
+        return;
+    };
+    let domain = domain_id(2);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let config = replay_config(dir.path(), domain, |t| t);
+    let out = dir.path().join("walk.mcap");
+    let joints = robot_joints().join(",");
+    let walker = Peer::spawn(
+        &python,
+        domain,
+        &["walk", "--joints", &joints, "--timeout", "30"],
+    );
+    let daemon = Daemon::start(&[
+        "record",
+        "--config",
+        config.to_str().expect("utf8"),
+        "--out",
+        out.to_str().expect("utf8"),
+        "--duration-s",
+        "5",
+    ]);
+    let (success, _, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
+        .await
+        .expect("join");
+    drop(walker);
+    assert!(success, "record failed: {stderr}");
+
+    // The recording holds what the walker published, in the recording format.
+    let rec = fall_guard::recording::Recording::open(&out).expect("recording reads");
+    assert!(
+        rec.joint_states.len() > 60,
+        "{} joint states",
+        rec.joint_states.len()
+    );
+    assert!(!rec.plans.is_empty(), "no plan recorded");
+    assert!(rec.images.is_empty(), "no camera configured, no frames");
+    assert_eq!(rec.joint_states[0].msg.name, robot_joints());
+    assert!(rec
+        .episode
+        .as_ref()
+        .is_some_and(|e| e.fall_onset_ns.is_none()));
+
+    // Label a fall 4 s in, then replay it: the MP network forecasts it.
+    let label = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
+        .args(["label", out.to_str().expect("utf8"), "--fall-at", "4"])
+        .output()
+        .expect("run label");
+    assert!(
+        label.status.success(),
+        "{}",
+        String::from_utf8_lossy(&label.stderr)
+    );
+    let rec = fall_guard::recording::Recording::open(&out).expect("labelled recording reads");
+    let start = rec.start_ns().expect("messages");
+    let onset = rec
+        .episode()
+        .expect("episode")
+        .fall_onset_ns
+        .expect("onset");
+    assert_eq!(onset - start, 4_000_000_000);
+
+    let replay = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
+        .args([
+            "replay",
+            "--config",
+            config.to_str().expect("utf8"),
+            "--max-speed",
+        ])
+        .args(["--recording", out.to_str().expect("utf8")])
+        .env("RUST_LOG", "warn")
+        .env("ROS_DOMAIN_ID", domain.to_string())
+        .output()
+        .expect("run replay");
+    assert!(
+        replay.status.success(),
+        "{}",
+        String::from_utf8_lossy(&replay.stderr)
+    );
+    let lines = parse_lines(&replay.stdout);
+    assert!(
+        lines.iter().any(|l| l.valid && l.ablation == "MP"),
+        "no valid MP forecast from the recorded streams"
+    );
+}

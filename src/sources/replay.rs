@@ -131,6 +131,8 @@ where
     let wall_start = Instant::now();
     let mut first_ns: Option<i64> = None;
     let mut summary = ReplaySummary::default();
+    // When the newest sample entered (sensor-to-publish latency of a tick).
+    let mut last_sensed = Instant::now();
     let mut samples = samples.into_iter().peekable();
     while let Some(sample) = samples.next() {
         if shutdown.is_shutdown() {
@@ -140,10 +142,28 @@ where
         let stamp_ns = sample.stamp_ns();
         if let Pacing::Speed(speed) = pacing {
             let t0 = *first_ns.get_or_insert(stamp_ns);
-            let due = wall_start
-                + Duration::from_secs_f64(((stamp_ns - t0) as f64 / 1e9 / speed).max(0.0));
+            let due = |ns: i64| {
+                wall_start + Duration::from_secs_f64(((ns - t0) as f64 / 1e9 / speed).max(0.0))
+            };
+            // The tick clock runs on between samples, as it does live: a tick
+            // becomes final at its own time, not when the next sample comes
+            // (that would hand two ticks over at once and skip one).
+            while let Some(tick_ns) = tick_loop.next_tick_stamp().filter(|&t| t < stamp_ns) {
+                tokio::select! {
+                    () = tokio::time::sleep_until(due(tick_ns).into()) => {}
+                    () = shutdown.recv() => {
+                        summary.interrupted = true;
+                        return summary;
+                    }
+                }
+                tick_loop.advance_to(tick_ns);
+                if tick_loop.pending_ticks() == 0 {
+                    break;
+                }
+                tick_loop.run_pending(last_sensed, false).await;
+            }
             tokio::select! {
-                () = tokio::time::sleep_until(due.into()) => {}
+                () = tokio::time::sleep_until(due(stamp_ns).into()) => {}
                 () = shutdown.recv() => {
                     summary.interrupted = true;
                     return summary;
@@ -153,6 +173,7 @@ where
         stats[stream_index(&sample)].record_sample();
         summary.samples += 1;
         let sensed_at = Instant::now();
+        last_sensed = sensed_at;
         tick_loop.push_sample(sample);
         // Every sample at this stamp is in: the tick at this stamp is final.
         if samples.peek().is_none_or(|next| next.stamp_ns() > stamp_ns) {

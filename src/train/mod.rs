@@ -13,6 +13,7 @@ pub mod logreg;
 pub mod metrics;
 pub mod plots;
 pub mod sampler;
+pub mod synthetic;
 pub mod warning;
 
 pub use fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
