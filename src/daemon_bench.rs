@@ -102,6 +102,7 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
             &setup.models,
             &setup.bus,
             trigger.subscribe(),
+            None,
         )?),
         None => None,
     };

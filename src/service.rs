@@ -293,6 +293,7 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
             &setup.models,
             &setup.bus,
             trigger.subscribe(),
+            None,
         )?),
         None => None,
     };
@@ -529,7 +530,12 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
         None
     };
     let publisher = match ros.as_mut() {
-        Some(bridge) => Some(bridge.start_outputs(&config, &models, &bus, trigger.subscribe())?),
+        Some(bridge) => {
+            // The daemon owns the servo bus: what it reads goes out on /joint_states.
+            let joints_out = (config.streams.joints == JointsSource::Dynamixel)
+                .then(|| streams.taps.joints.clone());
+            Some(bridge.start_outputs(&config, &models, &bus, trigger.subscribe(), joints_out)?)
+        }
         None => None,
     };
     let sources = start_sources(&config, &models, &streams, ros.as_mut(), &trigger)?;

@@ -7,7 +7,12 @@
 //!   same ticks, and `/fall_guard/fall_imminent` turns true before the fall;
 //! - run live with `/joint_states` and `/planned_trajectory` coming from an
 //!   rclpy publisher (no camera), it forecasts with the MP network and says
-//!   so on `/diagnostics`.
+//!   so on `/diagnostics`;
+//! - `record` then `label` then `replay` of live ROS 2 streams;
+//! - run on the Dynamixel servo buses (both emulated on pseudo-terminals):
+//!   faults (no reply, bad checksums, garbage, an error bit, an unplugged
+//!   adapter) make the forecast not valid on `/diagnostics`, the daemon
+//!   keeps running and recovers.
 
 #[path = "ros/support.rs"]
 mod support;
@@ -477,5 +482,211 @@ async fn record_label_and_replay_live_ros_streams() {
     assert!(
         lines.iter().any(|l| l.valid && l.ablation == "MP"),
         "no valid MP forecast from the recorded streams"
+    );
+}
+
+/// Waits for a `/diagnostics` message whose model status says `valid` =
+/// `want`; returns it with the messages seen meanwhile.
+async fn wait_validity(
+    listener: &mut Peer,
+    want: bool,
+    timeout: Duration,
+) -> (Option<Value>, Vec<Value>) {
+    let deadline = std::time::Instant::now() + timeout;
+    let mut seen = Vec::new();
+    while let Some(e) = listener
+        .next_event(deadline.saturating_duration_since(std::time::Instant::now()))
+        .await
+    {
+        if e["event"] == "msg" && e["topic"] == "/diagnostics" {
+            let model = e["msg"]["status"]
+                .as_array()
+                .and_then(|l| {
+                    l.iter()
+                        .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(": model")))
+                })
+                .cloned();
+            if let Some(m) = model {
+                if kv(&m, "valid").as_deref() == Some(if want { "true" } else { "false" }) {
+                    return (Some(e), seen);
+                }
+            }
+        }
+        seen.push(e);
+    }
+    (None, seen)
+}
+
+fn joints_status(diag: &Value) -> Value {
+    diag["msg"]["status"]
+        .as_array()
+        .and_then(|l| {
+            l.iter()
+                .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(": joints")))
+        })
+        .cloned()
+        .unwrap_or_else(|| panic!("no joints status in {diag}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
+    use fall_guard::robot::JointTable;
+    use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
+
+    let test = "servo_faults_make_forecasts_not_valid_and_the_daemon_recovers";
+    let Some(python) = rclpy_python(test) else {
+        return;
+    };
+    let domain = domain_id(3);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let table = JointTable::poppy_humanoid();
+    let buses = PoppyBuses::start(&table, dir.path()).expect("emulated buses");
+    let (lower, upper) = (
+        buses.lower.port_path().to_owned(),
+        buses.upper.port_path().to_owned(),
+    );
+    // The real robot's config shape: joints from the servos, no camera, no
+    // plan: the P network. The lower bus uses the USB2AX sync read, the upper
+    // one per-motor reads (the only ones that carry each motor's error bits).
+    let config = replay_config(dir.path(), domain, move |t| {
+        t.replace("joints = \"ros\"", "joints = \"dynamixel\"")
+            .replace("plan = \"ros\"", "plan = \"none\"")
+            + &format!(
+                "\n[dynamixel]\nrate_hz = 50.0\n\n[dynamixel.buses.lower]\nport = \"{}\"\ntimeout_ms = 20\n\n[dynamixel.buses.upper]\nport = \"{}\"\ntimeout_ms = 20\nsync_read = false\n",
+                lower.display(),
+                upper.display()
+            )
+    });
+    let mut listener = Peer::spawn(
+        &python,
+        domain,
+        &[
+            "listen",
+            "--sub",
+            "/diagnostics:diagnostic_msgs/msg/DiagnosticArray:diagnostics",
+            "--sub",
+            "/joint_states:sensor_msgs/msg/JointState:sensor_data",
+            "--timeout",
+            "120",
+        ],
+    );
+    let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
+    assert!(
+        ready.is_some(),
+        "rclpy listener did not start: {}",
+        listener.stderr()
+    );
+    let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
+    let long = Duration::from_secs(30);
+
+    // Healthy buses: valid forecasts once the ring is full (2 s), and the
+    // daemon publishes what it reads on /joint_states.
+    let (ok, seen) = wait_validity(&mut listener, true, long).await;
+    let ok = ok.unwrap_or_else(|| panic!("never valid: {:?}", seen.last()));
+    let joint_states: Vec<&Value> = msgs(&seen, "/joint_states").collect();
+    assert!(
+        !joint_states.is_empty(),
+        "no /joint_states from the servo source"
+    );
+    let names: Vec<String> = joint_states[0]["msg"]["name"]
+        .as_array()
+        .expect("names")
+        .iter()
+        .map(|n| n.as_str().expect("name").to_owned())
+        .collect();
+    assert_eq!(names, robot_joints());
+    let errors_before: u64 = kv(&joints_status(&ok), "errors")
+        .and_then(|e| e.parse().ok())
+        .expect("errors key");
+
+    // Faults that stop the reads: not valid while they last, valid again after.
+    let faults: Vec<(&str, Box<dyn Fn(bool)>)> = vec![
+        (
+            "no reply",
+            Box::new(|on| buses.lower.set_fault(on.then_some(Fault::NoReply))),
+        ),
+        (
+            "bad checksums",
+            Box::new(|on| buses.upper.set_fault(on.then_some(Fault::BadChecksum))),
+        ),
+        (
+            "unplugged adapter",
+            Box::new(|on| {
+                if on {
+                    buses.upper.unplug().expect("unplug")
+                } else {
+                    buses.upper.replug().expect("replug")
+                }
+            }),
+        ),
+    ];
+    for (name, fault) in &faults {
+        fault(true);
+        let (bad, seen) = wait_validity(&mut listener, false, long).await;
+        assert!(
+            bad.is_some(),
+            "{name}: forecasts stayed valid: {:?}",
+            seen.last()
+        );
+        fault(false);
+        let (good, seen) = wait_validity(&mut listener, true, long).await;
+        if good.is_none() {
+            let (_, _, stderr) = daemon.stop();
+            panic!("{name}: no recovery: {:?}\ndaemon: {stderr}", seen.last());
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    drop(listener.drain());
+    let (now, _) = wait_validity(&mut listener, true, long).await;
+    let errors_now: u64 = kv(&joints_status(&now.expect("valid")), "errors")
+        .and_then(|e| e.parse().ok())
+        .expect("errors key");
+    assert!(
+        errors_now > errors_before,
+        "faults not counted: {errors_before} -> {errors_now}"
+    );
+
+    // Faults the reader works through: garbage before the replies (skipped
+    // up to the next FF FF header) and an error bit (overheating) on one
+    // motor. Both are counted; the readings go on.
+    buses
+        .lower
+        .set_fault(Some(Fault::Garbage(vec![0x13, 0x00, 0x42])));
+    buses.upper.set_error_bits(37, 0x04).expect("error bit");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    buses.lower.set_fault(None);
+    buses.upper.set_error_bits(37, 0).expect("clear");
+    // Reports from before are queued: skip them, then take the second one
+    // (the servo counters reach the diagnostics every 500 ms).
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    drop(listener.drain());
+    let _ = wait_validity(&mut listener, true, long).await;
+    let (after, seen) = wait_validity(&mut listener, true, long).await;
+    let after = after.unwrap_or_else(|| {
+        panic!(
+            "not valid after garbage and an error bit: {:?}",
+            seen.last()
+        )
+    });
+    let errors_after: u64 = kv(&joints_status(&after), "errors")
+        .and_then(|e| e.parse().ok())
+        .expect("errors key");
+    assert!(
+        errors_after > errors_now,
+        "garbage and error bit not counted on /diagnostics: {errors_now} -> {errors_after}"
+    );
+
+    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
+        .await
+        .expect("join");
+    assert!(success, "daemon exit: {stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    let lines = parse_lines(&stdout);
+    assert!(lines.iter().any(|l| l.valid && l.ablation == "P"));
+    assert!(
+        lines
+            .iter()
+            .any(|l| !l.valid && l.reason.contains("joints")),
+        "no invalid line naming the joints"
     );
 }

@@ -17,13 +17,15 @@ use tokio::task::JoinHandle;
 use crate::config::Config;
 use crate::forecast::ModelSet;
 use crate::frame::Frame;
+use crate::msgs::{Header, JointState};
+use crate::outputs::ros::ros_time;
 use crate::outputs::ros::{Health, ModelHealth, OutputTopics, RosOutputs, StreamHealth};
 use crate::outputs::{DiagnosticLevel, DiagnosticsSnapshot, OutputBus};
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
 use crate::sources::ros::{InputTopics, Latest, RosInputs};
-use crate::sources::StreamFeed;
+use crate::sources::{StreamFeed, StreamTap};
 use crate::window::{frame_from_msg, joints_from_msg, Plan, WindowSpec};
 
 impl From<RosError> for ServiceError {
@@ -120,13 +122,16 @@ impl RosBridge {
         })
     }
 
-    /// Publish what the bus carries until `shutdown`.
+    /// Publish what the bus carries until `shutdown`; with `joints_out`
+    /// (the daemon owns the servo bus), also every servo read on
+    /// `/joint_states`, names in model order.
     pub fn start_outputs(
         &mut self,
         config: &Config,
         models: &ModelSet,
         bus: &OutputBus,
         mut shutdown: Shutdown,
+        joints_out: Option<StreamTap<Vec<f32>>>,
     ) -> Result<JoinHandle<()>, ServiceError> {
         let t = &config.ros.topics;
         let topics = OutputTopics {
@@ -134,8 +139,10 @@ impl RosBridge {
             horizons_ms: t.horizons_ms.clone(),
             fall_imminent: t.fall_imminent.clone(),
             diagnostics: t.diagnostics.clone(),
-            joint_states: None,
+            joint_states: joints_out.as_ref().map(|_| t.joint_states.clone()),
         };
+        let names = models.spec().joint_names.clone();
+        let mut joints_out = joints_out;
         let horizons: Vec<f32> = models.horizons_ms().iter().map(|&h| h as f32).collect();
         let outputs = RosOutputs::new(&mut self.node, &topics, &horizons, &config.robot.name)?;
         let mut sub = bus.subscribe();
@@ -159,6 +166,15 @@ impl RosBridge {
                         Ok(d) => { let _ = outputs.publish_diagnostics(&health(&d)); }
                         Err(RecvError::Lagged(_)) => {}
                         Err(RecvError::Closed) => break,
+                    },
+                    j = async {
+                        match joints_out.as_mut() {
+                            Some(tap) => tap.changed().await,
+                            None => std::future::pending().await,
+                        }
+                    } => match j {
+                        Some(s) => { let _ = outputs.publish_joint_states(joint_state(&names, s.stamp_ns, &s.value)); }
+                        None => joints_out = None,
                     },
                     () = shutdown.recv() => break,
                 }
@@ -216,6 +232,20 @@ impl RosBridge {
         }
         self.inputs = Some(inputs);
         Ok(tasks)
+    }
+}
+
+/// A servo read as `sensor_msgs/JointState` (positions only, radians).
+fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> JointState {
+    JointState {
+        header: Header {
+            stamp: ros_time(stamp_ns),
+            frame_id: String::new(),
+        },
+        name: names.to_vec(),
+        position: positions.iter().map(|&p| f64::from(p)).collect(),
+        velocity: Vec::new(),
+        effort: Vec::new(),
     }
 }
 

@@ -25,8 +25,13 @@ pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String
     let mut errors = 0;
     for bus in &snapshot.buses {
         let servo_errors: u64 = bus.servo_errors.iter().map(|(_, n)| n).sum();
-        let bus_errors =
-            bus.timeouts + bus.bad_checksums + bus.bad_packets + bus.io_errors + servo_errors;
+        // Every skipped garbage byte counts as one error.
+        let bus_errors = bus.timeouts
+            + bus.bad_checksums
+            + bus.bad_packets
+            + bus.io_errors
+            + bus.garbage_bytes
+            + servo_errors;
         errors += bus_errors;
         let b = &bus.name;
         details.extend([

@@ -59,6 +59,10 @@ enum FaultKind {
     OpenFailed,
 }
 
+/// Read cycles without any answer after which the port is closed and
+/// reopened (0.5 s at the default 50 Hz).
+const SILENT_CYCLES_BEFORE_REOPEN: u32 = 25;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum ReadMode {
     Sync,
@@ -78,6 +82,8 @@ pub(crate) struct BusReader {
     mode: ReadMode,
     sync_ok_since_open: bool,
     silent_sync_reads: u32,
+    /// Consecutive per-motor cycles in which no motor answered.
+    silent_cycles: u32,
     warned: HashSet<FaultKind>,
     handler: DynamixelProtocolHandler,
     buf: Vec<u8>,
@@ -110,6 +116,7 @@ impl BusReader {
             mode,
             sync_ok_since_open: false,
             silent_sync_reads: 0,
+            silent_cycles: 0,
             warned: HashSet::new(),
             handler: DynamixelProtocolHandler::v1(),
             buf: Vec::with_capacity(128),
@@ -138,6 +145,20 @@ impl BusReader {
             match self.mode {
                 ReadMode::Sync => self.cycle_sync(stats, &mut raw),
                 ReadMode::PerMotor => self.cycle_per_motor(stats, &mut raw, stop),
+            }
+            // A pulled USB adapter does not always show as an I/O error:
+            // writes to a hung-up tty can fail as timeouts and reads see
+            // nothing. A bus on which no motor answers for a while is reopened.
+            if raw.iter().all(Option::is_none) {
+                self.silent_cycles += 1;
+                if self.silent_cycles >= SILENT_CYCLES_BEFORE_REOPEN && self.port.is_some() {
+                    self.silent_cycles = 0;
+                    let reason =
+                        format!("no motor answered for {SILENT_CYCLES_BEFORE_REOPEN} cycles");
+                    self.lose_port(stats, &reason);
+                }
+            } else {
+                self.silent_cycles = 0;
             }
         }
         let mut missing = Vec::new();
