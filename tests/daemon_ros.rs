@@ -600,7 +600,8 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
         .expect("errors key");
 
     // Faults that stop the reads: not valid while they last, valid again after.
-    let faults: Vec<(&str, Box<dyn Fn(bool)>)> = vec![
+    type Switch<'a> = Box<dyn Fn(bool) + 'a>;
+    let faults: Vec<(&str, Switch)> = vec![
         (
             "no reply",
             Box::new(|on| buses.lower.set_fault(on.then_some(Fault::NoReply))),
