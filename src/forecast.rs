@@ -184,6 +184,7 @@ impl ModelSet {
             joint_names: emp.joint_names.clone(),
             frame_size: emp.frame_size,
         };
+        release_freed_memory();
         Ok(ModelSet {
             models,
             spec,
@@ -232,6 +233,20 @@ impl ModelSet {
     /// File of a loaded ablation.
     pub fn file(&self, ablation: Ablation) -> Option<&Path> {
         self.get(ablation).map(|m| m.path.as_path())
+    }
+}
+
+/// Loading a network allocates several times its size for a moment (file
+/// bytes, the record, the f16 -> f32 cast, the randomly initialised module
+/// it replaces); glibc keeps such freed heap mapped. Hand it back to the
+/// system once the networks are loaded, so the daemon's resident memory is
+/// what it uses.
+fn release_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free heap pages to the kernel; it
+    // touches no memory that is in use.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 
