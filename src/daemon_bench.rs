@@ -15,7 +15,6 @@ use clap::Args;
 use serde::Serialize;
 
 use crate::forecast::percentiles_ms;
-use crate::service::ros_bridge::RosBridge;
 use crate::service::{load_config, ReplaySetup, ServiceError};
 use crate::shutdown::ShutdownTrigger;
 use crate::sources::replay::{replay_samples, shifted, Pacing};
@@ -91,21 +90,7 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
     let mut setup = ReplaySetup::new(config, &recording, false)?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let mut shutdown = trigger.subscribe();
-    let mut bridge = if ros {
-        Some(RosBridge::start(&setup.config)?)
-    } else {
-        None
-    };
-    let publisher = match bridge.as_mut() {
-        Some(b) => Some(b.start_outputs(
-            &setup.config,
-            &setup.models,
-            &setup.bus,
-            trigger.subscribe(),
-            None,
-        )?),
-        None => None,
-    };
+    let (bridge, publisher) = setup.start_ros(&trigger)?;
     // Without ROS, a subscriber stands in for the publisher.
     let mut stand_in = (!ros).then(|| setup.bus.subscribe());
     let mut stop = trigger.subscribe();

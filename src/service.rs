@@ -214,7 +214,27 @@ pub struct ReplaySetup {
     pub tick_loop: TickLoop,
 }
 
+/// A replay's ROS 2 node and the task publishing the bus on it.
+pub type ReplayRos = (Option<RosBridge>, Option<tokio::task::JoinHandle<()>>);
+
 impl ReplaySetup {
+    /// The ROS 2 node and its publisher task, when `[ros].enabled`; the
+    /// publisher stops on `trigger`.
+    pub fn start_ros(&self, trigger: &ShutdownTrigger) -> Result<ReplayRos, ServiceError> {
+        if !self.config.ros.enabled {
+            return Ok((None, None));
+        }
+        let mut bridge = RosBridge::start(&self.config)?;
+        let publisher = bridge.start_outputs(
+            &self.config,
+            &self.models,
+            &self.bus,
+            trigger.subscribe(),
+            None,
+        )?;
+        Ok((Some(bridge), Some(publisher)))
+    }
+
     /// Load networks and recording, start the inference thread.
     pub fn new(config: Config, recording: &Path, print: bool) -> Result<ReplaySetup, ServiceError> {
         let joints = robot_joints(&config);
@@ -277,26 +297,11 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
         Pacing::Speed(speed)
     };
     let print = config.output.print_forecasts && !args.quiet;
-    let ros_enabled = config.ros.enabled;
     let mut setup = ReplaySetup::new(config, &recording, print)?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let mut shutdown = trigger.subscribe();
     let signals = shutdown_on_signals(Arc::clone(&trigger));
-    let mut ros = if ros_enabled {
-        Some(RosBridge::start(&setup.config)?)
-    } else {
-        None
-    };
-    let publisher = match ros.as_mut() {
-        Some(bridge) => Some(bridge.start_outputs(
-            &setup.config,
-            &setup.models,
-            &setup.bus,
-            trigger.subscribe(),
-            None,
-        )?),
-        None => None,
-    };
+    let (ros, publisher) = setup.start_ros(&trigger)?;
     tracing::info!(recording = %recording.display(), ?pacing, "replay started");
     let samples = setup.recording.samples.clone();
     let summary = replay_samples(

@@ -61,6 +61,20 @@ fn replay_config(dir: &Path, domain: u16, edit: impl Fn(String) -> String) -> Pa
     path
 }
 
+/// An rclpy listener (`ros_peer.py listen` with `args`) that has subscribed.
+async fn listen(python: &PathBuf, domain: u16, args: &[&str]) -> Peer {
+    let mut all = vec!["listen"];
+    all.extend_from_slice(args);
+    let mut listener = Peer::spawn(python, domain, &all);
+    let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
+    assert!(
+        ready.is_some(),
+        "rclpy listener did not start: {}",
+        listener.stderr()
+    );
+    listener
+}
+
 fn forecast_values(event: &Value) -> Vec<f32> {
     event["msg"]["data"]
         .as_array()
@@ -145,11 +159,10 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
     let dir = tempfile::tempdir().expect("tempdir");
     let config = replay_config(dir.path(), domain, |t| t);
 
-    let mut listener = Peer::spawn(
+    let mut listener = listen(
         &python,
         domain,
         &[
-            "listen",
             "--sub",
             "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast_log",
             "--sub",
@@ -157,13 +170,8 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
             "--timeout",
             "120",
         ],
-    );
-    let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
-    assert!(
-        ready.is_some(),
-        "rclpy listener did not start: {}",
-        listener.stderr()
-    );
+    )
+    .await;
 
     // Real time: the ring fills for 2 s, long enough for discovery.
     let daemon = Daemon::start(&["replay", "--config", config.to_str().expect("utf8")]);
@@ -309,11 +317,10 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
     assert!(text.contains("joints = \"ros\"") && text.contains("plan = \"ros\""));
     assert!(text.contains("camera = \"none\""));
 
-    let mut listener = Peer::spawn(
+    let mut listener = listen(
         &python,
         domain,
         &[
-            "listen",
             "--sub",
             "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast",
             "--sub",
@@ -325,13 +332,8 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
             "--timeout",
             "60",
         ],
-    );
-    let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
-    assert!(
-        ready.is_some(),
-        "rclpy listener did not start: {}",
-        listener.stderr()
-    );
+    )
+    .await;
 
     let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
     let joints = robot_joints().join(",");
@@ -557,11 +559,10 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
                 upper.display()
             )
     });
-    let mut listener = Peer::spawn(
+    let mut listener = listen(
         &python,
         domain,
         &[
-            "listen",
             "--sub",
             "/diagnostics:diagnostic_msgs/msg/DiagnosticArray:diagnostics",
             "--sub",
@@ -569,13 +570,8 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
             "--timeout",
             "120",
         ],
-    );
-    let (ready, _) = listener.wait_for("ready", Duration::from_secs(30)).await;
-    assert!(
-        ready.is_some(),
-        "rclpy listener did not start: {}",
-        listener.stderr()
-    );
+    )
+    .await;
     let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
     let long = Duration::from_secs(30);
 
