@@ -26,14 +26,7 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
     let scene = Scene::new("falling.mcap");
     let recording = scene.path("falling.mcap");
     write_recording(&recording, 7, true, 90);
-    let out = fall_guard(&[
-        "replay",
-        "--config",
-        scene.config.to_str().expect("utf8"),
-        "--max-speed",
-    ]);
-    assert!(out.status.success(), "replay failed: {}", stderr(&out));
-    let lines = parse_lines(&out.stdout);
+    let (lines, _) = scene.replay_max_speed();
 
     let rec = Recording::open(&recording).expect("fixture reads");
     let episode = EpisodeTicks::from_recording(&rec, &spec()).expect("ticks");
@@ -148,14 +141,7 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
         1_500_000_000,
         2_500_000_000,
     );
-    let out = fall_guard(&[
-        "replay",
-        "--config",
-        scene.config.to_str().expect("utf8"),
-        "--max-speed",
-    ]);
-    assert!(out.status.success(), "replay failed: {}", stderr(&out));
-    let lines = parse_lines(&out.stdout);
+    let (lines, err) = scene.replay_max_speed();
     let ablation_at = |tick: i64| {
         lines
             .iter()
@@ -180,7 +166,6 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
         .iter()
         .filter(|l| l.tick > last_mp)
         .all(|l| l.ablation == "EMP" && l.valid));
-    let err = stderr(&out);
     assert!(err.contains("model switch"), "switches are logged: {err}");
 }
 

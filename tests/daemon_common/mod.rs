@@ -110,6 +110,19 @@ impl Scene {
     pub fn path(&self, name: &str) -> PathBuf {
         self.dir.path().join(name)
     }
+
+    /// `fall-guard replay --max-speed` on this scene's config: its forecast
+    /// lines and its log.
+    pub fn replay_max_speed(&self) -> (Vec<Line>, String) {
+        let out = fall_guard(&[
+            "replay",
+            "--config",
+            self.config.to_str().expect("utf8"),
+            "--max-speed",
+        ]);
+        assert!(out.status.success(), "replay failed: {}", stderr(&out));
+        (parse_lines(&out.stdout), stderr(&out))
+    }
 }
 
 pub fn fall_guard(args: &[&str]) -> Output {
