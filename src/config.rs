@@ -609,7 +609,7 @@ mod tests {
 
     #[test]
     fn wrong_type_names_the_key() {
-        let text = EMBEDDED_REPLAY_CONFIG.replace("trigger = 0.9", "trigger = \"high\"");
+        let text = EMBEDDED_REPLAY_CONFIG.replace("trigger = 0.7", "trigger = \"high\"");
         let err = parse(&text).expect_err("wrong type");
         assert_eq!(err.key(), Some("[model].trigger"), "{err}");
     }
@@ -624,7 +624,7 @@ mod tests {
 
     #[test]
     fn hysteresis_must_be_ordered() {
-        let text = EMBEDDED_REPLAY_CONFIG.replace("release = 0.6", "release = 0.95");
+        let text = EMBEDDED_REPLAY_CONFIG.replace("release = 0.4", "release = 0.8");
         let err = parse(&text).expect_err("release above trigger");
         assert_eq!(err.key(), Some("[model].release"));
     }
