@@ -31,7 +31,7 @@ use crate::config::{Config, ConfigError, ModelFacts};
 use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
-use crate::window::{Streams, TickInput, WindowSpec};
+use crate::window::{TickInput, WindowSpec};
 
 #[derive(Debug, Error)]
 pub enum ForecastError {
@@ -76,15 +76,6 @@ pub fn ablation_name(ablation: Ablation) -> &'static str {
         Ablation::MP => "MP",
         Ablation::EP => "EP",
         Ablation::EMP => "EMP",
-    }
-}
-
-/// The streams a window for `ablation` must hold.
-pub fn needs(ablation: Ablation) -> Streams {
-    Streams {
-        joints: true,
-        plan: ablation.uses_plan(),
-        frames: ablation.uses_vision(),
     }
 }
 
@@ -164,12 +155,7 @@ impl ModelSet {
             models.push(model);
         }
         let emp = &models[0].meta;
-        let tick_ms = 1000.0 / emp.rate_hz;
-        let horizons_ms: Vec<u32> = emp
-            .horizons_ticks
-            .iter()
-            .map(|&h| (h as f64 * tick_ms).round() as u32)
-            .collect();
+        let horizons_ms = emp.horizons_ms();
         config.check_against_model(
             &ModelFacts {
                 horizons_ms: horizons_ms.clone(),
@@ -177,13 +163,7 @@ impl ModelSet {
             },
             robot_joints,
         )?;
-        let spec = WindowSpec {
-            n_ticks: emp.n_ticks,
-            max_horizon_ticks: emp.config.max_horizon_ticks(),
-            rate_hz: emp.rate_hz,
-            joint_names: emp.joint_names.clone(),
-            frame_size: emp.frame_size,
-        };
+        let spec = emp.window_spec();
         release_freed_memory();
         Ok(ModelSet {
             models,
@@ -195,20 +175,9 @@ impl ModelSet {
     /// Wraps networks already in memory (tests, benches); the first is EMP.
     pub fn from_models(models: Vec<LoadedModel>) -> ModelSet {
         let emp = &models[0].meta;
-        let tick_ms = 1000.0 / emp.rate_hz;
         ModelSet {
-            spec: WindowSpec {
-                n_ticks: emp.n_ticks,
-                max_horizon_ticks: emp.config.max_horizon_ticks(),
-                rate_hz: emp.rate_hz,
-                joint_names: emp.joint_names.clone(),
-                frame_size: emp.frame_size,
-            },
-            horizons_ms: emp
-                .horizons_ticks
-                .iter()
-                .map(|&h| (h as f64 * tick_ms).round() as u32)
-                .collect(),
+            spec: emp.window_spec(),
+            horizons_ms: emp.horizons_ms(),
             models,
         }
     }
@@ -556,6 +525,17 @@ fn inference_loop(
     }
 }
 
+impl From<ModelError> for ForecastFailure {
+    /// Input the network refuses makes the forecast not valid; anything
+    /// else is a failure of the network.
+    fn from(e: ModelError) -> Self {
+        match e {
+            ModelError::Input(m) => ForecastFailure::Input(m),
+            other => ForecastFailure::Model(other),
+        }
+    }
+}
+
 /// Why a forecast could not be computed.
 #[derive(Debug)]
 enum ForecastFailure {
@@ -614,16 +594,10 @@ impl Forecasters {
             if let Err(e) = forecaster.push(tick) {
                 // A window with a hole cannot be continued: start again next time.
                 forecaster.reset();
-                return Err(match e {
-                    ModelError::Input(m) => ForecastFailure::Input(m),
-                    other => ForecastFailure::Model(other),
-                });
+                return Err(e.into());
             }
         }
-        forecaster.forecast().map_err(|e| match e {
-            ModelError::Input(m) => ForecastFailure::Input(m),
-            other => ForecastFailure::Model(other),
-        })
+        Ok(forecaster.forecast()?)
     }
 }
 

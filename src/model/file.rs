@@ -119,6 +119,15 @@ pub struct ModelMeta {
 }
 
 impl ModelMeta {
+    /// The horizons in ms at the model's tick rate, rounded (15 ticks at
+    /// 30 Hz: 500), as configs and topics name them.
+    pub fn horizons_ms(&self) -> Vec<u32> {
+        self.horizons_ticks
+            .iter()
+            .map(|&h| (h as f64 * 1000.0 / self.rate_hz).round() as u32)
+            .collect()
+    }
+
     /// Metadata for an untrained model with identity standardisation.
     pub fn new(
         config: ModelConfig,

@@ -8,24 +8,16 @@
 
 use super::file::ModelError;
 use super::streaming::StreamingForecaster;
-use crate::window::{TickInput, WindowSpec};
+use crate::window::{TickGrid, TickInput, WindowSpec};
 
 impl StreamingForecaster {
     /// The window spec of the loaded model (for `check_compatible` and the ring).
     pub fn window_spec(&self) -> WindowSpec {
-        let m = &self.model().meta;
-        WindowSpec {
-            n_ticks: m.n_ticks,
-            max_horizon_ticks: m.config.max_horizon_ticks(),
-            rate_hz: m.rate_hz,
-            joint_names: m.joint_names.clone(),
-            frame_size: m.frame_size,
-        }
+        self.model().meta.window_spec()
     }
 
     /// Adds one tick. Streams the model's ablation does not use may be absent.
     pub fn push(&mut self, input: &TickInput) -> Result<(), ModelError> {
-        let spec = self.window_spec();
         let meta = &self.model().meta;
         let (n, c, s) = (meta.n_ticks, meta.config.n_joints, meta.config.frame_size);
         let tick = input.tick;
@@ -55,11 +47,12 @@ impl StreamingForecaster {
                 .plan
                 .as_ref()
                 .ok_or_else(|| ModelError::Input(format!("tick {tick}: no plan yet")))?;
-            let grid = spec
-                .grid()
+            // Only the plan needs the grid: no window spec (joint names
+            // and all) is built per tick.
+            let grid = TickGrid::new(meta.rate_hz)
                 .map_err(|e| ModelError::Input(format!("tick grid: {e}")))?;
             let first_tick = tick - n as i64 + 1;
-            let mut out = vec![0.0f32; spec.plan_len() * c];
+            let mut out = vec![0.0f32; meta.config.plan_len() * c];
             for (i, row) in out.chunks_exact_mut(c).enumerate() {
                 p.sample_into(grid.stamp_ns(first_tick + i as i64), row);
             }
@@ -72,6 +65,18 @@ impl StreamingForecaster {
 }
 
 impl super::file::ModelMeta {
+    /// The window this model reads: the spec of the ring, of training
+    /// windows and of replayed episodes.
+    pub fn window_spec(&self) -> WindowSpec {
+        WindowSpec {
+            n_ticks: self.n_ticks,
+            max_horizon_ticks: self.config.max_horizon_ticks(),
+            rate_hz: self.rate_hz,
+            joint_names: self.joint_names.clone(),
+            frame_size: self.frame_size,
+        }
+    }
+
     /// Refuses a window spec the model was not trained for, saying what differs.
     pub fn check_compatible(&self, spec: &WindowSpec) -> Result<(), ModelError> {
         self.check_compatible_with(

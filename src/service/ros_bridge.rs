@@ -18,9 +18,8 @@ use crate::config::Config;
 use crate::forecast::ModelSet;
 use crate::frame::Frame;
 use crate::msgs::{Header, JointState};
-use crate::outputs::ros::ros_time;
-use crate::outputs::ros::{Health, ModelHealth, OutputTopics, RosOutputs, StreamHealth};
-use crate::outputs::{DiagnosticLevel, DiagnosticsSnapshot, OutputBus};
+use crate::outputs::ros::{ros_time, Health, ModelHealth, OutputTopics, RosOutputs, StreamHealth};
+use crate::outputs::{DiagnosticLevel, DiagnosticsSnapshot, ForecastOutput, OutputBus};
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
@@ -131,7 +130,7 @@ impl RosBridge {
         models: &ModelSet,
         bus: &OutputBus,
         mut shutdown: Shutdown,
-        joints_out: Option<StreamTap<Vec<f32>>>,
+        mut joints_out: Option<StreamTap<Vec<f32>>>,
     ) -> Result<JoinHandle<()>, ServiceError> {
         let t = &config.ros.topics;
         let topics = OutputTopics {
@@ -142,7 +141,6 @@ impl RosBridge {
             joint_states: joints_out.as_ref().map(|_| t.joint_states.clone()),
         };
         let names = models.spec().joint_names.clone();
-        let mut joints_out = joints_out;
         let horizons: Vec<f32> = models.horizons_ms().iter().map(|&h| h as f32).collect();
         let outputs = RosOutputs::new(&mut self.node, &topics, &horizons, &config.robot.name)?;
         let mut sub = bus.subscribe();
@@ -152,11 +150,7 @@ impl RosBridge {
                 tokio::select! {
                     f = sub.forecasts.recv() => match f {
                         Ok(f) => {
-                            let _ = outputs.publish_forecast(&published_probabilities(&f));
-                            if imminent != Some(f.imminent) {
-                                imminent = Some(f.imminent);
-                                let _ = outputs.publish_fall_imminent(f.imminent);
-                            }
+                            publish_tick(&outputs, &mut imminent, &f);
                             sub.published(&f);
                         }
                         Err(RecvError::Lagged(n)) => tracing::warn!(lost = n, "ROS 2 publisher fell behind: forecasts dropped"),
@@ -181,11 +175,7 @@ impl RosBridge {
             }
             // Drain what is already produced, so the last ticks go out too.
             while let Ok(f) = sub.forecasts.try_recv() {
-                let _ = outputs.publish_forecast(&published_probabilities(&f));
-                if imminent != Some(f.imminent) {
-                    imminent = Some(f.imminent);
-                    let _ = outputs.publish_fall_imminent(f.imminent);
-                }
+                publish_tick(&outputs, &mut imminent, &f);
                 sub.published(&f);
             }
         }))
@@ -249,12 +239,23 @@ fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> JointState
     }
 }
 
+/// One tick's outputs: the forecast, and the safety signal when it changed
+/// (`imminent`: the last value published). Publish failures are counted by
+/// `RosOutputs`.
+fn publish_tick(outputs: &RosOutputs, imminent: &mut Option<bool>, f: &ForecastOutput) {
+    let _ = outputs.publish_forecast(&published_probabilities(f));
+    if *imminent != Some(f.imminent) {
+        *imminent = Some(f.imminent);
+        let _ = outputs.publish_fall_imminent(f.imminent);
+    }
+}
+
 /// What goes on `/fall_guard/forecast` for one tick: the probabilities, or
 /// NaN for every horizon when none could be computed (the ring is filling,
 /// a stream the network needs is missing). The forecast is published every
 /// tick either way, so that a subscriber can tell silence from "safe";
 /// `/diagnostics` (model status, key `valid`) says why it is not valid.
-pub fn published_probabilities(f: &crate::outputs::ForecastOutput) -> Vec<f32> {
+pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
     if f.probabilities.len() == f.horizons_ms.len() {
         f.probabilities.clone()
     } else {

@@ -114,6 +114,14 @@ fn stream_index(sample: &Sample) -> usize {
     }
 }
 
+/// Sleeps until `due`; false when a shutdown came first.
+async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> bool {
+    tokio::select! {
+        () = tokio::time::sleep_until(due.into()) => true,
+        () = shutdown.recv() => false,
+    }
+}
+
 /// Push `samples` (sorted by stamp) through `tick_loop` with recorded time,
 /// then advance to `end_ns`. `stats` (joints, camera, plan) count samples.
 pub async fn replay_samples<I>(
@@ -149,12 +157,9 @@ where
             // becomes final at its own time, not when the next sample comes
             // (that would hand two ticks over at once and skip one).
             while let Some(tick_ns) = tick_loop.next_tick_stamp().filter(|&t| t < stamp_ns) {
-                tokio::select! {
-                    () = tokio::time::sleep_until(due(tick_ns).into()) => {}
-                    () = shutdown.recv() => {
-                        summary.interrupted = true;
-                        return summary;
-                    }
+                if !sleep_until_unless_shutdown(due(tick_ns), shutdown).await {
+                    summary.interrupted = true;
+                    return summary;
                 }
                 tick_loop.advance_to(tick_ns);
                 if tick_loop.pending_ticks() == 0 {
@@ -162,12 +167,9 @@ where
                 }
                 tick_loop.run_pending(last_sensed, false).await;
             }
-            tokio::select! {
-                () = tokio::time::sleep_until(due(stamp_ns).into()) => {}
-                () = shutdown.recv() => {
-                    summary.interrupted = true;
-                    return summary;
-                }
+            if !sleep_until_unless_shutdown(due(stamp_ns), shutdown).await {
+                summary.interrupted = true;
+                return summary;
             }
         }
         stats[stream_index(&sample)].record_sample();

@@ -102,17 +102,6 @@ pub struct EvalArgs {
     pub per_tick_out: Option<PathBuf>,
 }
 
-/// The window spec a model expects.
-pub fn spec_of(meta: &ModelMeta) -> WindowSpec {
-    WindowSpec {
-        n_ticks: meta.n_ticks,
-        max_horizon_ticks: meta.config.max_horizon_ticks(),
-        rate_hz: meta.rate_hz,
-        joint_names: meta.joint_names.clone(),
-        frame_size: meta.frame_size,
-    }
-}
-
 /// The streams an ablation reads.
 pub fn needs_of(ablation: Option<Ablation>) -> Streams {
     match ablation {
@@ -358,7 +347,7 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     // Windows come from the first model's description; the others must agree.
     let (spec, needs, horizons, rate_hz, ablation_name, history) = match &models[0] {
         AnyModel::Network(m) => (
-            spec_of(&m.meta),
+            m.meta.window_spec(),
             needs_of(Some(m.meta.ablation)),
             m.meta.horizons_ticks.clone(),
             m.meta.rate_hz,
@@ -483,7 +472,7 @@ pub fn per_tick_forecast(
     out: &Path,
 ) -> anyhow::Result<usize> {
     use std::io::Write;
-    let spec = spec_of(&model.meta);
+    let spec = model.meta.window_spec();
     let needs = needs_of(Some(model.meta.ablation));
     let episode = crate::train::dataset::load_episode(recording, &spec, needs)
         .with_context(|| format!("reading {}", recording.display()))?;

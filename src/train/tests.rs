@@ -86,7 +86,7 @@ fn logistic_baseline_learns_the_ramp_task_and_round_trips() {
 /// `window.rs` builds from the same recording.
 #[test]
 fn train_and_eval_commands_on_synthetic_recordings() {
-    use super::cli::{per_tick_forecast, run_eval, run_train, spec_of, EvalArgs, TrainArgs};
+    use super::cli::{per_tick_forecast, run_eval, run_train, EvalArgs, TrainArgs};
     use crate::recording::synthetic::{joint_names, learnable_episode, write_dataset};
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
@@ -151,7 +151,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
     let jsonl = dir.path().join("per_tick.jsonl");
     let lines = per_tick_forecast(&model, &rec, &jsonl).unwrap();
     assert!(lines > 20);
-    let spec = spec_of(&model.meta);
+    let spec = model.meta.window_spec();
     let needs = super::cli::needs_of(Some(model.meta.ablation));
     let episode = crate::train::dataset::load_episode(&rec, &spec, needs).unwrap();
     for line in std::fs::read_to_string(&jsonl).unwrap().lines() {

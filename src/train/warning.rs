@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use serde::Serialize;
 
-use super::cli::{forecast_ticks, needs_of, spec_of};
+use super::cli::{forecast_ticks, needs_of};
 use super::dataset::{load_episode, Dataset, Split};
 use crate::model::LoadedModel;
 use crate::outputs::latch::SafetyLatch;
@@ -179,7 +179,7 @@ pub fn forecast_split(
     split: Split,
     horizon_index: usize,
 ) -> anyhow::Result<Vec<EpisodeForecasts>> {
-    let spec = spec_of(&model.meta);
+    let spec = model.meta.window_spec();
     let needs = needs_of(Some(model.meta.ablation));
     let mut out = Vec::new();
     for path in data.paths(split) {
@@ -207,15 +207,14 @@ pub fn run_warnings(args: &WarningsArgs) -> anyhow::Result<()> {
     let model = LoadedModel::load(&args.model)
         .with_context(|| format!("reading {}", args.model.display()))?;
     let tick_s = 1.0 / model.meta.rate_hz;
-    let horizon_index = model
-        .meta
-        .horizons_ticks
+    let horizons_ms = model.meta.horizons_ms();
+    let horizon_index = horizons_ms
         .iter()
-        .position(|&h| (h as f64 * tick_s * 1000.0).round() as u32 == args.horizon_ms)
+        .position(|&h| h == args.horizon_ms)
         .with_context(|| {
             format!(
-                "--horizon-ms {}: the model's horizons are {:?} ticks at {} Hz",
-                args.horizon_ms, model.meta.horizons_ticks, model.meta.rate_hz
+                "--horizon-ms {}: the model's horizons are {horizons_ms:?} ms",
+                args.horizon_ms
             )
         })?;
     let data = Dataset::open(&args.data)?;
