@@ -23,7 +23,7 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use serde_json::Value;
-use support::{domain_id, rclpy_python, Peer};
+use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
 mod daemon_common;
 use daemon_common::{parse_lines, robot_joints};
@@ -84,12 +84,13 @@ fn forecast_values(event: &Value) -> Vec<f32> {
         .collect()
 }
 
-fn kv(status: &Value, key: &str) -> Option<String> {
-    status["values"]
+/// The `DiagnosticStatus` whose name ends with `suffix` (`": model"`,
+/// `": joints"`) in one received `/diagnostics` message event.
+fn status_named<'a>(diag: &'a Value, suffix: &str) -> Option<&'a Value> {
+    diag["msg"]["status"]
         .as_array()?
         .iter()
-        .find(|v| v["key"] == key)
-        .and_then(|v| v["value"].as_str().map(str::to_owned))
+        .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(suffix)))
 }
 
 fn msgs<'a>(events: &'a [Value], topic: &'a str) -> impl Iterator<Item = &'a Value> + 'a {
@@ -377,12 +378,8 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
 
     // Diagnostics: the streams are seen at their rate, the model is MP and valid.
     let last = msgs(&seen, "/diagnostics").last().expect("diagnostics");
-    let status_list = last["msg"]["status"].as_array().expect("status");
     let named = |suffix: &str| {
-        status_list
-            .iter()
-            .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(suffix)))
-            .unwrap_or_else(|| panic!("no '{suffix}' status in {last}"))
+        status_named(last, suffix).unwrap_or_else(|| panic!("no '{suffix}' status in {last}"))
     };
     let joints_rate: f64 = kv(named(": joints"), "rate_hz")
         .and_then(|r| r.parse().ok())
@@ -501,17 +498,9 @@ async fn wait_validity(
         .await
     {
         if e["event"] == "msg" && e["topic"] == "/diagnostics" {
-            let model = e["msg"]["status"]
-                .as_array()
-                .and_then(|l| {
-                    l.iter()
-                        .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(": model")))
-                })
-                .cloned();
-            if let Some(m) = model {
-                if kv(&m, "valid").as_deref() == Some(if want { "true" } else { "false" }) {
-                    return (Some(e), seen);
-                }
+            let valid = status_named(&e, ": model").and_then(|m| kv(m, "valid"));
+            if valid.as_deref() == Some(if want { "true" } else { "false" }) {
+                return (Some(e), seen);
             }
         }
         seen.push(e);
@@ -519,15 +508,8 @@ async fn wait_validity(
     (None, seen)
 }
 
-fn joints_status(diag: &Value) -> Value {
-    diag["msg"]["status"]
-        .as_array()
-        .and_then(|l| {
-            l.iter()
-                .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(": joints")))
-        })
-        .cloned()
-        .unwrap_or_else(|| panic!("no joints status in {diag}"))
+fn joints_status(diag: &Value) -> &Value {
+    status_named(diag, ": joints").unwrap_or_else(|| panic!("no joints status in {diag}"))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -591,7 +573,7 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
         .map(|n| n.as_str().expect("name").to_owned())
         .collect();
     assert_eq!(names, robot_joints());
-    let errors_before: u64 = kv(&joints_status(&ok), "errors")
+    let errors_before: u64 = kv(joints_status(&ok), "errors")
         .and_then(|e| e.parse().ok())
         .expect("errors key");
 
@@ -635,7 +617,7 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
     tokio::time::sleep(Duration::from_millis(600)).await;
     drop(listener.drain());
     let (now, _) = wait_validity(&mut listener, true, long).await;
-    let errors_now: u64 = kv(&joints_status(&now.expect("valid")), "errors")
+    let errors_now: u64 = kv(joints_status(&now.expect("valid")), "errors")
         .and_then(|e| e.parse().ok())
         .expect("errors key");
     assert!(
@@ -665,7 +647,7 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
             seen.last()
         )
     });
-    let errors_after: u64 = kv(&joints_status(&after), "errors")
+    let errors_after: u64 = kv(joints_status(&after), "errors")
         .and_then(|e| e.parse().ok())
         .expect("errors key");
     assert!(

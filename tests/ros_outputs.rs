@@ -16,7 +16,7 @@ use fall_guard::outputs::ros::{
 };
 use fall_guard::ros::RosNode;
 use serde_json::Value;
-use support::{domain_id, localhost_settings, rclpy_python, Peer};
+use support::{diag_value, domain_id, localhost_settings, rclpy_python, Peer};
 
 const HORIZONS_MS: [f32; 3] = [200.0, 500.0, 1000.0];
 
@@ -68,14 +68,7 @@ fn as_f32s(v: &Value) -> Vec<f32> {
 }
 
 fn kv(status: &Value, key: &str) -> String {
-    status["values"]
-        .as_array()
-        .expect("values")
-        .iter()
-        .find(|kv| kv["key"] == key)
-        .and_then(|kv| kv["value"].as_str())
-        .unwrap_or_else(|| panic!("no key {key} in {status}"))
-        .to_owned()
+    diag_value(status, key).unwrap_or_else(|| panic!("no key {key} in {status}"))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

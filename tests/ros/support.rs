@@ -53,6 +53,15 @@ pub fn rclpy_python(test: &str) -> Option<PathBuf> {
     None
 }
 
+/// The value of `key` in one `DiagnosticStatus` as `ros_peer.py` prints it.
+pub fn diag_value(status: &Value, key: &str) -> Option<String> {
+    status["values"]
+        .as_array()?
+        .iter()
+        .find(|kv| kv["key"] == key)
+        .and_then(|kv| kv["value"].as_str().map(str::to_owned))
+}
+
 /// A DDS domain for one test: distinct per test `index` (0..5) within this
 /// process, and spread by process id so that two checkouts testing at once
 /// on this machine do not hear each other.
