@@ -607,9 +607,29 @@ mod tests {
         assert!(shown.contains("unknown field `horizn`"), "{shown}");
     }
 
+    /// `text` with the line that sets `key` replaced by `line` (whatever
+    /// value the shipped config has).
+    fn with_line(text: &str, key: &str, line: &str) -> String {
+        let mut found = false;
+        let out: Vec<&str> = text
+            .lines()
+            .map(|l| {
+                let k = l.split('=').next().unwrap_or("").trim();
+                if k == key && !found {
+                    found = true;
+                    line
+                } else {
+                    l
+                }
+            })
+            .collect();
+        assert!(found, "no `{key} =` line in the config");
+        out.join("\n")
+    }
+
     #[test]
     fn wrong_type_names_the_key() {
-        let text = EMBEDDED_REPLAY_CONFIG.replace("trigger = 0.7", "trigger = \"high\"");
+        let text = with_line(EMBEDDED_REPLAY_CONFIG, "trigger", "trigger = \"high\"");
         let err = parse(&text).expect_err("wrong type");
         assert_eq!(err.key(), Some("[model].trigger"), "{err}");
     }
@@ -624,7 +644,7 @@ mod tests {
 
     #[test]
     fn hysteresis_must_be_ordered() {
-        let text = EMBEDDED_REPLAY_CONFIG.replace("release = 0.4", "release = 0.8");
+        let text = with_line(EMBEDDED_REPLAY_CONFIG, "release", "release = 0.99");
         let err = parse(&text).expect_err("release above trigger");
         assert_eq!(err.key(), Some("[model].release"));
     }

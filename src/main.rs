@@ -35,6 +35,8 @@ enum Command {
     BenchDaemon(fall_guard::daemon_bench::BenchDaemonArgs),
     /// Warning lead time and false alarms of the safety latch on a split; choose its thresholds.
     Warnings(fall_guard::train::warning::WarningsArgs),
+    /// Calibrate a model's probabilities on held-out windows (Platt scaling per horizon).
+    Calibrate(fall_guard::train::calibrate::CalibrateArgs),
     /// Rewrite a model file with its weights in half precision (f16).
     Half(fall_guard::train::cli::HalfArgs),
     /// Per-tick latency and training throughput of the network.
@@ -68,6 +70,7 @@ fn main() -> Result<()> {
         Command::Eval(args) => fall_guard::train::cli::run_eval(&args)?,
         Command::Warnings(args) => fall_guard::train::warning::run_warnings(&args)?,
         Command::Half(args) => fall_guard::train::cli::run_half(&args)?,
+        Command::Calibrate(args) => fall_guard::train::calibrate::run_calibrate(&args)?,
         Command::Run(args) => {
             runtime.block_on(service::run(args))?;
         }

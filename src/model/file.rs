@@ -116,9 +116,88 @@ pub struct ModelMeta {
     /// Training seed.
     #[serde(default)]
     pub seed: u64,
+    /// Post-hoc calibration of the probabilities (`fall-guard calibrate`);
+    /// none: `sigmoid` of the network's logits as trained.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<Calibration>,
+}
+
+/// Post-hoc calibration, fitted on held-out windows after training (Platt
+/// scaling per horizon): `p_k = sigmoid(scale_k · z_k + bias_k)` of the
+/// network's logit `z_k`, then a running maximum over the horizons, so that
+/// a longer horizon never reads less likely than a shorter one (the network
+/// guarantees that for its raw output; a per-horizon fit alone would not).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Calibration {
+    /// Logit scale per horizon (`1 / temperature`), positive.
+    pub scale: Vec<f32>,
+    /// Logit offset per horizon.
+    pub bias: Vec<f32>,
+    /// What it was fitted on, e.g. `validation split of data/sim2000, 2000 windows`.
+    pub fitted_on: String,
+}
+
+impl Calibration {
+    /// The identity: `sigmoid(z)` per horizon.
+    pub fn identity(horizons: usize) -> Self {
+        Calibration {
+            scale: vec![1.0; horizons],
+            bias: vec![0.0; horizons],
+            fitted_on: "identity".into(),
+        }
+    }
+
+    /// Calibrated probabilities of one window's `K` logits.
+    pub fn apply(&self, logits: &[f32]) -> Vec<f32> {
+        let mut floor = 0.0f32;
+        logits
+            .iter()
+            .zip(self.scale.iter().zip(&self.bias))
+            .map(|(&z, (&a, &b))| {
+                floor = floor.max(sigmoid(a * z + b));
+                floor
+            })
+            .collect()
+    }
+
+    fn validate(&self, horizons: usize) -> Result<(), String> {
+        if self.scale.len() != horizons || self.bias.len() != horizons {
+            return Err(format!(
+                "calibration has {} scales and {} biases for {horizons} horizons",
+                self.scale.len(),
+                self.bias.len()
+            ));
+        }
+        if self.scale.iter().any(|&a| !(a.is_finite() && a > 0.0)) {
+            return Err("a calibration scale is not a positive number".into());
+        }
+        if self.bias.iter().any(|b| !b.is_finite()) {
+            return Err("a calibration bias is not finite".into());
+        }
+        Ok(())
+    }
+}
+
+/// The logistic function, saturating cleanly for large `|z|`.
+pub fn sigmoid(z: f32) -> f32 {
+    if z >= 0.0 {
+        1.0 / (1.0 + (-z).exp())
+    } else {
+        let e = z.exp();
+        e / (1.0 + e)
+    }
 }
 
 impl ModelMeta {
+    /// Probabilities of one window's `K` logits: calibrated when the file
+    /// carries a calibration, `sigmoid(z)` otherwise.
+    pub fn probabilities_of(&self, logits: &[f32]) -> Vec<f32> {
+        match &self.calibration {
+            Some(c) => c.apply(logits),
+            None => logits.iter().map(|&z| sigmoid(z)).collect(),
+        }
+    }
+
     /// The horizons in ms at the model's tick rate, rounded (15 ticks at
     /// 30 Hz: 500), as configs and topics name them.
     pub fn horizons_ms(&self) -> Vec<u32> {
@@ -151,6 +230,7 @@ impl ModelMeta {
             best_epoch: 0,
             trained_on: "untrained".into(),
             seed: 0,
+            calibration: None,
             config,
         }
     }
@@ -248,6 +328,9 @@ impl ModelMeta {
         }
         if self.rate_hz.is_nan() || self.rate_hz <= 0.0 {
             return Err(format!("rate_hz {} is not positive", self.rate_hz));
+        }
+        if let Some(c) = &self.calibration {
+            c.validate(self.horizons_ticks.len())?;
         }
         Ok(())
     }
@@ -431,9 +514,20 @@ impl LoadedModel {
         plan: &[f32],
         frames: &[f32],
     ) -> Result<Vec<f32>, ModelError> {
+        let logits = self.logits_arrays(joints, plan, frames)?;
+        Ok(self.meta.probabilities_of(&logits))
+    }
+
+    /// The network's raw logits `z_k` of one window (before `sigmoid` and
+    /// calibration); what `fall-guard calibrate` fits on.
+    pub fn logits_arrays(
+        &self,
+        joints: &[f32],
+        plan: &[f32],
+        frames: &[f32],
+    ) -> Result<Vec<f32>, ModelError> {
         let input = self.batch_input(&[joints], &[plan], &[frames])?;
-        let logits = self.network.forward(input);
-        probabilities(logits)
+        host_logits(self.network.forward(input))
     }
 
     /// Builds a standardised, low-passed batch from raw windows.
@@ -447,13 +541,12 @@ impl LoadedModel {
     }
 }
 
-/// `sigmoid(logits)` of a `[1, K]` batch, on the host.
-pub fn probabilities(logits: Tensor<2>) -> Result<Vec<f32>, ModelError> {
-    let z: Vec<f32> = burn::tensor::activation::sigmoid(logits)
+/// The logits of a `[1, K]` batch, on the host.
+pub fn host_logits(logits: Tensor<2>) -> Result<Vec<f32>, ModelError> {
+    logits
         .into_data()
         .try_to_vec::<f32>()
-        .map_err(|e| ModelError::Input(format!("model output is not f32: {e:?}")))?;
-    Ok(z)
+        .map_err(|e| ModelError::Input(format!("model output is not f32: {e:?}")))
 }
 
 /// Standardises joints and plan per joint, checks every value, low-passes the

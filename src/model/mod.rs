@@ -18,7 +18,8 @@ pub mod vision;
 pub use config::{Ablation, ModelConfig};
 pub use emp::{Emp, EmpInference, EmpInput};
 pub use file::{
-    save_model, save_model_as, EpochRecord, LoadedModel, ModelError, ModelMeta, WeightPrecision,
+    save_model, save_model_as, Calibration, EpochRecord, LoadedModel, ModelError, ModelMeta,
+    WeightPrecision,
 };
 pub use streaming::StreamingForecaster;
 

@@ -22,7 +22,7 @@ use std::sync::Arc;
 use burn::prelude::*;
 use burn::tensor::activation::relu;
 
-use super::file::{probabilities, LoadedModel, ModelError};
+use super::file::{host_logits, LoadedModel, ModelError};
 use super::vision::{lowpass_frames, spatial_pool};
 use super::EmpInput;
 
@@ -234,7 +234,7 @@ impl StreamingForecaster {
             },
             vision,
         );
-        probabilities(logits)
+        Ok(self.model.meta.probabilities_of(&host_logits(logits)?))
     }
 
     /// Vision features `[1, F]` of the current window, reusing cached slices.

@@ -388,3 +388,80 @@ fn streaming_equals_whole_window() {
         }
     }
 }
+
+#[test]
+fn calibration_is_stored_applied_everywhere_and_checked() {
+    let cfg = small_config();
+    let dir = tempfile::tempdir().unwrap();
+    let (mut meta, emp) = model(&cfg, Ablation::EMP);
+    let plain = LoadedModel::from_parts(meta.clone(), &emp, cpu_device(), "mem".into());
+    let cal = Calibration {
+        scale: vec![0.5, 0.8, 1.2, 2.0],
+        bias: vec![-1.0, -0.3, 0.2, 0.1],
+        fitted_on: "test".into(),
+    };
+    meta.calibration = Some(cal.clone());
+    let path = dir.path().join("cal.bpk");
+    save_model(&path, &meta, &emp).unwrap();
+    let loaded = LoadedModel::load(&path).unwrap();
+    assert_eq!(loaded.meta.calibration.as_ref(), Some(&cal));
+
+    // Whole window: the calibrated probabilities of the raw logits, ordered.
+    let w = window(&cfg, 21);
+    let z = plain.logits_arrays(&w.joints, &w.plan, &w.frames).unwrap();
+    let raw = plain
+        .forecast_arrays(&w.joints, &w.plan, &w.frames)
+        .unwrap();
+    let got = loaded
+        .forecast_arrays(&w.joints, &w.plan, &w.frames)
+        .unwrap();
+    assert_eq!(got, cal.apply(&z));
+    assert_ne!(got, raw, "calibration not applied");
+    assert!(got.windows(2).all(|p| p[1] >= p[0]), "{got:?}");
+
+    // Streaming (the daemon's path) applies it too.
+    let mut stream = StreamingForecaster::new(&loaded);
+    let (n, c, s) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size);
+    let frames: Vec<Vec<f32>> = (0..n)
+        .map(|t| {
+            let mut f = vec![0.0f32; 3 * s * s];
+            for ch in 0..3 {
+                let base = (ch * n + t) * s * s;
+                f[ch * s * s..(ch + 1) * s * s].copy_from_slice(&w.frames[base..base + s * s]);
+            }
+            f
+        })
+        .collect();
+    for t in 0..n {
+        stream
+            .push_parts(
+                t as i64,
+                &w.joints[t * c..(t + 1) * c],
+                Some(&frames[t]),
+                Some(&w.plan),
+            )
+            .unwrap();
+    }
+    let streamed = stream.forecast().unwrap();
+    for (a, b) in streamed.iter().zip(&got) {
+        assert!(
+            (a - b).abs() < 1e-5,
+            "streaming {streamed:?} vs window {got:?}"
+        );
+    }
+
+    // A calibration that does not fit the model is refused, naming the file.
+    meta.calibration = Some(Calibration {
+        scale: vec![1.0, -1.0, 1.0, 1.0],
+        ..cal
+    });
+    let bad = dir.path().join("badcal.bpk");
+    save_model(&bad, &meta, &emp).unwrap();
+    let e = LoadedModel::load(&bad).unwrap_err();
+    assert!(
+        matches!(e, ModelError::BadMeta { .. })
+            && e.to_string().contains("badcal.bpk")
+            && e.to_string().contains("calibration"),
+        "{e}"
+    );
+}

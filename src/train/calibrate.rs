@@ -1,0 +1,295 @@
+//! `fall-guard calibrate`: post-hoc calibration of a trained network on
+//! held-out windows (Platt scaling per horizon).
+//!
+//! In: a model file, a data set and a split that the network was not trained
+//! on (validation by default). Out: the same model file with a
+//! [`Calibration`] in its metadata, which the daemon, `eval` and `warnings`
+//! apply to every forecast. Fitted on validation, judged on test.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context};
+
+use super::cli::{needs_of, SplitWindows};
+use super::dataset::{Dataset, Split};
+use super::metrics::ece;
+use crate::model::file::{load_emp, sigmoid};
+use crate::model::{Calibration, LoadedModel, WeightPrecision};
+
+/// Arguments of `fall-guard calibrate`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CalibrateArgs {
+    /// Model file to calibrate (a network; any calibration it has is replaced).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Data set directory.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Split to fit on: never the one the model is judged on.
+    #[arg(long, default_value = "validation")]
+    pub split: String,
+    /// Windows drawn per episode (each an independent draw).
+    #[arg(long, default_value_t = 10)]
+    pub draws: usize,
+    /// Seed of the window sampler.
+    #[arg(long, default_value_t = 12345)]
+    pub sample_seed: u64,
+    /// Output model file (may be the input).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Store the weights in half precision (f16).
+    #[arg(long)]
+    pub half: bool,
+}
+
+/// Fits `sigmoid(a·z + b)` to labels `y` by Newton's method on the mean
+/// binary cross-entropy (Platt scaling), with a small ridge pulling towards
+/// the identity `(1, 0)` so that a separable or one-class sample still gives
+/// a finite answer. Returns `(a, b)`.
+pub fn fit_platt(z: &[f32], y: &[bool]) -> (f32, f32) {
+    assert_eq!(z.len(), y.len(), "one label per logit");
+    const RIDGE: f64 = 1e-3;
+    let n = z.len().max(1) as f64;
+    let loss = |a: f64, b: f64| -> f64 {
+        let mut l = 0.0;
+        for (&zi, &yi) in z.iter().zip(y) {
+            let s = a * f64::from(zi) + b;
+            // log(1 + e^s) - y·s, stable.
+            let softplus = if s > 0.0 {
+                s + (-s).exp().ln_1p()
+            } else {
+                s.exp().ln_1p()
+            };
+            l += softplus - if yi { s } else { 0.0 };
+        }
+        l / n + 0.5 * RIDGE * ((a - 1.0).powi(2) + b * b)
+    };
+    let (mut a, mut b) = (1.0f64, 0.0f64);
+    let mut current = loss(a, b);
+    for _ in 0..100 {
+        let (mut ga, mut gb, mut haa, mut hab, mut hbb) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for (&zi, &yi) in z.iter().zip(y) {
+            let zi = f64::from(zi);
+            let p = f64::from(sigmoid((a * zi + b) as f32));
+            let r = p - if yi { 1.0 } else { 0.0 };
+            let w = (p * (1.0 - p)).max(1e-12);
+            ga += r * zi;
+            gb += r;
+            haa += w * zi * zi;
+            hab += w * zi;
+            hbb += w;
+        }
+        ga = ga / n + RIDGE * (a - 1.0);
+        gb = gb / n + RIDGE * b;
+        haa = haa / n + RIDGE;
+        hab /= n;
+        hbb = hbb / n + RIDGE;
+        let det = haa * hbb - hab * hab;
+        if det.abs() < 1e-18 {
+            break;
+        }
+        let da = (hbb * ga - hab * gb) / det;
+        let db = (haa * gb - hab * ga) / det;
+        // Backtracking: never accept a step that raises the loss.
+        let mut t = 1.0;
+        let mut improved = false;
+        while t > 1e-6 {
+            let (na, nb) = (a - t * da, b - t * db);
+            let l = loss(na, nb);
+            if l <= current {
+                improved = current - l > 1e-12;
+                (a, b, current) = (na, nb, l);
+                break;
+            }
+            t *= 0.5;
+        }
+        if !improved || (da.abs() + db.abs()) * t < 1e-9 {
+            break;
+        }
+    }
+    (a as f32, b as f32)
+}
+
+/// What calibration did to one horizon of the fitting split.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HorizonFit {
+    /// Horizon, ms.
+    pub horizon_ms: u32,
+    /// Fitted logit scale.
+    pub scale: f32,
+    /// Fitted logit offset.
+    pub bias: f32,
+    /// ECE (15 bins) before, on the fitting windows.
+    pub ece_before: f64,
+    /// ECE after, on the fitting windows (with the running maximum).
+    pub ece_after: f64,
+}
+
+/// Fits a [`Calibration`] per horizon to `logits` (one row of `K` per
+/// window) and their labels (one row of `K` per window).
+pub fn fit_calibration(
+    logits: &[Vec<f32>],
+    labels: &[Vec<bool>],
+    horizons_ms: &[u32],
+    fitted_on: String,
+) -> (Calibration, Vec<HorizonFit>) {
+    let k = horizons_ms.len();
+    let mut cal = Calibration::identity(k);
+    cal.fitted_on = fitted_on;
+    for h in 0..k {
+        let z: Vec<f32> = logits.iter().map(|r| r[h]).collect();
+        let y: Vec<bool> = labels.iter().map(|r| r[h]).collect();
+        let (a, b) = fit_platt(&z, &y);
+        cal.scale[h] = a;
+        cal.bias[h] = b;
+    }
+    let before: Vec<Vec<f32>> = logits
+        .iter()
+        .map(|r| r.iter().map(|&z| sigmoid(z)).collect())
+        .collect();
+    let after: Vec<Vec<f32>> = logits.iter().map(|r| cal.apply(r)).collect();
+    let fits = (0..k)
+        .map(|h| {
+            let y: Vec<bool> = labels.iter().map(|r| r[h]).collect();
+            let col = |rows: &[Vec<f32>]| rows.iter().map(|r| r[h]).collect::<Vec<f32>>();
+            HorizonFit {
+                horizon_ms: horizons_ms[h],
+                scale: cal.scale[h],
+                bias: cal.bias[h],
+                ece_before: ece(&col(&before), &y, 15),
+                ece_after: ece(&col(&after), &y, 15),
+            }
+        })
+        .collect();
+    (cal, fits)
+}
+
+/// Runs `fall-guard calibrate`.
+pub fn run_calibrate(args: &CalibrateArgs) -> anyhow::Result<()> {
+    let split: Split = args.split.parse().map_err(anyhow::Error::msg)?;
+    if split == Split::Train {
+        bail!("--split train: calibrate on windows the network was not trained on (validation)");
+    }
+    let model = LoadedModel::load(&args.model).with_context(|| {
+        format!(
+            "reading {} (calibrate takes a network model file, not the logistic baseline)",
+            args.model.display()
+        )
+    })?;
+    let meta = &model.meta;
+    let dataset = Dataset::open(&args.data)
+        .with_context(|| format!("opening data set {}", args.data.display()))?;
+    let mut windows = SplitWindows::load(
+        &dataset,
+        split,
+        &meta.window_spec(),
+        needs_of(Some(meta.ablation)),
+        &meta.horizons_ticks,
+        args.sample_seed,
+    )?;
+    let (mut logits, mut labels) = (Vec::new(), Vec::new());
+    for _ in 0..args.draws.max(1) {
+        for w in windows.epoch()? {
+            logits.push(model.logits_arrays(&w.joints, &w.plan, &w.frames)?);
+            labels.push(w.labels.iter().map(|&l| l > 0.5).collect::<Vec<bool>>());
+        }
+    }
+    if logits.is_empty() {
+        bail!(
+            "the {} split of {} has no usable window",
+            split.name(),
+            args.data.display()
+        );
+    }
+    let fitted_on = format!(
+        "{} split of {}, {} windows ({} draws per episode, sampler seed {})",
+        split.name(),
+        args.data.display(),
+        logits.len(),
+        args.draws.max(1),
+        args.sample_seed
+    );
+    let (cal, fits) = fit_calibration(&logits, &labels, &meta.horizons_ms(), fitted_on);
+    println!(
+        "| horizon | scale | bias | ECE before ({}) | ECE after |",
+        split.name()
+    );
+    println!("| --- | --- | --- | --- | --- |");
+    for f in &fits {
+        println!(
+            "| {} ms | {:.3} | {:.3} | {:.4} | {:.4} |",
+            f.horizon_ms, f.scale, f.bias, f.ece_before, f.ece_after
+        );
+    }
+    let device = crate::model::cpu_device();
+    let (mut meta, emp) = load_emp(&args.model, &device)
+        .with_context(|| format!("reading {}", args.model.display()))?;
+    meta.calibration = Some(cal);
+    let precision = if args.half {
+        WeightPrecision::Half
+    } else {
+        WeightPrecision::Full
+    };
+    crate::model::save_model_as(&args.out, &meta, &emp, precision)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    LoadedModel::load(&args.out).with_context(|| format!("reading back {}", args.out.display()))?;
+    eprintln!("calibrated model written to {}", args.out.display());
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Logits of a miscalibrated model: the truth is `sigmoid(a·z + b)`.
+    fn sample(a: f32, b: f32, n: usize) -> (Vec<f32>, Vec<bool>) {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut uniform = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        (0..n)
+            .map(|_| {
+                let z = (uniform() * 8.0 - 4.0) as f32;
+                let y = uniform() < f64::from(sigmoid(a * z + b));
+                (z, y)
+            })
+            .unzip()
+    }
+
+    #[test]
+    fn platt_recovers_a_known_miscalibration() {
+        let (z, y) = sample(0.5, -0.7, 20_000);
+        let (a, b) = fit_platt(&z, &y);
+        assert!((a - 0.5).abs() < 0.05, "scale {a}");
+        assert!((b + 0.7).abs() < 0.07, "bias {b}");
+    }
+
+    #[test]
+    fn platt_on_one_class_stays_finite() {
+        let z = vec![0.3f32; 50];
+        let y = vec![true; 50];
+        let (a, b) = fit_platt(&z, &y);
+        assert!(a.is_finite() && b.is_finite() && a > 0.0, "{a} {b}");
+    }
+
+    #[test]
+    fn calibration_lowers_ece_and_keeps_horizons_ordered() {
+        // Two horizons, an over-confident network (true scale 0.4).
+        let (z, y1) = sample(0.4, 0.0, 5000);
+        let (_, y2) = sample(0.4, 0.5, 5000);
+        let logits: Vec<Vec<f32>> = z.iter().map(|&z| vec![z, z + 0.2]).collect();
+        let labels: Vec<Vec<bool>> = y1.iter().zip(&y2).map(|(&a, &b)| vec![a, b]).collect();
+        let (cal, fits) = fit_calibration(&logits, &labels, &[500, 1000], "test".into());
+        for f in &fits {
+            assert!(f.ece_after < f.ece_before, "{f:?}");
+            assert!(f.ece_after < 0.03, "{f:?}");
+        }
+        for r in &logits {
+            let p = cal.apply(r);
+            assert!(p[1] >= p[0], "{p:?}");
+        }
+    }
+}
