@@ -432,12 +432,12 @@ fn calibration_is_stored_applied_everywhere_and_checked() {
             f
         })
         .collect();
-    for t in 0..n {
+    for (t, frame) in frames.iter().enumerate() {
         stream
             .push_parts(
                 t as i64,
                 &w.joints[t * c..(t + 1) * c],
-                Some(&frames[t]),
+                Some(frame),
                 Some(&w.plan),
             )
             .unwrap();
