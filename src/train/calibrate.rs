@@ -170,12 +170,15 @@ pub fn run_calibrate(args: &CalibrateArgs) -> anyhow::Result<()> {
     if split == Split::Train {
         bail!("--split train: calibrate on windows the network was not trained on (validation)");
     }
-    let model = LoadedModel::load(&args.model).with_context(|| {
+    // One read of the file: the trainable network is what gets written back.
+    let device = crate::model::cpu_device();
+    let (meta, emp) = load_emp(&args.model, &device).with_context(|| {
         format!(
             "reading {} (calibrate takes a network model file, not the logistic baseline)",
             args.model.display()
         )
     })?;
+    let model = LoadedModel::from_parts(meta, &emp, device, args.model.clone());
     let meta = &model.meta;
     let dataset = Dataset::open(&args.data)
         .with_context(|| format!("opening data set {}", args.data.display()))?;
@@ -221,9 +224,7 @@ pub fn run_calibrate(args: &CalibrateArgs) -> anyhow::Result<()> {
             f.horizon_ms, f.scale, f.bias, f.ece_before, f.ece_after
         );
     }
-    let device = crate::model::cpu_device();
-    let (mut meta, emp) = load_emp(&args.model, &device)
-        .with_context(|| format!("reading {}", args.model.display()))?;
+    let mut meta = model.meta.clone();
     meta.calibration = Some(cal);
     let precision = if args.half {
         WeightPrecision::Half
