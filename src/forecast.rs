@@ -28,7 +28,7 @@ use thiserror::Error;
 use tokio::sync::Notify;
 
 use crate::config::{Config, ConfigError, ModelFacts};
-use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster};
+use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster, TrajectoryInput};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::window::{TickInput, WindowSpec};
@@ -62,6 +62,12 @@ pub enum ForecastError {
         file: PathBuf,
         what: &'static str,
         emp: String,
+    },
+    #[error("{key}: {file} was trained with the {trajectory} trajectory input (a paper ablation for the model card): the daemon runs networks that read the planned trajectory only; configure a model trained with `fall-guard train --trajectory planned`")]
+    Trajectory {
+        key: String,
+        file: PathBuf,
+        trajectory: TrajectoryInput,
     },
     #[error(transparent)]
     Config(#[from] ConfigError),
@@ -116,6 +122,15 @@ impl ModelSet {
                     file: path,
                     found: meta.ablation,
                     expected,
+                });
+            }
+            // The stream freshness and fallback rules below are written for
+            // networks whose trajectory encoder reads the plan stream.
+            if meta.config.trajectory != TrajectoryInput::Planned {
+                return Err(ForecastError::Trajectory {
+                    key: key.to_string(),
+                    file: path,
+                    trajectory: meta.config.trajectory,
                 });
             }
             meta.check_compatible_with(

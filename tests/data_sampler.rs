@@ -222,3 +222,99 @@ fn dataset_on_disk_loads_and_checks_its_manifest() {
     let err = Dataset::open(dir.path()).unwrap_err();
     assert!(matches!(err, DatasetError::SharedEpisode { .. }), "{err}");
 }
+
+/// Many episodes of varied length and onset: 60% fall, at a tick uniform
+/// over most of the episode (some too early for the longest spans).
+fn many_episodes(count: usize) -> Vec<EpisodeTicks> {
+    let mut s = 0x2545_F491_4F6C_DD1Du64;
+    let mut next = move |m: u64| {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        s % m
+    };
+    (0..count)
+        .map(|_| {
+            let len = 120 + next(120) as usize;
+            let onset = (next(10) < 6).then(|| 15 + next(len as u64 - 15) as i64);
+            episode(len, next(4) as usize, onset)
+        })
+        .collect()
+}
+
+#[test]
+fn paper_protocol_stop_lines_balance_and_one_window_per_episode() {
+    use fall_guard::train::sampler::Protocol;
+    let episodes = many_episodes(1200);
+    let n = 10;
+    for h in [15usize, 30, 45, 60] {
+        let cfg = SamplerConfig::paper(n, h);
+        assert_eq!(cfg.protocol, Protocol::Paper);
+        let mut sampler = WindowSampler::new(&episodes, cfg, 7).unwrap();
+        let sp = spec(n, h);
+        for _draw in 0..3 {
+            let picks = sampler.epoch();
+            assert!(picks.len() > 600, "span {h}: only {} windows", picks.len());
+            let mut seen = std::collections::BTreeSet::new();
+            let mut positives = 0usize;
+            for p in &picks {
+                assert!(seen.insert(p.episode), "episode {} twice", p.episode);
+                let e = &episodes[p.episode];
+                e.window_ending_at(p.end_tick, &sp, Streams::ALL).unwrap();
+                match e.fall_onset_tick {
+                    // the stop line of span h
+                    Some(onset) => assert!(
+                        p.end_tick <= onset - h as i64,
+                        "span {h}: window ends at {}, onset {onset}",
+                        p.end_tick
+                    ),
+                    None => assert!(p.end_tick + h as i64 <= e.last_tick().unwrap()),
+                }
+                assert_eq!(p.labels, vec![e.is_fallen(p.end_tick + h as i64)]);
+                positives += usize::from(p.labels[0]);
+            }
+            let share = positives as f64 / picks.len() as f64;
+            assert!(
+                (share - 0.5).abs() <= 0.02,
+                "span {h}: positive share {share}"
+            );
+        }
+    }
+}
+
+#[test]
+fn paper_protocol_window_sets_do_not_depend_on_the_other_horizons() {
+    use fall_guard::train::cli::SplitWindows;
+    use fall_guard::train::sampler::Protocol;
+    let episodes = std::sync::Arc::new(many_episodes(300));
+    let needs = Streams::ALL;
+    let mut all = SplitWindows::new(
+        episodes.clone(),
+        &spec(10, 60),
+        needs,
+        &[15, 30, 45, 60],
+        5,
+        Protocol::Paper,
+    )
+    .unwrap();
+    let mut one =
+        SplitWindows::new(episodes, &spec(10, 30), needs, &[30], 5, Protocol::Paper).unwrap();
+    let key =
+        |w: &fall_guard::train::LabeledWindow, k: usize| (w.episode, w.joints.clone(), w.labels[k]);
+    let (a, b) = (all.epoch().unwrap(), one.epoch().unwrap());
+    let mut from_all: Vec<_> = a
+        .iter()
+        .filter(|w| w.scored_horizon == Some(1))
+        .map(|w| key(w, 1))
+        .collect();
+    let mut from_one: Vec<_> = b.iter().map(|w| key(w, 0)).collect();
+    assert!(b.iter().all(|w| w.scored_horizon == Some(0)));
+    from_all.sort_by(|x, y| x.partial_cmp(y).unwrap());
+    from_one.sort_by(|x, y| x.partial_cmp(y).unwrap());
+    assert!(!from_one.is_empty());
+    assert_eq!(from_all, from_one);
+    // every horizon has its own set, and the deployment protocol one set
+    for k in 0..4 {
+        assert!(a.iter().any(|w| w.scored_horizon == Some(k)));
+    }
+}

@@ -63,6 +63,51 @@ impl FromStr for Ablation {
     }
 }
 
+/// What the trajectory encoder (M) reads: the paper's input ablations
+/// (section "Ablation Studies", table "Input data ablations"). Stored in the
+/// model file (in its [`ModelConfig`]), so that training, `eval` and the
+/// streaming forecaster build the same input; files written before this
+/// option existed read as [`TrajectoryInput::Planned`].
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum TrajectoryInput {
+    /// The planned joint angles of ticks `t-N+1 ..= t+h_K` (`N + h_K` rows):
+    /// the past and the known future of the plan (EMP as published).
+    #[default]
+    Planned,
+    /// "Historical only": the planned joint angles of ticks `t-N+1 ..= t`
+    /// (`N` rows), nothing from the future.
+    HistoricalOnly,
+    /// "Real position": the measured joint angles of ticks `t-N+1 ..= t`
+    /// (`N` rows, a copy of the motion encoder's input) in place of the plan.
+    RealPosition,
+}
+
+impl TrajectoryInput {
+    /// The name on the command line and in the model file.
+    pub fn name(self) -> &'static str {
+        match self {
+            TrajectoryInput::Planned => "planned",
+            TrajectoryInput::HistoricalOnly => "historical-only",
+            TrajectoryInput::RealPosition => "real-position",
+        }
+    }
+
+    /// Whether the input is cut from the planned trajectory (the plan
+    /// stream is needed).
+    pub fn reads_plan(self) -> bool {
+        !matches!(self, TrajectoryInput::RealPosition)
+    }
+}
+
+impl fmt::Display for TrajectoryInput {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Sizes of every part of the network (see `docs/emp-model.md`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ModelConfig {
@@ -98,6 +143,9 @@ pub struct ModelConfig {
     pub d_model: usize,
     /// Classifier dropout (training only).
     pub dropout: f64,
+    /// What the trajectory encoder reads.
+    #[serde(default)]
+    pub trajectory: TrajectoryInput,
 }
 
 impl ModelConfig {
@@ -125,6 +173,7 @@ impl ModelConfig {
             vision_time_pool: vec![false, false, true, true],
             d_model: 1024,
             dropout: 0.1,
+            trajectory: TrajectoryInput::Planned,
         }
     }
 
@@ -170,9 +219,30 @@ impl ModelConfig {
         self.horizons_ticks.last().copied().unwrap_or(0)
     }
 
-    /// Plan length `L = N + h_K`.
+    /// Rows of the trajectory encoder's input: `L = N + h_K` for the
+    /// planned trajectory, `N` for the historical-only and real-position
+    /// ablations.
     pub fn plan_len(&self) -> usize {
-        self.n_ticks + self.max_horizon_ticks()
+        match self.trajectory {
+            TrajectoryInput::Planned => self.n_ticks + self.max_horizon_ticks(),
+            TrajectoryInput::HistoricalOnly | TrajectoryInput::RealPosition => self.n_ticks,
+        }
+    }
+
+    /// The trajectory encoder's input, `[plan_len(), C]`, cut from a window's
+    /// measured `joints` `[N, C]` and planned `plan` `[N + h_K, C]` (as
+    /// `window::Window` holds them): the whole plan, its first `N` rows (ticks
+    /// up to `t`), or the joints. The one place the ablations are made;
+    /// training, `eval` and the streaming forecaster all go through it. A
+    /// slice too short is returned whole, for the caller's length check.
+    pub fn trajectory_rows<'a>(&self, joints: &'a [f32], plan: &'a [f32]) -> &'a [f32] {
+        match self.trajectory {
+            TrajectoryInput::Planned => plan,
+            TrajectoryInput::HistoricalOnly => {
+                &plan[..(self.n_ticks * self.n_joints).min(plan.len())]
+            }
+            TrajectoryInput::RealPosition => joints,
+        }
     }
 
     /// Side of the low-passed frame, `2a`.

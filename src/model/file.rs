@@ -120,6 +120,11 @@ pub struct ModelMeta {
     /// none: `sigmoid` of the network's logits as trained.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub calibration: Option<Calibration>,
+    /// How the training windows were drawn (`deployment` or `paper`, see
+    /// `train::sampler`); none: written before the option existed
+    /// (deployment).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub protocol: Option<String>,
 }
 
 /// Post-hoc calibration, fitted on held-out windows after training (Platt
@@ -231,6 +236,7 @@ impl ModelMeta {
             trained_on: "untrained".into(),
             seed: 0,
             calibration: None,
+            protocol: None,
             config,
         }
     }
@@ -507,7 +513,9 @@ impl LoadedModel {
     ///
     /// `joints` `[N, C]` and `plan` `[N + h_K, C]` in radians, `frames`
     /// `[3, N, S, S]` in `[0, 1]` (row-major, as `window::Window` holds them).
-    /// Inputs the ablation does not use are ignored (may be empty).
+    /// Inputs the ablation does not use are ignored (may be empty); the
+    /// trajectory encoder reads what the model's
+    /// [`super::TrajectoryInput`] cuts from `joints` and `plan`.
     pub fn forecast_arrays(
         &self,
         joints: &[f32],
@@ -597,10 +605,15 @@ pub fn build_input(
                 plan.len()
             )));
         }
+        let rows: Vec<&[f32]> = joints
+            .iter()
+            .zip(plan)
+            .map(|(j, p)| cfg.trajectory_rows(j, p))
+            .collect();
         Some(standardise(
             "plan",
             l,
-            plan,
+            &rows,
             &meta.plan_mean,
             &meta.plan_std,
         )?)

@@ -15,7 +15,7 @@ pub mod streaming;
 pub mod tick_input;
 pub mod vision;
 
-pub use config::{Ablation, ModelConfig};
+pub use config::{Ablation, ModelConfig, TrajectoryInput};
 pub use emp::{Emp, EmpInference, EmpInput};
 pub use file::{
     save_model, save_model_as, Calibration, EpochRecord, LoadedModel, ModelError, ModelMeta,

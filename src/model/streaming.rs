@@ -41,6 +41,9 @@ struct Slice {
 struct TickState {
     tick: i64,
     joints_std: Vec<f32>,
+    /// The measured angles as given, kept for a real-position model (its
+    /// trajectory encoder reads them, standardised with the plan statistics).
+    joints_rad: Option<Vec<f32>>,
     frame_lp: Option<Arc<Vec<f32>>>,
 }
 
@@ -91,7 +94,9 @@ impl StreamingForecaster {
 
     /// Adds tick `tick`: `joints_rad` `[C]` in model order; `frame` `[3, S, S]`
     /// in `[0, 1]` (needed by vision ablations); `plan_rad` the plan window
-    /// `[N + h_K, C]` for this tick (needed by plan ablations). A tick that is
+    /// `[N + h_K, C]` for this tick (needed by plan ablations whose
+    /// trajectory input is cut from the plan; a historical-only model reads
+    /// its first `N` rows and accepts a window of just those). A tick that is
     /// not the successor of the last one starts a new window.
     pub fn push_parts(
         &mut self,
@@ -151,7 +156,7 @@ impl StreamingForecaster {
         } else {
             None
         };
-        if meta.ablation.uses_plan() {
+        if meta.ablation.uses_plan() && cfg.trajectory.reads_plan() {
             let l = cfg.plan_len();
             let p = plan_rad.ok_or_else(|| {
                 ModelError::Input(format!(
@@ -159,6 +164,7 @@ impl StreamingForecaster {
                     meta.ablation
                 ))
             })?;
+            let p = cfg.trajectory_rows(&[], p);
             if p.len() != l * c {
                 return Err(ModelError::Input(format!(
                     "tick {tick}: plan window has {} values, expected {l} ticks x {c} joints",
@@ -185,9 +191,11 @@ impl StreamingForecaster {
                 self.cache.iter_mut().for_each(HashMap::clear);
             }
         }
+        let keep_raw = meta.ablation.uses_plan() && !cfg.trajectory.reads_plan();
         self.ticks.push_back(TickState {
             tick,
             joints_std,
+            joints_rad: keep_raw.then(|| joints_rad.to_vec()),
             frame_lp,
         });
         if self.ticks.len() > cfg.n_ticks {
@@ -214,12 +222,37 @@ impl StreamingForecaster {
             .flat_map(|t| t.joints_std.iter().copied())
             .collect();
         let joints = Tensor::<3>::from_data(TensorData::new(joints, [1, n, c]), &device);
-        let plan = match &self.plan_std {
-            Some(p) if meta.ablation.uses_plan() => Some(Tensor::<3>::from_data(
-                TensorData::new(p.clone(), [1, cfg.plan_len(), c]),
+        let plan = if !meta.ablation.uses_plan() {
+            None
+        } else if cfg.trajectory.reads_plan() {
+            self.plan_std.as_ref().map(|p| {
+                Tensor::<3>::from_data(TensorData::new(p.clone(), [1, cfg.plan_len(), c]), &device)
+            })
+        } else {
+            // Real position: the window's measured angles, through the same
+            // cut as the whole-window path, standardised as the plan.
+            let raw: Vec<f32> = self
+                .ticks
+                .iter()
+                .flat_map(|t| t.joints_rad.iter().flatten().copied())
+                .collect();
+            let rows = cfg.trajectory_rows(&raw, &[]);
+            if rows.len() != cfg.plan_len() * c {
+                return Err(ModelError::Input(format!(
+                    "real-position input has {} values, expected {} ticks x {c} joints",
+                    rows.len(),
+                    cfg.plan_len()
+                )));
+            }
+            let std: Vec<f32> = rows
+                .iter()
+                .enumerate()
+                .map(|(i, &v)| (v - meta.plan_mean[i % c]) / meta.plan_std[i % c])
+                .collect();
+            Some(Tensor::<3>::from_data(
+                TensorData::new(std, [1, cfg.plan_len(), c]),
                 &device,
-            )),
-            _ => None,
+            ))
         };
         let vision = if meta.ablation.uses_vision() {
             Some(self.vision_features()?)

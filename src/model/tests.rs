@@ -465,3 +465,125 @@ fn calibration_is_stored_applied_everywhere_and_checked() {
         "{e}"
     );
 }
+
+/// A small episode whose plan and joints say which tick they belong to:
+/// the plan's joint `j` at tick `k` is `k + j/10`, the measured one
+/// `1000 + k + j/10`.
+fn labelled_episode(c: usize, ticks: i64) -> crate::window::EpisodeTicks {
+    use crate::window::{Plan, TickGrid, TickInput};
+    use std::sync::Arc;
+    let grid = TickGrid::new(30.0).unwrap();
+    let value = |k: i64, j: usize| k as f64 + j as f64 / 10.0;
+    let horizon = ticks + 100;
+    let plan = Arc::new(Plan {
+        stamp_ns: 0,
+        times_ns: (0..horizon).map(|k| grid.stamp_ns(k)).collect(),
+        positions_rad: (0..horizon)
+            .flat_map(|k| (0..c).map(move |j| value(k, j)))
+            .collect(),
+        n_joints: c,
+    });
+    crate::window::EpisodeTicks {
+        path: "mem".into(),
+        grid,
+        ticks: (0..ticks)
+            .map(|k| TickInput {
+                tick: k,
+                stamp_ns: grid.stamp_ns(k),
+                joints_rad: Some((0..c).map(|j| (1000.0 + value(k, j)) as f32).collect()),
+                frame: None,
+                plan: Some(plan.clone()),
+                age_ns: Default::default(),
+            })
+            .collect(),
+        fall_onset_tick: None,
+    }
+}
+
+#[test]
+fn trajectory_inputs_hold_what_their_names_say_everywhere() {
+    use crate::window::Streams;
+    let mut cfg = small_config(); // N = 12, h_K = 12
+    let (n, c, hk) = (cfg.n_ticks, cfg.n_joints, cfg.max_horizon_ticks());
+    let end = 20i64;
+    let episode = labelled_episode(c, end + 1);
+    let needs = Streams {
+        joints: true,
+        plan: true,
+        frames: false,
+    };
+    for trajectory in [
+        TrajectoryInput::Planned,
+        TrajectoryInput::HistoricalOnly,
+        TrajectoryInput::RealPosition,
+    ] {
+        cfg.trajectory = trajectory;
+        let (mut meta, emp) = model(&cfg, Ablation::MP);
+        // Standardisation that is not the identity, so a mix-up of the
+        // plan and joint statistics shows.
+        meta.plan_mean = vec![5.0; c];
+        meta.plan_std = vec![3.0; c];
+        let loaded = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+        let spec = loaded.meta.window_spec();
+        let window = episode.window_ending_at(end, &spec, needs).unwrap();
+        let rows = cfg.trajectory_rows(&window.joints, &window.plan);
+        assert_eq!(rows.len(), cfg.plan_len() * c, "{trajectory}");
+        let tick_of_row = |i: usize| end - n as i64 + 1 + i as i64;
+        match trajectory {
+            TrajectoryInput::Planned => {
+                assert_eq!(cfg.plan_len(), n + hk);
+                for (i, row) in rows.chunks(c).enumerate() {
+                    assert_eq!(row[0], tick_of_row(i) as f32, "planned row {i}");
+                }
+                // It reaches h_K ticks into the future.
+                assert_eq!(rows[rows.len() - c], (end + hk as i64) as f32);
+            }
+            TrajectoryInput::HistoricalOnly => {
+                assert_eq!(cfg.plan_len(), n);
+                for (i, row) in rows.chunks(c).enumerate() {
+                    assert_eq!(row[1], tick_of_row(i) as f32 + 0.1, "historical row {i}");
+                }
+                // Nothing from after the window's last tick.
+                assert!(rows.iter().all(|&v| v < end as f32 + 1.0), "{rows:?}");
+            }
+            TrajectoryInput::RealPosition => {
+                assert_eq!(cfg.plan_len(), n);
+                assert_eq!(rows, window.joints.as_slice());
+                assert_eq!(rows[0], 1000.0 + tick_of_row(0) as f32);
+            }
+        }
+        // The daemon's path (tick by tick through the streaming forecaster,
+        // with only the streams the model reads) builds the same input.
+        let mut stream = StreamingForecaster::new(&loaded);
+        for tick in &episode.ticks {
+            let mut tick = tick.clone();
+            if !trajectory.reads_plan() {
+                tick.plan = None;
+            }
+            stream.push(&tick).unwrap();
+        }
+        let got = stream.forecast().unwrap();
+        let want = loaded.forecast_window(&window).unwrap();
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g - w).abs() < 1e-5, "{trajectory}: {got:?} vs {want:?}");
+        }
+        // The setting is in the model file and read back.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.bpk");
+        save_model(&path, &loaded.meta, &emp).unwrap();
+        assert_eq!(
+            LoadedModel::load(&path).unwrap().meta.config.trajectory,
+            trajectory
+        );
+    }
+}
+
+#[test]
+fn a_model_file_without_a_trajectory_setting_reads_as_planned() {
+    let cfg = small_config();
+    let mut json = serde_json::to_value(&cfg).unwrap();
+    json.as_object_mut().unwrap().remove("trajectory");
+    let back: ModelConfig = serde_json::from_value(json).unwrap();
+    assert_eq!(back.trajectory, TrajectoryInput::Planned);
+    assert_eq!(back, cfg);
+}

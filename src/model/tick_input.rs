@@ -42,7 +42,7 @@ impl StreamingForecaster {
         } else {
             None
         };
-        let plan = if meta.ablation.uses_plan() {
+        let plan = if meta.ablation.uses_plan() && meta.config.trajectory.reads_plan() {
             let p = input
                 .plan
                 .as_ref()
@@ -52,6 +52,8 @@ impl StreamingForecaster {
             let grid = TickGrid::new(meta.rate_hz)
                 .map_err(|e| ModelError::Input(format!("tick grid: {e}")))?;
             let first_tick = tick - n as i64 + 1;
+            // As many rows as the model reads (`N + h_K`, or `N` for
+            // historical-only): the forecaster cuts the same rows from it.
             let mut out = vec![0.0f32; meta.config.plan_len() * c];
             for (i, row) in out.chunks_exact_mut(c).enumerate() {
                 p.sample_into(grid.stamp_ns(first_tick + i as i64), row);

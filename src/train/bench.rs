@@ -219,6 +219,8 @@ fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
             plan: noise(l * c, 50 + i),
             frames: noise(3 * n * s * s, 60 + i),
             labels: (0..k).map(|h| ((h as u64 + i) % 2) as f32).collect(),
+            episode: i as usize,
+            scored_horizon: None,
         })
         .collect();
     let mut elapsed = 0.0;

@@ -10,9 +10,10 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 
-use super::cli::{needs_of, SplitWindows};
+use super::cli::{needs_of_model, SplitWindows};
 use super::dataset::{Dataset, Split};
 use super::metrics::ece;
+use super::sampler::Protocol;
 use crate::model::file::{load_emp, sigmoid};
 use crate::model::{Calibration, LoadedModel, WeightPrecision};
 
@@ -34,6 +35,10 @@ pub struct CalibrateArgs {
     /// Seed of the window sampler.
     #[arg(long, default_value_t = 12345)]
     pub sample_seed: u64,
+    /// How the fitting windows are drawn: `deployment` or `paper` (each
+    /// horizon fitted on its own balanced set); see `train --protocol`.
+    #[arg(long, value_enum, default_value_t = Protocol::Deployment)]
+    pub protocol: Protocol,
     /// Output model file (may be the input).
     #[arg(long)]
     pub out: PathBuf,
@@ -126,19 +131,23 @@ pub struct HorizonFit {
 }
 
 /// Fits a [`Calibration`] per horizon to `logits` (one row of `K` per
-/// window) and their labels (one row of `K` per window).
+/// window) and their labels (one row of `K` per window). `scored[i]`:
+/// `Some(k)` when window `i` counts for horizon `k` only (paper protocol),
+/// `None` when it counts for all.
 pub fn fit_calibration(
     logits: &[Vec<f32>],
     labels: &[Vec<bool>],
+    scored: &[Option<usize>],
     horizons_ms: &[u32],
     fitted_on: String,
 ) -> (Calibration, Vec<HorizonFit>) {
     let k = horizons_ms.len();
     let mut cal = Calibration::identity(k);
     cal.fitted_on = fitted_on;
+    let rows = |h: usize| (0..logits.len()).filter(move |&i| scored[i].is_none_or(|s| s == h));
     for h in 0..k {
-        let z: Vec<f32> = logits.iter().map(|r| r[h]).collect();
-        let y: Vec<bool> = labels.iter().map(|r| r[h]).collect();
+        let z: Vec<f32> = rows(h).map(|i| logits[i][h]).collect();
+        let y: Vec<bool> = rows(h).map(|i| labels[i][h]).collect();
         let (a, b) = fit_platt(&z, &y);
         cal.scale[h] = a;
         cal.bias[h] = b;
@@ -150,8 +159,8 @@ pub fn fit_calibration(
     let after: Vec<Vec<f32>> = logits.iter().map(|r| cal.apply(r)).collect();
     let fits = (0..k)
         .map(|h| {
-            let y: Vec<bool> = labels.iter().map(|r| r[h]).collect();
-            let col = |rows: &[Vec<f32>]| rows.iter().map(|r| r[h]).collect::<Vec<f32>>();
+            let y: Vec<bool> = rows(h).map(|i| labels[i][h]).collect();
+            let col = |p: &[Vec<f32>]| rows(h).map(|i| p[i][h]).collect::<Vec<f32>>();
             HorizonFit {
                 horizon_ms: horizons_ms[h],
                 scale: cal.scale[h],
@@ -186,15 +195,17 @@ pub fn run_calibrate(args: &CalibrateArgs) -> anyhow::Result<()> {
         &dataset,
         split,
         &meta.window_spec(),
-        needs_of(Some(meta.ablation)),
+        needs_of_model(meta),
         &meta.horizons_ticks,
         args.sample_seed,
+        args.protocol,
     )?;
-    let (mut logits, mut labels) = (Vec::new(), Vec::new());
+    let (mut logits, mut labels, mut scored) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..args.draws.max(1) {
         for w in windows.epoch()? {
             logits.push(model.logits_arrays(&w.joints, &w.plan, &w.frames)?);
             labels.push(w.labels.iter().map(|&l| l > 0.5).collect::<Vec<bool>>());
+            scored.push(w.scored_horizon);
         }
     }
     if logits.is_empty() {
@@ -205,14 +216,15 @@ pub fn run_calibrate(args: &CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     let fitted_on = format!(
-        "{} split of {}, {} windows ({} draws per episode, sampler seed {})",
+        "{} split of {}, {} windows ({} draws per episode, sampler seed {}, {} protocol)",
         split.name(),
         args.data.display(),
         logits.len(),
         args.draws.max(1),
-        args.sample_seed
+        args.sample_seed,
+        args.protocol
     );
-    let (cal, fits) = fit_calibration(&logits, &labels, &meta.horizons_ms(), fitted_on);
+    let (cal, fits) = fit_calibration(&logits, &labels, &scored, &meta.horizons_ms(), fitted_on);
     println!(
         "| horizon | scale | bias | ECE before ({}) | ECE after |",
         split.name()
@@ -283,7 +295,8 @@ mod tests {
         let (_, y2) = sample(0.4, 0.5, 5000);
         let logits: Vec<Vec<f32>> = z.iter().map(|&z| vec![z, z + 0.2]).collect();
         let labels: Vec<Vec<bool>> = y1.iter().zip(&y2).map(|(&a, &b)| vec![a, b]).collect();
-        let (cal, fits) = fit_calibration(&logits, &labels, &[500, 1000], "test".into());
+        let scored = vec![None; logits.len()];
+        let (cal, fits) = fit_calibration(&logits, &labels, &scored, &[500, 1000], "test".into());
         for f in &fits {
             assert!(f.ece_after < f.ece_before, "{f:?}");
             assert!(f.ece_after < 0.03, "{f:?}");

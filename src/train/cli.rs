@@ -3,18 +3,22 @@
 //! `window`): the same code the daemon uses to build its windows.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::{bail, Context};
+use rand::rngs::StdRng;
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
 
-use super::eval::{predict, report, Predictions};
+use super::eval::{predict, report, EvalReport, Predictions};
 use super::fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
 use super::logreg::LogRegModel;
 use super::plots;
 use crate::model::{
-    save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster,
+    save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster, TrajectoryInput,
 };
 use crate::train::dataset::{Dataset, Split};
-use crate::train::sampler::{SamplerConfig, WindowSampler};
+use crate::train::sampler::{labels_at, Protocol, SamplerConfig, SamplerError, WindowSampler};
 use crate::window::{EpisodeTicks, Streams, WindowSpec};
 
 /// Arguments of `fall-guard train`.
@@ -65,6 +69,20 @@ pub struct TrainArgs {
     /// What the data is, stored in the model file.
     #[arg(long, default_value = "simulated")]
     pub trained_on: String,
+    /// How training and validation windows are drawn: `deployment` (one set
+    /// for all horizons, balanced at the middle one) or `paper` (one set per
+    /// horizon, balanced at it, windows ending at or before its stop line).
+    #[arg(long, value_enum, default_value_t = Protocol::Deployment)]
+    pub protocol: Protocol,
+    /// Train one network per horizon P (each with that one horizon, its plan
+    /// reaching P ticks ahead), written next to --out as `NAME.h<P>.EXT`.
+    #[arg(long)]
+    pub per_horizon: bool,
+    /// What the trajectory encoder reads: `planned` (past and future plan),
+    /// `historical-only` (past N plan ticks), `real-position` (the measured
+    /// joints). Stored in the model file.
+    #[arg(long, value_enum, default_value_t = TrajectoryInput::Planned)]
+    pub trajectory: TrajectoryInput,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -91,9 +109,14 @@ pub struct EvalArgs {
     /// Seed of the test-window sampler.
     #[arg(long, default_value_t = 12345)]
     pub sample_seed: u64,
-    /// Windows drawn per episode (each an independent draw).
+    /// Windows drawn per episode (each an independent draw; under the paper
+    /// protocol, per episode and horizon).
     #[arg(long, default_value_t = 1)]
     pub draws: usize,
+    /// The protocol of the plots and of the report's top-level `horizons`;
+    /// the report has a section for each protocol either way.
+    #[arg(long, value_enum, default_value_t = Protocol::Deployment)]
+    pub protocol: Protocol,
     /// Offline per-tick forecast of one recording (with --per-tick-out).
     #[arg(long)]
     pub recording: Option<PathBuf>,
@@ -102,12 +125,14 @@ pub struct EvalArgs {
     pub per_tick_out: Option<PathBuf>,
 }
 
-/// The streams an ablation reads.
-pub fn needs_of(ablation: Option<Ablation>) -> Streams {
+/// The streams a model reads: its ablation's, and the plan only when its
+/// trajectory input is cut from the plan (`None`: the logistic baseline,
+/// joints + plan).
+pub fn needs_of(ablation: Option<Ablation>, trajectory: TrajectoryInput) -> Streams {
     match ablation {
         Some(a) => Streams {
             joints: true,
-            plan: a.uses_plan(),
+            plan: a.uses_plan() && trajectory.reads_plan(),
             frames: a.uses_vision(),
         },
         // logreg: joints + plan
@@ -119,16 +144,50 @@ pub fn needs_of(ablation: Option<Ablation>) -> Streams {
     }
 }
 
-/// Labelled windows of a split: each episode's sampler picks, `draws` epochs.
+/// The streams `meta`'s network reads.
+pub fn needs_of_model(meta: &ModelMeta) -> Streams {
+    needs_of(Some(meta.ablation), meta.config.trajectory)
+}
+
+/// The episodes of one split, read once (windows of both protocols are cut
+/// from them).
+pub fn load_split_episodes(
+    dataset: &Dataset,
+    split: Split,
+    spec: &WindowSpec,
+    needs: Streams,
+) -> Result<Arc<Vec<EpisodeTicks>>, TrainError> {
+    let episodes = dataset.load_split(split, spec, needs).map_err(|e| {
+        TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display()))
+    })?;
+    Ok(Arc::new(episodes))
+}
+
+/// The sampler seed of the paper protocol's window set of horizon `h`
+/// ticks: it depends on the horizon's length, not on its position in the
+/// model's list, so a one-horizon model (`train --per-horizon`) is scored
+/// on the very windows the all-horizon model is scored on at that horizon.
+fn paper_seed(seed: u64, horizon_ticks: usize) -> u64 {
+    seed ^ (horizon_ticks as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+}
+
+/// Labelled windows of a split under one [`Protocol`]: per epoch, one
+/// window per usable episode (deployment), or one per usable episode and
+/// horizon (paper: each horizon's own balanced set, its windows marked with
+/// [`LabeledWindow::scored_horizon`], the union shuffled).
 pub struct SplitWindows {
-    episodes: Vec<EpisodeTicks>,
-    sampler: WindowSampler,
+    episodes: Arc<Vec<EpisodeTicks>>,
+    /// One sampler per window set, with the horizon index it is scored at
+    /// (`None`: all horizons).
+    sets: Vec<(Option<usize>, WindowSampler)>,
+    horizons: Vec<usize>,
     spec: WindowSpec,
     needs: Streams,
+    rng: StdRng,
 }
 
 impl SplitWindows {
-    /// Loads `split` of `dataset` for `spec`.
+    /// Loads `split` of `dataset` for `spec` and draws windows under `protocol`.
     pub fn load(
         dataset: &Dataset,
         split: Split,
@@ -136,48 +195,85 @@ impl SplitWindows {
         needs: Streams,
         horizons: &[usize],
         seed: u64,
+        protocol: Protocol,
     ) -> Result<Self, TrainError> {
-        let episodes = dataset.load_split(split, spec, needs).map_err(|e| {
+        let episodes = load_split_episodes(dataset, split, spec, needs)?;
+        Self::new(episodes, spec, needs, horizons, seed, protocol).map_err(|e| {
             TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display()))
-        })?;
-        let mut cfg = SamplerConfig::new(spec.n_ticks, horizons.to_vec());
-        cfg.needs = needs;
-        let sampler = WindowSampler::new(&episodes, cfg, seed).map_err(|e| {
-            TrainError::Data(format!("{} split of {}: {e}", split, dataset.dir.display()))
-        })?;
-        Ok(SplitWindows {
-            episodes,
-            sampler,
-            spec: spec.clone(),
-            needs,
         })
     }
 
-    /// The next epoch of windows (one per usable episode).
-    pub fn epoch(&mut self) -> Result<Vec<LabeledWindow>, TrainError> {
-        let picks = self.sampler.epoch();
-        let mut out = Vec::with_capacity(picks.len());
-        for pick in picks {
-            let ep = &self.episodes[pick.episode];
-            let w = ep
-                .window_ending_at(pick.end_tick, &self.spec, self.needs)
-                .map_err(|e| {
-                    TrainError::Data(format!(
-                        "{} at tick {}: {e}",
-                        ep.path.display(),
-                        pick.end_tick
+    /// Windows of episodes already read.
+    pub fn new(
+        episodes: Arc<Vec<EpisodeTicks>>,
+        spec: &WindowSpec,
+        needs: Streams,
+        horizons: &[usize],
+        seed: u64,
+        protocol: Protocol,
+    ) -> Result<Self, SamplerError> {
+        let sets = match protocol {
+            Protocol::Deployment => {
+                let mut cfg = SamplerConfig::new(spec.n_ticks, horizons.to_vec());
+                cfg.needs = needs;
+                vec![(None, WindowSampler::new(&episodes, cfg, seed)?)]
+            }
+            Protocol::Paper => horizons
+                .iter()
+                .enumerate()
+                .map(|(k, &h)| {
+                    let mut cfg = SamplerConfig::paper(spec.n_ticks, h);
+                    cfg.needs = needs;
+                    Ok((
+                        Some(k),
+                        WindowSampler::new(&episodes, cfg, paper_seed(seed, h))?,
                     ))
-                })?;
-            out.push(LabeledWindow {
-                joints: w.joints,
-                plan: w.plan,
-                frames: w.frames,
-                labels: pick
-                    .labels
-                    .iter()
-                    .map(|&b| f32::from(u8::from(b)))
-                    .collect(),
-            });
+                })
+                .collect::<Result<_, SamplerError>>()?,
+        };
+        Ok(SplitWindows {
+            episodes,
+            sets,
+            horizons: horizons.to_vec(),
+            spec: spec.clone(),
+            needs,
+            rng: StdRng::seed_from_u64(seed ^ 0x5E75),
+        })
+    }
+
+    /// The next epoch of windows.
+    pub fn epoch(&mut self) -> Result<Vec<LabeledWindow>, TrainError> {
+        let mut out = Vec::new();
+        for (scored, sampler) in &mut self.sets {
+            for pick in sampler.epoch() {
+                let ep = &self.episodes[pick.episode];
+                let w = ep
+                    .window_ending_at(pick.end_tick, &self.spec, self.needs)
+                    .map_err(|e| {
+                        TrainError::Data(format!(
+                            "{} at tick {}: {e}",
+                            ep.path.display(),
+                            pick.end_tick
+                        ))
+                    })?;
+                // Every horizon's truth (the paper's picks carry only the
+                // scored one's).
+                let labels = match scored {
+                    None => pick.labels,
+                    Some(_) => labels_at(ep.fall_onset_tick, pick.end_tick, &self.horizons),
+                };
+                out.push(LabeledWindow {
+                    joints: w.joints,
+                    plan: w.plan,
+                    frames: w.frames,
+                    labels: labels.iter().map(|&b| f32::from(u8::from(b))).collect(),
+                    episode: pick.episode,
+                    scored_horizon: *scored,
+                });
+            }
+        }
+        if self.sets.len() > 1 {
+            out.shuffle(&mut self.rng);
         }
         Ok(out)
     }
@@ -201,7 +297,22 @@ fn default_joint_names() -> Vec<String> {
     crate::robot::JointTable::poppy_humanoid().names()
 }
 
-/// Runs `fall-guard train`.
+/// Where `train --per-horizon` writes the network of horizon `h` ticks:
+/// `models/emp.bpk` -> `models/emp.h15.bpk`.
+pub fn per_horizon_path(out: &Path, horizon_ticks: usize) -> PathBuf {
+    let stem = out
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let name = match out.extension() {
+        Some(ext) => format!("{stem}.h{horizon_ticks}.{}", ext.to_string_lossy()),
+        None => format!("{stem}.h{horizon_ticks}"),
+    };
+    out.with_file_name(name)
+}
+
+/// Runs `fall-guard train`: one model for all horizons, or with
+/// `--per-horizon` one per horizon.
 pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
     let dataset = Dataset::open(&args.data)
         .with_context(|| format!("opening data set {}", args.data.display()))?;
@@ -212,7 +323,13 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
     } else {
         Some(args.ablation.parse().map_err(anyhow::Error::msg)?)
     };
-    let cfg = ModelConfig::named(
+    if logreg && args.trajectory != TrajectoryInput::Planned {
+        bail!(
+            "--trajectory {}: the logistic baseline reads the planned window only",
+            args.trajectory
+        );
+    }
+    let mut cfg = ModelConfig::named(
         &args.config,
         args.n_ticks,
         joint_names.len(),
@@ -220,6 +337,7 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
         args.frame_size as usize,
     )
     .map_err(anyhow::Error::msg)?;
+    cfg.trajectory = args.trajectory;
     cfg.validate().map_err(anyhow::Error::msg)?;
     let spec = WindowSpec {
         n_ticks: cfg.n_ticks,
@@ -228,25 +346,63 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
         joint_names: joint_names.clone(),
         frame_size: args.frame_size,
     };
-    let needs = needs_of(ablation);
-    let mut train = SplitWindows::load(
-        &dataset,
-        Split::Train,
-        &spec,
-        needs,
-        &cfg.horizons_ticks,
-        args.seed,
-    )?;
-    let validation = SplitWindows::load(
-        &dataset,
-        Split::Validation,
-        &spec,
-        needs,
-        &cfg.horizons_ticks,
-        args.seed ^ 0x5EED,
-    )?
-    .epoch()?;
-    if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+    let needs = needs_of(ablation, cfg.trajectory);
+    // Read once; every per-horizon network cuts its windows from them.
+    let train_eps = load_split_episodes(&dataset, Split::Train, &spec, needs)?;
+    let val_eps = load_split_episodes(&dataset, Split::Validation, &spec, needs)?;
+    let runs: Vec<(Vec<usize>, PathBuf)> = if args.per_horizon {
+        cfg.horizons_ticks
+            .iter()
+            .map(|&h| (vec![h], per_horizon_path(&args.out, h)))
+            .collect()
+    } else {
+        vec![(cfg.horizons_ticks.clone(), args.out.clone())]
+    };
+    for (horizons, out) in runs {
+        let mut cfg = cfg.clone();
+        cfg.horizons_ticks = horizons;
+        let spec = WindowSpec {
+            max_horizon_ticks: cfg.max_horizon_ticks(),
+            ..spec.clone()
+        };
+        let data = |e: SamplerError, split: Split| {
+            TrainError::Data(format!("{split} split of {}: {e}", dataset.dir.display()))
+        };
+        let train = SplitWindows::new(
+            train_eps.clone(),
+            &spec,
+            needs,
+            &cfg.horizons_ticks,
+            args.seed,
+            args.protocol,
+        )
+        .map_err(|e| data(e, Split::Train))?;
+        let validation = SplitWindows::new(
+            val_eps.clone(),
+            &spec,
+            needs,
+            &cfg.horizons_ticks,
+            args.seed ^ 0x5EED,
+            args.protocol,
+        )
+        .map_err(|e| data(e, Split::Validation))?
+        .epoch()?;
+        train_one(args, ablation, cfg, &joint_names, train, validation, &out)?;
+    }
+    Ok(())
+}
+
+/// Trains and writes one model of `cfg`'s horizons.
+fn train_one(
+    args: &TrainArgs,
+    ablation: Option<Ablation>,
+    cfg: ModelConfig,
+    joint_names: &[String],
+    mut train: SplitWindows,
+    validation: Vec<LabeledWindow>,
+    out: &Path,
+) -> anyhow::Result<()> {
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent)
             .with_context(|| format!("creating {}", parent.display()))?;
     }
@@ -258,18 +414,16 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
                 cfg.horizons_ticks.clone(),
                 args.rate_hz,
                 cfg.n_ticks,
-                joint_names,
+                joint_names.to_vec(),
             )?;
             m.trained_on = args.trained_on.clone();
-            m.save(&args.out)?;
-            eprintln!(
-                "logistic-regression baseline written to {}",
-                args.out.display()
-            );
+            m.save(out)?;
+            eprintln!("logistic-regression baseline written to {}", out.display());
         }
         Some(ablation) => {
-            let mut meta = ModelMeta::new(cfg, ablation, args.rate_hz, joint_names);
+            let mut meta = ModelMeta::new(cfg, ablation, args.rate_hz, joint_names.to_vec());
             meta.trained_on = args.trained_on.clone();
+            meta.protocol = Some(args.protocol.name().into());
             let rates = match args.rates.as_str() {
                 "sim" => EncoderRates::sim(),
                 "robot" => EncoderRates::robot(),
@@ -285,11 +439,14 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
             };
             let mut source = DatasetSource { train, validation };
             let (meta, model) = fit(meta, &mut source, &opts)?;
-            save_model(&args.out, &meta, &model)?;
+            save_model(out, &meta, &model)?;
             eprintln!(
-                "{} model written to {} (best epoch {}, val loss {:.4})",
+                "{} model ({} trajectory, {} protocol, horizons {:?} ticks) written to {} (best epoch {}, val loss {:.4})",
                 ablation,
-                args.out.display(),
+                meta.config.trajectory,
+                args.protocol,
+                meta.horizons_ticks,
+                out.display(),
                 meta.best_epoch,
                 meta.history
                     .get(meta.best_epoch.saturating_sub(1))
@@ -348,7 +505,7 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     let (spec, needs, horizons, rate_hz, ablation_name, history) = match &models[0] {
         AnyModel::Network(m) => (
             m.meta.window_spec(),
-            needs_of(Some(m.meta.ablation)),
+            needs_of_model(&m.meta),
             m.meta.horizons_ticks.clone(),
             m.meta.rate_hz,
             m.meta.ablation.to_string(),
@@ -362,7 +519,7 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
                 joint_names: m.joint_names.clone(),
                 frame_size: 64,
             },
-            needs_of(None),
+            needs_of(None, TrajectoryInput::Planned),
             m.horizons_ticks.clone(),
             m.rate_hz,
             "logreg".to_string(),
@@ -371,6 +528,14 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
     };
     for m in &models[1..] {
         if let AnyModel::Network(m) = m {
+            if m.meta.horizons_ticks != horizons {
+                bail!(
+                    "{} forecasts horizons {:?} ticks, the first model {:?}: --seeds must be the same model trained with other seeds (evaluate a per-horizon network on its own)",
+                    m.path.display(),
+                    m.meta.horizons_ticks,
+                    horizons
+                );
+            }
             m.meta.check_compatible_with(
                 &spec.joint_names,
                 spec.rate_hz,
@@ -380,41 +545,77 @@ pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
             )?;
         }
     }
-    let mut split_windows =
-        SplitWindows::load(&dataset, split, &spec, needs, &horizons, args.sample_seed)?;
-    let mut windows = Vec::new();
-    for _ in 0..args.draws.max(1) {
-        windows.extend(split_windows.epoch()?);
+    let episodes = load_split_episodes(&dataset, split, &spec, needs)?;
+    let mut order = vec![args.protocol];
+    order.extend(Protocol::ALL.into_iter().filter(|&p| p != args.protocol));
+    let mut sections = Vec::new();
+    let mut primary: Option<(Vec<LabeledWindow>, Vec<Predictions>)> = None;
+    for protocol in order {
+        let mut split_windows = SplitWindows::new(
+            episodes.clone(),
+            &spec,
+            needs,
+            &horizons,
+            args.sample_seed,
+            protocol,
+        )
+        .map_err(|e| {
+            anyhow::anyhow!(
+                "{} split of {} under the {protocol} protocol: {e}",
+                split.name(),
+                data.display()
+            )
+        })?;
+        let mut windows = Vec::new();
+        for _ in 0..args.draws.max(1) {
+            windows.extend(split_windows.epoch()?);
+        }
+        let preds: Vec<Predictions> = models
+            .iter()
+            .map(|m| match m {
+                AnyModel::Network(m) => predict(m, &windows),
+                AnyModel::LogReg(m, p) => Ok(Predictions {
+                    model: p.display().to_string(),
+                    probabilities: windows
+                        .iter()
+                        .map(|w| m.predict(w))
+                        .collect::<Result<_, _>>()?,
+                }),
+            })
+            .collect::<Result<_, TrainError>>()?;
+        sections.push(report(
+            &preds,
+            &windows,
+            &horizons,
+            rate_hz,
+            protocol,
+            args.sample_seed,
+        ));
+        if primary.is_none() {
+            primary = Some((windows, preds));
+        }
     }
-    let preds: Vec<Predictions> = models
-        .iter()
-        .map(|m| match m {
-            AnyModel::Network(m) => predict(m, &windows),
-            AnyModel::LogReg(m, p) => Ok(Predictions {
-                model: p.display().to_string(),
-                probabilities: windows
-                    .iter()
-                    .map(|w| m.predict(w))
-                    .collect::<Result<_, _>>()?,
-            }),
-        })
-        .collect::<Result<_, TrainError>>()?;
-    let rep = report(
-        &preds,
-        &windows,
-        &horizons,
-        rate_hz,
+    let rep = EvalReport::new(
+        paths.iter().map(|p| p.display().to_string()).collect(),
         &ablation_name,
         split.name(),
+        sections,
     );
     rep.write(out_dir)
         .with_context(|| format!("writing to {}", out_dir.display()))?;
-    // Plots of the first model.
+    let (windows, preds) = primary.expect("at least one protocol");
+    // Plots of the first model, primary protocol, each horizon on the
+    // windows that score it.
+    let scored = |k: usize| windows.iter().enumerate().filter(move |(_, w)| w.scores(k));
     let labels: Vec<Vec<bool>> = (0..horizons.len())
-        .map(|k| windows.iter().map(|w| w.labels[k] > 0.5).collect())
+        .map(|k| scored(k).map(|(_, w)| w.labels[k] > 0.5).collect())
         .collect();
     let probs: Vec<Vec<f32>> = (0..horizons.len())
-        .map(|k| preds[0].probabilities.iter().map(|r| r[k]).collect())
+        .map(|k| {
+            scored(k)
+                .map(|(i, _)| preds[0].probabilities[i][k])
+                .collect()
+        })
         .collect();
     let series: Vec<plots::HorizonSeries<'_>> = horizons
         .iter()
@@ -443,7 +644,7 @@ pub fn forecast_ticks(
     model: &LoadedModel,
     episode: &EpisodeTicks,
 ) -> anyhow::Result<Vec<(i64, i64, Vec<f32>)>> {
-    let needs = needs_of(Some(model.meta.ablation));
+    let needs = needs_of_model(&model.meta);
     let mut stream = StreamingForecaster::new(model);
     let mut out = Vec::with_capacity(episode.ticks.len());
     for tick in &episode.ticks {
@@ -473,7 +674,7 @@ pub fn per_tick_forecast(
 ) -> anyhow::Result<usize> {
     use std::io::Write;
     let spec = model.meta.window_spec();
-    let needs = needs_of(Some(model.meta.ablation));
+    let needs = needs_of_model(&model.meta);
     let episode = crate::train::dataset::load_episode(recording, &spec, needs)
         .with_context(|| format!("reading {}", recording.display()))?;
     let forecasts = forecast_ticks(model, &episode)?;

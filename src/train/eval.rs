@@ -2,14 +2,20 @@
 //! labelled windows, written as JSON and a Markdown table, plus PNG plots.
 //!
 //! In: models and [`LabeledWindow`]s (from the data plane's sampler on the
-//! test split). Out: an [`EvalReport`] and files under the output directory.
+//! test split), once per sampling protocol. Out: an [`EvalReport`] with one
+//! [`ProtocolReport`] per protocol (deployment and paper, both always) and
+//! files under the output directory. Horizon `k` is scored on the windows
+//! that score it ([`LabeledWindow::scores`]): all of them under the
+//! deployment protocol, horizon `k`'s own set under the paper's. The ECE
+//! comes with a 95% bootstrap interval that resamples episodes.
 
 use std::path::Path;
 
 use serde::Serialize;
 
 use super::fit::{LabeledWindow, TrainError};
-use super::metrics::{metrics, Metrics};
+use super::metrics::{ece_bootstrap, metrics, EceInterval, Metrics};
+use super::sampler::Protocol;
 use crate::model::LoadedModel;
 
 /// Predictions of one model on a set of windows: `[window][horizon]`.
@@ -65,10 +71,31 @@ pub struct HorizonReport {
     pub recall: MeanStd,
     /// ECE over seeds.
     pub ece: MeanStd,
+    /// Per model (seed): 95% bootstrap interval of the ECE, resampling
+    /// episodes ([`ECE_RESAMPLES`] resamples).
+    pub ece_ci95: Vec<EceInterval>,
     /// ROC-AUC over seeds.
     pub roc_auc: MeanStd,
+    /// Windows scored at this horizon.
+    pub windows: usize,
     /// Fraction of positive labels.
     pub positive_rate: f64,
+}
+
+/// Resamples of the ECE bootstrap.
+pub const ECE_RESAMPLES: usize = 1000;
+
+/// The metrics of one sampling protocol.
+#[derive(Debug, Clone, Serialize)]
+pub struct ProtocolReport {
+    /// `deployment` or `paper`.
+    pub protocol: String,
+    /// How its windows are drawn.
+    pub description: String,
+    /// Number of windows (paper: all horizons' sets together).
+    pub windows: usize,
+    /// Per horizon.
+    pub horizons: Vec<HorizonReport>,
 }
 
 /// The evaluation report.
@@ -80,10 +107,14 @@ pub struct EvalReport {
     pub ablation: String,
     /// Split evaluated.
     pub split: String,
-    /// Number of windows.
+    /// The protocol of `windows`, `horizons` and the plots (`eval --protocol`).
+    pub protocol: String,
+    /// Number of windows of `protocol`.
     pub windows: usize,
-    /// Per horizon.
+    /// Per horizon, under `protocol` (a copy of its entry in `protocols`).
     pub horizons: Vec<HorizonReport>,
+    /// Every protocol, `protocol` first.
+    pub protocols: Vec<ProtocolReport>,
 }
 
 /// Runs every model on every window.
@@ -98,25 +129,42 @@ pub fn predict(model: &LoadedModel, windows: &[LabeledWindow]) -> Result<Predict
     })
 }
 
-/// Scores predictions of several models (seeds) against the windows' labels.
+/// Scores predictions of several models (seeds) against the windows' labels
+/// under `protocol`: horizon `k` on the windows that score it. `seed` makes
+/// the ECE bootstrap deterministic.
 pub fn report(
     preds: &[Predictions],
     windows: &[LabeledWindow],
     horizons_ticks: &[usize],
     rate_hz: f64,
-    ablation: &str,
-    split: &str,
-) -> EvalReport {
+    protocol: Protocol,
+    seed: u64,
+) -> ProtocolReport {
     let horizons = horizons_ticks
         .iter()
         .enumerate()
         .map(|(k, &h)| {
-            let y: Vec<bool> = windows.iter().map(|w| w.labels[k] > 0.5).collect();
-            let per_model: Vec<Metrics> = preds
+            let scored: Vec<usize> = (0..windows.len())
+                .filter(|&i| windows[i].scores(k))
+                .collect();
+            let y: Vec<bool> = scored.iter().map(|&i| windows[i].labels[k] > 0.5).collect();
+            let episodes: Vec<usize> = scored.iter().map(|&i| windows[i].episode).collect();
+            let column = |p: &Predictions| -> Vec<f32> {
+                scored.iter().map(|&i| p.probabilities[i][k]).collect()
+            };
+            let per_model: Vec<Metrics> = preds.iter().map(|p| metrics(&column(p), &y)).collect();
+            let ece_ci95 = preds
                 .iter()
                 .map(|p| {
-                    let pk: Vec<f32> = p.probabilities.iter().map(|row| row[k]).collect();
-                    metrics(&pk, &y)
+                    ece_bootstrap(
+                        &column(p),
+                        &y,
+                        &episodes,
+                        15,
+                        ECE_RESAMPLES,
+                        0.95,
+                        seed ^ h as u64,
+                    )
                 })
                 .collect();
             let col =
@@ -129,51 +177,87 @@ pub fn report(
                 precision: col(|m| m.precision),
                 recall: col(|m| m.recall),
                 ece: col(|m| m.ece),
+                ece_ci95,
                 roc_auc: col(|m| m.roc_auc),
+                windows: y.len(),
                 positive_rate: y.iter().filter(|&&v| v).count() as f64 / y.len().max(1) as f64,
                 per_model,
             }
         })
         .collect();
-    EvalReport {
-        models: preds.iter().map(|p| p.model.clone()).collect(),
-        ablation: ablation.into(),
-        split: split.into(),
+    ProtocolReport {
+        protocol: protocol.name().into(),
+        description: protocol.description().into(),
         windows: windows.len(),
         horizons,
     }
 }
 
 impl EvalReport {
-    /// The Markdown table (mean ± std over seeds).
+    /// The report of `models` with one section per protocol, the first the
+    /// primary one.
+    pub fn new(
+        models: Vec<String>,
+        ablation: &str,
+        split: &str,
+        protocols: Vec<ProtocolReport>,
+    ) -> EvalReport {
+        let primary = protocols.first();
+        EvalReport {
+            models,
+            ablation: ablation.into(),
+            split: split.into(),
+            protocol: primary.map(|p| p.protocol.clone()).unwrap_or_default(),
+            windows: primary.map_or(0, |p| p.windows),
+            horizons: primary.map(|p| p.horizons.clone()).unwrap_or_default(),
+            protocols,
+        }
+    }
+
+    /// The Markdown report: one table per protocol (mean ± std over seeds;
+    /// the ECE interval is the first model's).
     pub fn markdown(&self) -> String {
         let mut s = format!(
-            "# Evaluation: {} on the {} split ({} windows, {} model(s))\n\n",
+            "# Evaluation: {} on the {} split ({} model(s))\n",
             self.ablation,
             self.split,
-            self.windows,
             self.models.len()
         );
-        s.push_str(
-            "| horizon | accuracy | F1 | precision | recall | ECE | ROC-AUC | positives |\n",
-        );
-        s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- |\n");
         let f = |m: MeanStd| format!("{:.3} ± {:.3}", m.mean, m.std);
-        for h in &self.horizons {
+        for p in &self.protocols {
             s.push_str(&format!(
-                "| {} ticks ({:.0} ms) | {} | {} | {} | {} | {} | {} | {:.2} |\n",
-                h.horizon_ticks,
-                h.horizon_ms,
-                f(h.accuracy),
-                f(h.f1),
-                f(h.precision),
-                f(h.recall),
-                f(h.ece),
-                f(h.roc_auc),
-                h.positive_rate
+                "\n## Protocol: {} ({} windows)\n\n{}.\n\n",
+                p.protocol, p.windows, p.description
             ));
+            s.push_str(
+                "| horizon | accuracy | F1 | precision | recall | ECE | ECE 95% CI | ROC-AUC | windows | positives |\n",
+            );
+            s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
+            for h in &p.horizons {
+                let ci = h
+                    .ece_ci95
+                    .first()
+                    .map(|c| format!("[{:.3}, {:.3}]", c.lower, c.upper))
+                    .unwrap_or_default();
+                s.push_str(&format!(
+                    "| {} ticks ({:.0} ms) | {} | {} | {} | {} | {} | {} | {} | {} | {:.2} |\n",
+                    h.horizon_ticks,
+                    h.horizon_ms,
+                    f(h.accuracy),
+                    f(h.f1),
+                    f(h.precision),
+                    f(h.recall),
+                    f(h.ece),
+                    ci,
+                    f(h.roc_auc),
+                    h.windows,
+                    h.positive_rate
+                ));
+            }
         }
-        s.push_str("\nModels:\n");
+        s.push_str(&format!(
+            "\nECE 95% CI: percentile bootstrap over episodes, {ECE_RESAMPLES} resamples (first model; every model's in metrics.json).\n\nModels:\n"
+        ));
         for m in &self.models {
             s.push_str(&format!("- `{m}`\n"));
         }

@@ -25,6 +25,20 @@ pub struct LabeledWindow {
     pub frames: Vec<f32>,
     /// `K` labels: 1 if fallen at `t + h_k`.
     pub labels: Vec<f32>,
+    /// The episode it was cut from (index in its split): the unit the
+    /// bootstrap of `eval` resamples.
+    pub episode: usize,
+    /// `Some(k)`: drawn for horizon `k` alone (the paper protocol: balanced
+    /// at `h_k`, stop line at `h_k`), so only label `k` is trained on and
+    /// scored; `None`: every horizon (the deployment protocol).
+    pub scored_horizon: Option<usize>,
+}
+
+impl LabeledWindow {
+    /// Whether label `k` of this window is trained on and scored.
+    pub fn scores(&self, k: usize) -> bool {
+        self.scored_horizon.is_none_or(|s| s == k)
+    }
 }
 
 /// Errors of training.
@@ -170,7 +184,10 @@ pub fn standardisation(meta: &mut ModelMeta, windows: &[LabeledWindow]) {
         (mean, std)
     };
     (meta.joint_mean, meta.joint_std) = stats(&|w| &w.joints);
-    (meta.plan_mean, meta.plan_std) = stats(&|w| &w.plan);
+    // The trajectory encoder's input as the model reads it (the planned
+    // window, its past part only, or the measured joints).
+    let cfg = meta.config.clone();
+    (meta.plan_mean, meta.plan_std) = stats(&|w| cfg.trajectory_rows(&w.joints, &w.plan));
 }
 
 /// Numerically stable binary cross-entropy with logits, mean over batch and horizons.
@@ -178,6 +195,35 @@ pub fn bce_with_logits(logits: Tensor<2>, labels: Tensor<2>) -> Tensor<1> {
     let pos = logits.clone().clamp_min(0.0);
     let log_term = logits.clone().abs().neg().exp().log1p();
     (pos - logits * labels + log_term).mean()
+}
+
+/// Binary cross-entropy with logits over the scored labels only (`mask` 1
+/// for a scored label, 0 otherwise): their mean.
+pub fn masked_bce_with_logits(logits: Tensor<2>, labels: Tensor<2>, mask: Tensor<2>) -> Tensor<1> {
+    let pos = logits.clone().clamp_min(0.0);
+    let log_term = logits.clone().abs().neg().exp().log1p();
+    let scored = mask.clone().sum().clamp_min(1.0);
+    ((pos - logits * labels + log_term) * mask).sum() / scored
+}
+
+/// The batch's loss: plain BCE when every label is scored (deployment
+/// protocol), masked BCE when windows were drawn for one horizon each.
+fn batch_loss(
+    logits: Tensor<2>,
+    batch: &[LabeledWindow],
+    k: usize,
+    device: &Device,
+) -> Result<Tensor<1>, TrainError> {
+    let labels = labels_tensor(batch, k, device)?;
+    if batch.iter().all(|w| w.scored_horizon.is_none()) {
+        return Ok(bce_with_logits(logits, labels));
+    }
+    let mask: Vec<f32> = batch
+        .iter()
+        .flat_map(|w| (0..k).map(move |h| f32::from(u8::from(w.scores(h)))))
+        .collect();
+    let mask = Tensor::<2>::from_data(TensorData::new(mask, [batch.len(), k]), device);
+    Ok(masked_bce_with_logits(logits, labels, mask))
 }
 
 fn labels_tensor(
@@ -191,6 +237,12 @@ fn labels_tensor(
             return Err(TrainError::Data(format!(
                 "a window has {} labels, the model has {k} horizons",
                 w.labels.len()
+            )));
+        }
+        if w.scored_horizon.is_some_and(|s| s >= k) {
+            return Err(TrainError::Data(format!(
+                "a window is scored at horizon index {:?}, the model has {k} horizons",
+                w.scored_horizon
             )));
         }
         v.extend_from_slice(&w.labels);
@@ -225,17 +277,18 @@ pub fn evaluate_loss(
     let (mut loss_sum, mut correct, mut count) = (0.0f64, 0usize, 0usize);
     for batch in windows.chunks(batch_size.max(1)) {
         let logits = model.forward(input_for(meta, batch, &device)?);
-        let labels = labels_tensor(batch, k, &device)?;
-        let loss: f32 = bce_with_logits(logits.clone(), labels).into_scalar();
+        let loss: f32 = batch_loss(logits.clone(), batch, k, &device)?.into_scalar();
         loss_sum += loss as f64 * batch.len() as f64;
         let z: Vec<f32> = logits
             .into_data()
             .try_to_vec::<f32>()
             .map_err(|e| TrainError::Data(format!("{e:?}")))?;
         for (w, row) in batch.iter().zip(z.chunks(k)) {
-            for (y, zv) in w.labels.iter().zip(row) {
-                correct += usize::from((*zv > 0.0) == (*y > 0.5));
-                count += 1;
+            for (h, (y, zv)) in w.labels.iter().zip(row).enumerate() {
+                if w.scores(h) {
+                    correct += usize::from((*zv > 0.0) == (*y > 0.5));
+                    count += 1;
+                }
             }
         }
     }
@@ -314,8 +367,7 @@ pub fn fit(
         let mut loss_sum = 0.0f64;
         for (step, batch) in windows.chunks(opts.batch_size.max(1)).enumerate() {
             let input = input_for(&meta, batch, &device)?;
-            let labels = labels_tensor(batch, k, &device)?;
-            let loss = bce_with_logits(model.forward(input), labels);
+            let loss = batch_loss(model.forward(input), batch, k, &device)?;
             let loss_value: f32 = loss.clone().into_scalar();
             loss_sum += loss_value as f64 * batch.len() as f64;
             let mut grads = loss.backward();

@@ -77,7 +77,12 @@ impl LogRegModel {
         let mut weights = Vec::new();
         let mut intercepts = Vec::new();
         for (k, &horizon) in horizons_ticks.iter().enumerate() {
-            let y: Array1<bool> = windows.iter().map(|w| w.labels[k] > 0.5).collect();
+            // The windows scored at this horizon (all of them, except under
+            // the paper protocol: those drawn for it).
+            let rows: Vec<usize> = (0..windows.len())
+                .filter(|&i| windows[i].scores(k))
+                .collect();
+            let y: Array1<bool> = rows.iter().map(|&i| windows[i].labels[k] > 0.5).collect();
             let positives = y.iter().filter(|&&v| v).count();
             if positives == 0 || positives == y.len() {
                 // One class only: a constant prediction (clamped log-odds).
@@ -85,7 +90,7 @@ impl LogRegModel {
                 intercepts.push(if positives == 0 { -10.0 } else { 10.0 });
                 continue;
             }
-            let ds = Dataset::new(xs.clone(), y);
+            let ds = Dataset::new(xs.select(ndarray::Axis(0), &rows), y);
             let fitted = LogisticRegression::default()
                 .alpha(1.0)
                 .max_iterations(200)

@@ -1,8 +1,12 @@
 //! The paper's metrics, per horizon: accuracy, F1, precision, recall,
 //! expected calibration error (15 equal-width bins) and ROC-AUC.
 //!
-//! In: predicted probabilities and 0/1 labels of one horizon. Out: [`Metrics`].
+//! In: predicted probabilities and 0/1 labels of one horizon. Out: [`Metrics`],
+//! and [`ece_bootstrap`]: a confidence interval of the ECE that resamples
+//! whole episodes (windows of one episode are not independent).
 
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 /// Metrics of one horizon.
@@ -73,6 +77,101 @@ pub fn ece(p: &[f32], y: &[bool], bins: usize) -> f64 {
         .filter(|&b| count[b] > 0)
         .map(|b| count[b] as f64 / n * (pos[b] / count[b] as f64 - conf[b] / count[b] as f64).abs())
         .sum()
+}
+
+/// A bootstrap confidence interval of the ECE.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EceInterval {
+    /// ECE of the sample itself.
+    pub ece: f64,
+    /// Lower bound (the `(1 - level) / 2` percentile of the resampled ECEs).
+    pub lower: f64,
+    /// Upper bound (the `(1 + level) / 2` percentile).
+    pub upper: f64,
+    /// Coverage, e.g. 0.95.
+    pub level: f64,
+    /// Number of resamples.
+    pub resamples: usize,
+    /// Number of episodes resampled.
+    pub episodes: usize,
+}
+
+/// Per-bin sums of one episode's windows: count, sum of p, sum of y.
+type BinSums = Vec<(f64, f64, f64)>;
+
+/// Percentile bootstrap of the ECE (`bins` equal-width bins) by episode:
+/// `resamples` times, draw as many episodes as there are, with replacement,
+/// take all their windows, compute the ECE; the interval is the central
+/// `level` share of those values. `episode[i]` names the episode of window
+/// `i`. Deterministic for `seed`.
+pub fn ece_bootstrap(
+    p: &[f32],
+    y: &[bool],
+    episode: &[usize],
+    bins: usize,
+    resamples: usize,
+    level: f64,
+    seed: u64,
+) -> EceInterval {
+    assert!(
+        p.len() == y.len() && p.len() == episode.len(),
+        "one label and one episode per prediction"
+    );
+    let mut ids: Vec<usize> = episode.to_vec();
+    ids.sort_unstable();
+    ids.dedup();
+    let mut groups: Vec<BinSums> = vec![vec![(0.0, 0.0, 0.0); bins]; ids.len()];
+    for ((&pi, &yi), e) in p.iter().zip(y).zip(episode) {
+        let g = ids.binary_search(e).expect("every episode listed");
+        let b = ((pi as f64 * bins as f64) as usize).min(bins - 1);
+        let s = &mut groups[g][b];
+        s.0 += 1.0;
+        s.1 += pi as f64;
+        s.2 += f64::from(u8::from(yi));
+    }
+    let ece_of = |sums: &[(f64, f64, f64)]| -> f64 {
+        let n: f64 = sums.iter().map(|s| s.0).sum();
+        if n == 0.0 {
+            return 0.0;
+        }
+        sums.iter()
+            .filter(|s| s.0 > 0.0)
+            .map(|s| (s.2 - s.1).abs() / n)
+            .sum()
+    };
+    let sample = ece(p, y, bins);
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut values = Vec::with_capacity(resamples);
+    let mut acc = vec![(0.0, 0.0, 0.0); bins];
+    if !groups.is_empty() {
+        for _ in 0..resamples {
+            acc.iter_mut().for_each(|s| *s = (0.0, 0.0, 0.0));
+            for _ in 0..groups.len() {
+                let g = &groups[rng.random_range(0..groups.len())];
+                for (a, s) in acc.iter_mut().zip(g) {
+                    a.0 += s.0;
+                    a.1 += s.1;
+                    a.2 += s.2;
+                }
+            }
+            values.push(ece_of(&acc));
+        }
+    }
+    values.sort_by(f64::total_cmp);
+    let pct = |q: f64| -> f64 {
+        if values.is_empty() {
+            return f64::NAN;
+        }
+        values[((values.len() - 1) as f64 * q).round() as usize]
+    };
+    EceInterval {
+        ece: sample,
+        lower: pct((1.0 - level) / 2.0),
+        upper: pct((1.0 + level) / 2.0),
+        level,
+        resamples: values.len(),
+        episodes: groups.len(),
+    }
 }
 
 /// ROC-AUC by the rank statistic (Mann-Whitney U), ties counted half.
@@ -169,6 +268,64 @@ mod tests {
         let inv = [true, true, false, false];
         assert_eq!(roc_auc(&p, &inv), 0.0);
         assert_eq!(metrics(&p, &inv).accuracy, 0.0);
+    }
+
+    /// `episodes` episodes of `per_episode` windows; each window's
+    /// probability uniform in [0, 1], its label drawn with probability
+    /// `truth(p)`.
+    fn sample(
+        episodes: usize,
+        per_episode: usize,
+        truth: fn(f64) -> f64,
+        seed: u64,
+    ) -> (Vec<f32>, Vec<bool>, Vec<usize>) {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let mut out = (Vec::new(), Vec::new(), Vec::new());
+        for e in 0..episodes {
+            for _ in 0..per_episode {
+                let p: f64 = rng.random();
+                out.0.push(p as f32);
+                out.1.push(rng.random::<f64>() < truth(p));
+                out.2.push(e);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn ece_bootstrap_of_a_calibrated_model_reaches_zero_and_covers_the_sample() {
+        let (p, y, ep) = sample(2000, 10, |p| p, 1);
+        let ci = ece_bootstrap(&p, &y, &ep, 15, 1000, 0.95, 7);
+        assert_eq!((ci.resamples, ci.episodes), (1000, 2000));
+        assert!(ci.lower <= ci.ece && ci.ece <= ci.upper, "{ci:?}");
+        // A calibrated model's ECE is 0 up to sampling noise (with 15 bins
+        // and 20000 windows, about 0.01): the interval starts near 0.
+        assert!(ci.lower < 0.015, "{ci:?}");
+        assert!(ci.upper < 0.03, "{ci:?}");
+        // Deterministic for a seed, another seed another interval.
+        assert_eq!(ci, ece_bootstrap(&p, &y, &ep, 15, 1000, 0.95, 7));
+        assert_ne!(ci, ece_bootstrap(&p, &y, &ep, 15, 1000, 0.95, 8));
+    }
+
+    #[test]
+    fn ece_bootstrap_of_a_miscalibrated_model_excludes_zero() {
+        // True probability p^2: over-confident, ECE about 1/6.
+        let (p, y, ep) = sample(300, 4, |p| p * p, 2);
+        let ci = ece_bootstrap(&p, &y, &ep, 15, 1000, 0.95, 7);
+        assert!(ci.lower <= ci.ece && ci.ece <= ci.upper, "{ci:?}");
+        assert!(ci.lower > 0.1, "{ci:?}");
+    }
+
+    #[test]
+    fn ece_bootstrap_resamples_episodes_not_windows() {
+        // Each episode holds one window of each class at p = 0.5: every
+        // resample of whole episodes is calibrated, a resample of single
+        // windows would not be.
+        let p = vec![0.5f32; 200];
+        let y: Vec<bool> = (0..200).map(|i| i % 2 == 0).collect();
+        let ep: Vec<usize> = (0..200).map(|i| i / 2).collect();
+        let ci = ece_bootstrap(&p, &y, &ep, 15, 200, 0.95, 3);
+        assert!(ci.upper < 1e-12, "{ci:?}");
     }
 
     #[test]

@@ -1,21 +1,49 @@
 //! The i.i.d. window sampler: which window of which episode goes into
 //! training, and with which labels.
 //!
-//! Per epoch, one window per episode (never sliding windows), ending at a
-//! random tick `e` such that the window is full, has every needed stream,
-//! and holds NO fallen tick (`e < onset tick`). Labels: fallen at `e + h`
-//! for each horizon `h` (sticky, from the metadata's fall onset mapped to the
-//! tick grid). Classes are balanced at the balance horizon (default: the
-//! middle one, index `(K - 1) / 2`) by rejection sampling: episodes that can
-//! give only one class (a non-falling episode has no positive window) are
-//! drawn first, then each episode that can give both is given the class the
-//! epoch has fewer of so far (a coin flip on a tie), and its end tick is
-//! drawn uniformly until one has that class. The epoch's picks are then
-//! shuffled. Deterministic for a seed (`StdRng`, ChaCha12).
+//! Two protocols ([`Protocol`]), both one window per episode per draw (never
+//! sliding windows), labels "fallen at `e + h`" for each horizon `h` (sticky,
+//! from the metadata's fall onset mapped to the tick grid), classes balanced
+//! by rejection sampling, deterministic for a seed (`StdRng`, ChaCha12).
 //!
-//! A non-falling episode's windows need `e + hK` inside the recording (the
-//! label must be known); a falling episode's labels are known past its end
-//! (sticky).
+//! **Deployment** (the default, what the shipped models were trained and
+//! scored with): one window set for all horizons. A window ends at a random
+//! tick `e` such that it is full, has every needed stream, and holds NO
+//! fallen tick (`e < onset tick`), the way the daemon sees an episode at any
+//! tick before a fall. Classes are balanced at the balance horizon (the
+//! middle one, index `(K - 1) / 2`); every horizon is scored on that set.
+//!
+//! **Paper** (the paper's "Datasets" section and its appendix figure "The
+//! Z-coordinates of Poppy's head and the stop line for data sampling"): one
+//! window set *per prediction span* `P`, each balanced at `P`, each with the
+//! stop line of `P`. Our reading of the figure: the vertical line of span
+//! `P` stands `P` ticks before the fall onset (the first tick the head is
+//! below the threshold), it is "the latest possible frame" of a history
+//! window, and "the last frame of history sequences cannot exceed" it. So a
+//! falling episode's window at span `P` ends at `e <= onset - P`: the window
+//! holds no fallen tick and none of the `P` ticks just before the onset. With
+//! the sticky per-tick label "fallen at `e + P`", such a window is positive
+//! only when it ends exactly on the stop line (`e + P = onset`); every
+//! earlier one is negative. The positive class at span `P` is therefore "the
+//! fall starts exactly `P` ticks from now" against "no fall within the next
+//! `P` ticks" (later falls of the same episode included), which is what the
+//! paper's sliding stop lines (further left for longer spans) imply. A
+//! non-falling episode's window needs `e + P` inside the recording. Rejection
+//! sampling: each episode's end tick is drawn uniformly until it has the
+//! class the draw needs (equivalently, uniformly within that class), and when
+//! one class runs out the surplus windows of the other class are rejected,
+//! so that each span's set is exactly balanced (the paper: "rejection
+//! sampling to ensure that class labels are balanced").
+//!
+//! Per draw, episodes that can give only one class (a non-falling episode has
+//! no positive window) are drawn first, then each episode that can give both
+//! is given the class the draw has fewer of so far (a coin flip on a tie),
+//! and its end tick is drawn uniformly until one has that class. The picks
+//! are then shuffled.
+//!
+//! A non-falling episode's windows need `e + h` inside the recording for the
+//! longest scored horizon (the label must be known); a falling episode's
+//! labels are known past its end (sticky).
 
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -38,6 +66,46 @@ pub enum SamplerError {
     },
 }
 
+/// Which windows are drawn and at which horizons they are scored (see the
+/// module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Protocol {
+    /// One window set for all horizons, balanced at the middle horizon, no
+    /// fallen tick in a window (as the daemon sees an episode).
+    #[default]
+    Deployment,
+    /// The paper's: one window set per horizon `P`, balanced at `P`, windows
+    /// ending at or before the stop line `onset - P`.
+    Paper,
+}
+
+impl Protocol {
+    /// Both, the default first.
+    pub const ALL: [Protocol; 2] = [Protocol::Deployment, Protocol::Paper];
+
+    /// The name on the command line and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Protocol::Deployment => "deployment",
+            Protocol::Paper => "paper",
+        }
+    }
+
+    /// One line for reports.
+    pub fn description(self) -> &'static str {
+        match self {
+            Protocol::Deployment => "one window per episode for all horizons, ending anywhere before the fall onset, classes balanced at the middle horizon",
+            Protocol::Paper => "one window set per horizon P (one window per episode each), ending at or before the stop line onset - P, classes balanced at P by rejection sampling; horizon P scored on its own set",
+        }
+    }
+}
+
+impl std::fmt::Display for Protocol {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// How windows are drawn.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SamplerConfig {
@@ -51,6 +119,11 @@ pub struct SamplerConfig {
     pub needs: Streams,
     /// Draws per episode before giving up on the wanted class.
     pub max_tries: usize,
+    /// Deployment: windows end before the onset and every horizon's label
+    /// must be known. Paper: windows end at or before the balance horizon's
+    /// stop line, only that horizon's label must be known, and surplus
+    /// windows of the majority class are rejected.
+    pub protocol: Protocol,
 }
 
 impl SamplerConfig {
@@ -63,6 +136,29 @@ impl SamplerConfig {
             balance_horizon_index: k.saturating_sub(1) / 2,
             needs: Streams::ALL,
             max_tries: 64,
+            protocol: Protocol::Deployment,
+        }
+    }
+
+    /// The paper's window set of one prediction span: balanced at
+    /// `horizon_ticks`, stop line `onset - horizon_ticks`.
+    pub fn paper(n_ticks: usize, horizon_ticks: usize) -> SamplerConfig {
+        SamplerConfig {
+            n_ticks,
+            horizons_ticks: vec![horizon_ticks],
+            balance_horizon_index: 0,
+            needs: Streams::ALL,
+            max_tries: 64,
+            protocol: Protocol::Paper,
+        }
+    }
+
+    /// The last tick a window of an episode with fall onset `onset` may end
+    /// on: the stop line.
+    pub fn stop_line(&self, onset: i64) -> i64 {
+        match self.protocol {
+            Protocol::Deployment => onset - 1,
+            Protocol::Paper => onset - self.horizons_ticks[self.balance_horizon_index] as i64,
         }
     }
 }
@@ -80,11 +176,14 @@ pub struct EpisodeSpan {
 impl EpisodeSpan {
     /// The usable end ticks of `episode`, or `None` when it has none.
     pub fn of(episode: &EpisodeTicks, cfg: &SamplerConfig) -> Option<EpisodeSpan> {
-        let max_h = *cfg.horizons_ticks.last()? as i64;
+        let max_h = match cfg.protocol {
+            Protocol::Deployment => *cfg.horizons_ticks.last()?,
+            Protocol::Paper => *cfg.horizons_ticks.get(cfg.balance_horizon_index)?,
+        } as i64;
         let first = episode.first_complete_end_tick(cfg.n_ticks, cfg.needs)?;
         let last_tick = episode.last_tick()?;
         let last = match episode.fall_onset_tick {
-            Some(onset) => (onset - 1).min(last_tick),
+            Some(onset) => cfg.stop_line(onset).min(last_tick),
             None => last_tick - max_h,
         };
         (first <= last).then_some(EpisodeSpan {
@@ -181,7 +280,8 @@ impl WindowSampler {
         &self.cfg
     }
 
-    /// The next epoch: one pick per usable episode, in random order.
+    /// The next epoch: one pick per usable episode (paper protocol: per
+    /// usable episode that the balance keeps), in random order.
     pub fn epoch(&mut self) -> Vec<WindowPick> {
         let mut order: Vec<usize> = (0..self.spans.len())
             .filter(|&i| self.spans[i].is_some())
@@ -252,6 +352,22 @@ impl WindowSampler {
                 end_tick: end,
                 labels,
             });
+        }
+        if self.cfg.protocol == Protocol::Paper && positives != negatives {
+            // Rejection: drop randomly chosen windows of the majority class.
+            let majority = positives > negatives;
+            let mut surplus = positives.abs_diff(negatives);
+            picks.shuffle(&mut self.rng);
+            let k = self.cfg.balance_horizon_index;
+            picks.retain(|p| {
+                if surplus > 0 && p.labels[k] == majority {
+                    surplus -= 1;
+                    false
+                } else {
+                    true
+                }
+            });
+            (positives, negatives) = (positives.min(negatives), positives.min(negatives));
         }
         picks.shuffle(&mut self.rng);
         tracing::debug!(positives, negatives, "epoch drawn");

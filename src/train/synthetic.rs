@@ -63,6 +63,8 @@ impl RampEpisodes {
                     plan,
                     frames,
                     labels,
+                    episode: i,
+                    scored_horizon: None,
                 }
             })
             .collect()

@@ -116,6 +116,9 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         joint_names: Some(names.clone()),
         trained_on: "synthetic".into(),
         quiet: true,
+        protocol: super::sampler::Protocol::Deployment,
+        per_horizon: false,
+        trajectory: crate::model::TrajectoryInput::Planned,
     };
     run_train(&args).unwrap();
     let out = dir.path().join("eval");
@@ -127,6 +130,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         out: Some(out.clone()),
         sample_seed: 3,
         draws: 4,
+        protocol: super::sampler::Protocol::Deployment,
         recording: None,
         per_tick_out: None,
     };
@@ -144,6 +148,19 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         .collect();
     let mean_acc = acc.iter().sum::<f64>() / acc.len() as f64;
     assert!(mean_acc > 0.9, "test accuracy per horizon {acc:?}");
+    // Both protocols are reported; under the paper's each horizon is scored
+    // on its own set, balanced at it (each draw exactly).
+    let protocols = metrics["protocols"].as_array().unwrap();
+    assert_eq!(protocols.len(), 2);
+    assert_eq!(protocols[0]["protocol"], "deployment");
+    assert_eq!(protocols[0]["horizons"], metrics["horizons"]);
+    assert_eq!(protocols[1]["protocol"], "paper");
+    for h in protocols[1]["horizons"].as_array().unwrap() {
+        assert!(h["windows"].as_u64().unwrap() > 0, "{h}");
+        assert_eq!(h["positive_rate"].as_f64().unwrap(), 0.5, "{h}");
+        let ci = &h["ece_ci95"][0];
+        assert!(ci["lower"].as_f64().unwrap() <= ci["upper"].as_f64().unwrap());
+    }
 
     // Streaming per tick == window.rs windows through the whole-window forward.
     let model = LoadedModel::load(&model_path).unwrap();
@@ -152,7 +169,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
     let lines = per_tick_forecast(&model, &rec, &jsonl).unwrap();
     assert!(lines > 20);
     let spec = model.meta.window_spec();
-    let needs = super::cli::needs_of(Some(model.meta.ablation));
+    let needs = super::cli::needs_of_model(&model.meta);
     let episode = crate::train::dataset::load_episode(&rec, &spec, needs).unwrap();
     for line in std::fs::read_to_string(&jsonl).unwrap().lines() {
         let v: serde_json::Value = serde_json::from_str(line).unwrap();
@@ -165,5 +182,102 @@ fn train_and_eval_commands_on_synthetic_recordings() {
                 "tick {tick}: {v} vs {want:?}"
             );
         }
+    }
+}
+
+#[test]
+fn masked_loss_counts_only_the_scored_labels() {
+    use burn::prelude::*;
+    let device = crate::model::cpu_device();
+    let t = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, [2, 2]), &device);
+    // Window 0 scores horizon 0, window 1 horizon 1; the unscored labels
+    // are badly wrong and must not count.
+    let logits = t(vec![2.0, 9.0, -9.0, -1.0]);
+    let labels = t(vec![1.0, 0.0, 1.0, 0.0]);
+    let mask = t(vec![1.0, 0.0, 0.0, 1.0]);
+    let got: f32 = masked_bce_with_logits(logits, labels, mask).into_scalar();
+    let bce = |z: f32, y: f32| z.max(0.0) - z * y + (-z.abs()).exp().ln_1p();
+    let want = (bce(2.0, 1.0) + bce(-1.0, 0.0)) / 2.0;
+    assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+}
+
+/// A tiny run of `train --per-horizon --protocol paper` on the simulator's
+/// fixtures (their content changes; nothing here depends on it): one
+/// network per horizon, each forecasting that horizon only with a plan
+/// reaching that far, and `eval` reports both protocols for it.
+#[test]
+fn per_horizon_paper_training_on_the_fixtures() {
+    use super::cli::{per_horizon_path, run_eval, run_train, EvalArgs, TrainArgs};
+    use super::sampler::Protocol;
+    use crate::model::TrajectoryInput;
+    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("mp.bpk");
+    let horizons = vec![10, 20];
+    let args = TrainArgs {
+        data: data.clone(),
+        ablation: "MP".into(),
+        config: "lite".into(),
+        seed: 1,
+        out: out.clone(),
+        epochs: 1,
+        patience: 1,
+        batch: 4,
+        rates: "sim".into(),
+        n_ticks: 20,
+        horizons: horizons.clone(),
+        rate_hz: 30.0,
+        frame_size: 64,
+        joint_names: None,
+        trained_on: "fixtures".into(),
+        quiet: true,
+        protocol: Protocol::Paper,
+        per_horizon: true,
+        trajectory: TrajectoryInput::Planned,
+    };
+    run_train(&args).unwrap();
+    assert!(!out.exists(), "no all-horizon file with --per-horizon");
+    for &h in &horizons {
+        let path = per_horizon_path(&out, h);
+        assert_eq!(path, dir.path().join(format!("mp.h{h}.bpk")));
+        let m = LoadedModel::load(&path).unwrap();
+        assert_eq!(m.meta.horizons_ticks, vec![h]);
+        assert_eq!(m.meta.config.plan_len(), 20 + h);
+        assert_eq!(m.meta.protocol.as_deref(), Some("paper"));
+        let eval_dir = dir.path().join(format!("eval{h}"));
+        run_eval(&EvalArgs {
+            model: path,
+            seeds: vec![],
+            data: Some(data.clone()),
+            split: "test".into(),
+            out: Some(eval_dir.clone()),
+            sample_seed: 3,
+            draws: 1,
+            protocol: Protocol::Paper,
+            recording: None,
+            per_tick_out: None,
+        })
+        .unwrap();
+        let v: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(eval_dir.join("metrics.json")).unwrap()).unwrap();
+        assert_eq!(v["protocol"], "paper");
+        let names: Vec<&str> = v["protocols"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["protocol"].as_str().unwrap())
+            .collect();
+        assert_eq!(names, ["paper", "deployment"]);
+        for p in v["protocols"].as_array().unwrap() {
+            let hs = p["horizons"].as_array().unwrap();
+            assert_eq!(hs.len(), 1);
+            assert_eq!(hs[0]["horizon_ticks"], h);
+            assert_eq!(hs[0]["ece_ci95"].as_array().unwrap().len(), 1);
+        }
+        let md = std::fs::read_to_string(eval_dir.join("metrics.md")).unwrap();
+        assert!(
+            md.contains("## Protocol: paper") && md.contains("## Protocol: deployment"),
+            "{md}"
+        );
     }
 }

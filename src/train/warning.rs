@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use serde::Serialize;
 
-use super::cli::{forecast_ticks, needs_of};
+use super::cli::{forecast_ticks, needs_of_model};
 use super::dataset::{load_episode, Dataset, Split};
 use crate::model::LoadedModel;
 use crate::outputs::latch::SafetyLatch;
@@ -180,7 +180,7 @@ pub fn forecast_split(
     horizon_index: usize,
 ) -> anyhow::Result<Vec<EpisodeForecasts>> {
     let spec = model.meta.window_spec();
-    let needs = needs_of(Some(model.meta.ablation));
+    let needs = needs_of_model(&model.meta);
     let mut out = Vec::new();
     for path in data.paths(split) {
         let episode = load_episode(&path, &spec, needs)
