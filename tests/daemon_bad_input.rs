@@ -122,3 +122,31 @@ fn missing_recording_is_named() {
     let scene = Scene::new("nowhere.mcap");
     assert_clean_failure(&replay(&scene), &["nowhere.mcap"]);
 }
+
+#[test]
+fn network_with_a_trajectory_ablation_is_refused() {
+    use fall_guard::model::TrajectoryInput;
+    use fall_guard::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
+    let scene = Scene::new("x.mcap");
+    write_recording(&scene.path("x.mcap"), 1, false, 40);
+    let joints = robot_joints();
+    let mut config = ModelConfig::lite(
+        N_TICKS,
+        joints.len(),
+        HORIZONS_TICKS.to_vec(),
+        FRAME_SIZE as usize,
+    );
+    config.trajectory = TrajectoryInput::RealPosition;
+    let meta = ModelMeta::new(config.clone(), Ablation::MP, RATE_HZ, joints);
+    let emp = Emp::new(&config, Ablation::MP, &cpu_device());
+    save_model(&scene.path("models/mp.fgm"), &meta, &emp).expect("save model");
+    assert_clean_failure(
+        &replay(&scene),
+        &[
+            "[model].mp",
+            "mp.fgm",
+            "real-position",
+            "--trajectory planned",
+        ],
+    );
+}

@@ -318,3 +318,22 @@ fn paper_protocol_window_sets_do_not_depend_on_the_other_horizons() {
         assert!(a.iter().any(|w| w.scored_horizon == Some(k)));
     }
 }
+
+#[test]
+fn paper_protocol_rejects_the_surplus_when_few_episodes_fall() {
+    // One episode in five falls: one window per episode cannot balance, so
+    // the surplus negatives are rejected (the deployment protocol keeps them).
+    let episodes: Vec<EpisodeTicks> = (0..500)
+        .map(|i| episode(200, 0, (i % 5 == 0).then_some(150)))
+        .collect();
+    let mut paper = WindowSampler::new(&episodes, SamplerConfig::paper(10, 30), 3).unwrap();
+    for _ in 0..3 {
+        let picks = paper.epoch();
+        let positives = picks.iter().filter(|p| p.labels[0]).count();
+        assert_eq!(picks.len(), 200, "100 falling episodes, 100 positives kept");
+        assert_eq!(positives, 100);
+    }
+    let mut deployment =
+        WindowSampler::new(&episodes, SamplerConfig::new(10, vec![30]), 3).unwrap();
+    assert_eq!(deployment.epoch().len(), 500);
+}
