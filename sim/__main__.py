@@ -36,8 +36,11 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("recording", type=Path)
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--frames", type=int, default=10)
-    st = sub.add_parser("stats", help="fall rate per sigma and onset times of a data set directory")
+    st = sub.add_parser("stats", help="fall rate per sigma, onsets, distance, collision share, counterfactuals")
     st.add_argument("directory", type=Path)
+    st.add_argument("--counterfactual", type=int, default=0, metavar="N",
+                    help="also re-simulate up to N perturbation falls with the knots from onset - 1.5 s redrawn")
+    st.add_argument("--jobs", type=int, default=1, help="parallel worker processes for --counterfactual")
     m = sub.add_parser("build-model", help="rebuild sim/model/poppy_humanoid.urdf from the reference files")
     m.add_argument("--reference", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -66,7 +69,11 @@ def main(argv: list[str] | None = None) -> int:
             print(args.out)
         elif args.command == "stats":
             from .stats import summarise
-            print(json.dumps(summarise(args.directory), indent=2))
+            if args.counterfactual < 0:
+                raise DatasetError(f"--counterfactual must be >= 0 (got {args.counterfactual})")
+            if args.jobs < 1:
+                raise DatasetError(f"--jobs must be at least 1 (got {args.jobs})")
+            print(json.dumps(summarise(args.directory, args.counterfactual, args.jobs), indent=2))
         elif args.command == "build-model":
             from .build_model import DEFAULT_REFERENCE_DIR, build
             print(build(args.reference or DEFAULT_REFERENCE_DIR))

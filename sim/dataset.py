@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .episode import DURATION_S, PHYSICS_HZ, RATE_HZ, SIGMAS, simulate_episode
+from .episode import (DURATION_S, GENERATOR_VERSION, HAZARD_PROBABILITY, KNOT_TICKS, PERTURBATION_SCALE,
+                      PHYSICS_HZ, RATE_HZ, SIGMAS, VALIDATION_DRAWS, VALIDATION_SIGMA, simulate_episode)
 from .recording import write_episode
 from .robot import FALL_FRACTION, JOINT_NAMES, ROBOT_NAME
 
@@ -87,7 +88,7 @@ def _make_one(out: str, index: int, seed: int, duration_s: float) -> dict:
     t0 = time.perf_counter()
     ep = simulate_episode(seed, duration_s=duration_s)
     write_episode(Path(out) / episode_name(index), ep)
-    return {"index": index, "sigma": ep.sigma, "fall_onset_tick": ep.fall_onset_tick,
+    return {"index": index, "sigma": ep.sigma, "fall_onset_tick": ep.fall_onset_tick, "fall_cause": ep.fall_cause,
             "seconds": time.perf_counter() - t0, "plan_attempts": ep.plan_attempts}
 
 
@@ -97,18 +98,22 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
     check_args(out, episodes, seed, jobs, duration_s)
     manifest_path = out / "manifest.json"
     generator = {
-        "name": "fall_guard.sim", "robot": ROBOT_NAME, "rate_hz": RATE_HZ, "physics_hz": PHYSICS_HZ,
+        "name": "fall_guard.sim", "version": GENERATOR_VERSION, "robot": ROBOT_NAME, "rate_hz": RATE_HZ, "physics_hz": PHYSICS_HZ,
         "seed": seed, "seed_range": [episode_seed(seed, 0), episode_seed(seed, episodes - 1)],
         "episodes": episodes, "duration_s": duration_s, "sigmas": list(SIGMAS),
         "fall_fraction": FALL_FRACTION, "joint_names": list(JOINT_NAMES),
+        "knot_ticks": KNOT_TICKS, "perturbation_scale_rad": PERTURBATION_SCALE,
+        "validation": {"draws": VALIDATION_DRAWS, "sigma": VALIDATION_SIGMA},
+        "hazard_probability": HAZARD_PROBABILITY,
     }
     if manifest_path.exists():
         try:
             old = json.loads(manifest_path.read_text()).get("generator", {})
         except (OSError, json.JSONDecodeError) as e:
             raise DatasetError(f"{manifest_path}: unreadable manifest ({e}); remove it or use another --out") from e
-        for key in ("seed", "duration_s"):
-            if key in old and old[key] != generator[key]:
+        old.setdefault("version", 1)  # generator 1 wrote no version
+        for key in ("version", "seed", "duration_s"):
+            if old.get(key, generator[key]) != generator[key]:
                 raise DatasetError(f"{manifest_path}: made with {key}={old[key]}, asked {key}={generator[key]}; "
                                    "use another --out or the same arguments")
     manifest = split_names(episodes, seed)

@@ -1,4 +1,4 @@
-"""One simulated episode: plan search, perturbation, physics, camera and labels.
+"""One simulated episode (generator 2): plan search, perturbation, hazard, physics, camera, labels.
 
 Data enters as an episode seed (everything else is drawn from it) and leaves as
 an ``Episode``: per 30 Hz tick the measured joint angles (rad, pypot convention,
@@ -9,6 +9,25 @@ turns it into an MCAP file.
 
 Time: physics runs at 240 Hz (8 steps per tick). Waypoint k applies at tick k;
 between waypoints the command is interpolated linearly at each physics step.
+
+Why falls happen (generator 2), and what shows them coming:
+
+- **Perturbed plan knots.** The perturbation lives on sparse plan knots, one
+  every ``KNOT_TICKS`` = 10 ticks (1/3 s), and is interpolated smoothly
+  (C1 smoothstep) between knots, so a deviation that will throw the robot over
+  is in the published plan (which reaches 3 s ahead) well before it acts.
+  Knot j (tick 10 j) of every joint but the head gets
+  ``PERTURBATION_SCALE * factor(rho_j) * eta``, ``eta ~ N(0, sigma^2)``, the
+  paper's eq. 1 with rho_j = 240 Hz physics steps from tick 0 to the knot
+  (80 per knot): the ramp is centred at 3 s and saturated by 4 s, inside the
+  10 s episode. Knots are independent (not cumulative).
+- **Plans that walk at low sigma.** A kept plan stays up unperturbed and
+  under ``VALIDATION_DRAWS`` knot perturbations at ``VALIDATION_SIGMA``, 1.5x
+  the largest low sigma, so that falls at sigma <= 0.01 are rare.
+- **A ball rolled at the robot** in ``HAZARD_PROBABILITY`` of the episodes:
+  launched from 1.4-2.0 m ahead inside the head camera's view, it reaches
+  the robot about 1 s later. The camera sees it coming; the plan and the
+  joints do not.
 """
 
 from __future__ import annotations
@@ -37,7 +56,26 @@ SETTLE_STEPS = 60                      # physics steps holding the first pose be
 SIGMAS = (0.005, 0.010, 0.035, 0.040)
 RAMP_A = 90.0
 RAMP_B = 0.125
-MAX_PLAN_ATTEMPTS = 60
+GENERATOR_VERSION = 2
+#: One perturbation knot every this many ticks (1/3 s); rho counts physics steps.
+KNOT_TICKS = 10
+#: Radians of knot deviation per unit of eta (chosen by measurement, see sim/README.md).
+PERTURBATION_SCALE = 0.5
+#: Joints the plan perturbation leaves alone: the head carries the camera.
+UNPERTURBED_JOINTS = ("head_z", "head_y")
+#: A kept plan survives this many knot perturbations at VALIDATION_SIGMA.
+VALIDATION_DRAWS = 3
+VALIDATION_SIGMA = 0.015
+HAZARD_PROBABILITY = 0.2
+HAZARD_LAUNCH_S = (2.0, 7.5)
+HAZARD_DISTANCE_M = (1.4, 2.0)
+HAZARD_SPEED_M_S = (1.6, 2.4)
+HAZARD_RADIUS_M = (0.12, 0.18)
+HAZARD_MASS_KG = (2.0, 4.0)
+HAZARD_PARK_XY = (10.0, 10.0)          # outside the room until launched
+#: A fall is caused by a collision when it follows the first contact within this.
+COLLISION_FALL_WINDOW_TICKS = 2 * RATE_HZ
+MAX_PLAN_ATTEMPTS = 80
 MIN_PROGRESS_M = 0.04                  # a kept 10 s plan walks at least this far along its heading
 CAMERA_FOV_DEG = 60.0
 CAMERA_PITCH_DOWN_DEG = 10.0           # camera axis below the head's forward direction
@@ -47,6 +85,22 @@ JPEG_QUALITY = 90
 def stamp_ns(tick: int) -> int:
     """Episode time of TICK in ns (floor of tick / 30 s); tick 0 is 0 ns."""
     return tick * 1_000_000_000 // RATE_HZ
+
+
+def knot_ticks(n_plan: int) -> np.ndarray:
+    """Ticks of the perturbation knots covering N_PLAN waypoints (0, 10, 20, ...)."""
+    return np.arange(n_plan // KNOT_TICKS + 2) * KNOT_TICKS
+
+
+def knot_deviation(knot_eta: np.ndarray, sigma: float, n_plan: int) -> np.ndarray:
+    """Plan deviation [n_plan, 25] (rad) from per-knot eta [n_knots, 25]: eq. 1 per knot, smoothstep between."""
+    rho = knot_ticks(n_plan) * STEPS_PER_TICK
+    dev = PERTURBATION_SCALE * perturbation_factor(sigma, rho)[:, None] * knot_eta
+    dev[:, [JOINT_NAMES.index(n) for n in UNPERTURBED_JOINTS]] = 0.0
+    t = np.arange(n_plan)
+    i, f = t // KNOT_TICKS, (t % KNOT_TICKS) / KNOT_TICKS
+    s = f * f * (3 - 2 * f)
+    return (1 - s)[:, None] * dev[i] + s[:, None] * dev[i + 1]
 
 
 def perturbation_factor(sigma: float, rho_steps: np.ndarray) -> np.ndarray:
@@ -95,6 +149,39 @@ def standing_head_height_m() -> float:
 
 
 @dataclass
+class Hazard:
+    """A ball rolled at the robot: launched at LAUNCH_TICK from DISTANCE_M ahead."""
+    launch_tick: int
+    distance_m: float
+    bearing_rad: float        # from the robot's facing at launch, within the camera's view
+    speed_m_s: float
+    aim_offset_m: float       # lateral miss distance aimed at (0 = the pelvis)
+    radius_m: float
+    mass_kg: float
+    rgb: tuple[float, float, float]
+    #: Where it was launched from (set at launch; None: every path was blocked, not launched).
+    start_xy: tuple[float, float] | None = None
+
+    @staticmethod
+    def sample(rng: np.random.Generator, n_ticks: int) -> "Hazard":
+        lo, hi = (int(s * RATE_HZ) for s in HAZARD_LAUNCH_S)
+        return Hazard(launch_tick=int(rng.integers(lo, min(hi, max(lo + 1, n_ticks - RATE_HZ)))),
+                      distance_m=float(rng.uniform(*HAZARD_DISTANCE_M)),
+                      bearing_rad=float(rng.uniform(-0.17, 0.17)),
+                      speed_m_s=float(rng.uniform(*HAZARD_SPEED_M_S)),
+                      aim_offset_m=float(rng.uniform(-0.05, 0.05)),
+                      radius_m=float(rng.uniform(*HAZARD_RADIUS_M)),
+                      mass_kg=float(rng.uniform(*HAZARD_MASS_KG)),
+                      rgb=tuple(float(c) for c in rng.uniform(0.2, 1.0, 3)))
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["launch_ns"] = stamp_ns(self.launch_tick)
+        d["launched"] = self.start_xy is not None
+        return d
+
+
+@dataclass
 class Episode:
     seed: int
     sigma: float
@@ -110,6 +197,16 @@ class Episode:
     plan_attempts: int = 0
     progress_m: float = 0.0
     plan_period_ticks: int = PLAN_PERIOD_TICKS
+    hazard: Hazard | None = None
+    #: First tick at which the robot touched anything but the floor, and what.
+    first_contact_tick: int | None = None
+    contact_with: str | None = None
+    #: Distance walked: pelvis displacement (m) from the start to 1 s before the fall onset, or to the end.
+    distance_m: float = 0.0
+    #: With ``counterfactual_lead_ticks``: the onset when the knots from
+    #: onset - lead on are redrawn (None: the fall was averted).
+    counterfactual_onset_tick: int | None = None
+    counterfactual_from_tick: int | None = None
 
     @property
     def fall_threshold_m(self) -> float:
@@ -120,6 +217,17 @@ class Episode:
         idx = np.flatnonzero(self.fallen)
         return int(idx[0]) if idx.size else None
 
+    @property
+    def fall_cause(self) -> str | None:
+        """"collision" when the fall follows a contact within 2 s, else "perturbation"; None if no fall."""
+        onset = self.fall_onset_tick
+        if onset is None:
+            return None
+        c = self.first_contact_tick
+        if c is not None and 0 <= onset - c <= COLLISION_FALL_WINDOW_TICKS:
+            return "collision"
+        return "perturbation"
+
     def plan_message_points(self, tick: int) -> tuple[int, np.ndarray]:
         """(first tick, waypoints) of the plan published at TICK: ticks tick-75 .. tick+90."""
         first = tick - PLAN_PAST_TICKS
@@ -129,6 +237,7 @@ class Episode:
     def metadata(self) -> dict[str, str]:
         meta = {
             "source": "sim",
+            "generator": str(GENERATOR_VERSION),
             "robot": ROBOT_NAME,
             "rate_hz": str(RATE_HZ),
             "seed": str(self.seed),
@@ -137,16 +246,24 @@ class Episode:
             "fall_threshold_m": f"{self.fall_threshold_m:.4f}",
             "duration_s": f"{self.n_ticks / RATE_HZ:g}",
             "physics_hz": str(PHYSICS_HZ),
-            "perturbation": (f"factor*eta per waypoint and joint, eta~N(0,sigma^2); factor=1 if sigma<=0.01 "
-                             f"else 1.5/(1+exp({RAMP_A:g}-{RAMP_B:g}*rho)), rho=240 Hz physics steps since tick 0"),
+            "perturbation": (f"plan knots every {KNOT_TICKS} ticks, smoothstep between; knot deviation "
+                             f"{PERTURBATION_SCALE:g}*factor*eta rad per joint (not the head), eta~N(0,sigma^2); "
+                             f"factor=1 if sigma<=0.01 else 1.5/(1+exp({RAMP_A:g}-{RAMP_B:g}*rho)), "
+                             "rho=240 Hz physics steps from tick 0 to the knot"),
             "gait": json.dumps(self.params.as_dict() if self.params else None, sort_keys=True),
             "plan_attempts": str(self.plan_attempts),
             "progress_m": f"{self.progress_m:.3f}",
+            "distance_m": f"{self.distance_m:.3f}",
+            "hazard": json.dumps(self.hazard.as_dict() if self.hazard else None, sort_keys=True),
             "scene": json.dumps(self.scene, sort_keys=True),
         }
         onset = self.fall_onset_tick
         if onset is not None:
             meta["fall_onset_ns"] = str(stamp_ns(onset))
+            meta["fall_cause"] = self.fall_cause
+        if self.first_contact_tick is not None:
+            meta["first_contact_ns"] = str(stamp_ns(self.first_contact_tick))
+            meta["contact_with"] = self.contact_with or ""
         return meta
 
 
@@ -188,27 +305,121 @@ def encode_jpeg(rgb: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+class _Run:
+    """What one rollout measured."""
+
+    def __init__(self, threshold_m: float):
+        self.threshold_m = threshold_m
+        self.joints: list[np.ndarray] = []
+        self.heights: list[float] = []
+        self.frames: list[bytes] = []
+        self.first_contact_tick: int | None = None
+        self.contact_with: str | None = None
+        self.end_xy: np.ndarray | None = None
+
+    @property
+    def onset_tick(self) -> int | None:
+        return next((k for k, h in enumerate(self.heights) if h < self.threshold_m), None)
+
+
+def _facing_xy(robot: Robot, r0: np.ndarray, start_dir: np.ndarray) -> np.ndarray:
+    """The robot's walking direction now (unit xy), from the pelvis rotation since the start."""
+    _, quat = pb.getBasePositionAndOrientation(robot.body, physicsClientId=robot.client)
+    r = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
+    fwd = (r @ r0.T @ np.array([start_dir[0], start_dir[1], 0.0]))[:2]
+    n = float(np.linalg.norm(fwd))
+    return fwd / n if n > 1e-6 else start_dir
+
+
+def _launch(ball: int, robot: Robot, hazard: Hazard, r0: np.ndarray, start_dir: np.ndarray,
+            bodies: dict[int, str]) -> bool:
+    """Put the ball ahead of the robot (within the camera's view) rolling at it.
+
+    It starts DISTANCE_M away at BEARING_RAD from the robot's facing, or, when
+    furniture stands in between, at the first of a fixed list of nearer
+    distances and other bearings from which the path to the robot is clear
+    (the ball swept along it in 5 cm steps touches nothing).
+    """
+    fwd = _facing_xy(robot, r0, start_dir)
+    base = robot.base_xy()
+    target = base + hazard.aim_offset_m * np.array([-fwd[1], fwd[0]])
+    z = hazard.radius_m
+    candidates = [(hazard.distance_m * f, b) for f in (1.0, 0.8, 0.6, 0.45)
+                  for b in (hazard.bearing_rad, -hazard.bearing_rad, 0.0, 0.3, -0.3, 0.45, -0.45)]
+    starts = []
+    for dist, bearing in candidates:
+        c, s = math.cos(bearing), math.sin(bearing)
+        towards = np.array([c * fwd[0] - s * fwd[1], s * fwd[0] + c * fwd[1]])
+        starts.append(base + dist * towards)
+    obstacles = [b for b, name in bodies.items() if name != "floor"]
+
+    def free(p: np.ndarray) -> bool:  # nothing but the floor within 3 cm of the ball at P
+        pb.resetBasePositionAndOrientation(ball, (p[0], p[1], z), (0, 0, 0, 1), physicsClientId=robot.client)
+        return not any(pb.getClosestPoints(ball, b, 0.03, physicsClientId=robot.client) for b in obstacles)
+
+    def path_clear(p: np.ndarray) -> bool:  # the ball rolls from P to the robot touching nothing else
+        n = int(np.linalg.norm(target - p) / 0.05)
+        return all(free(p + (target - p) * i / n) for i in range(n))
+
+    start = next((p for p in starts if path_clear(p)), None)
+    if start is None:  # furniture blocks every path: the ball stays parked, and the episode says so
+        pb.resetBasePositionAndOrientation(ball, (*HAZARD_PARK_XY, z), (0, 0, 0, 1), physicsClientId=robot.client)
+        return False
+    hazard.start_xy = (float(start[0]), float(start[1]))
+    v = target - start
+    v = hazard.speed_m_s * v / np.linalg.norm(v)
+    pb.resetBasePositionAndOrientation(ball, (start[0], start[1], z), (0, 0, 0, 1),
+                                       physicsClientId=robot.client)
+    # Rolling without slipping: omega = z x v / r.
+    pb.resetBaseVelocity(ball, (v[0], v[1], 0.0), (-v[1] / hazard.radius_m, v[0] / hazard.radius_m, 0.0),
+                         physicsClientId=robot.client)
+    return True
+
+
 def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, threshold_m: float,
-             stop_on_fall: bool, camera: HeadCamera | None):
-    """Run PLAN (waypoints from tick 0) for N_TICKS; returns per-tick measurements."""
+             stop_on_fall: bool, camera: HeadCamera | None, bodies: dict[int, str] | None = None,
+             hazard: Hazard | None = None, ball: int | None = None) -> _Run:
+    """Run PLAN (waypoints from tick 0) for N_TICKS; returns per-tick measurements.
+
+    BODIES names the room's bodies (contacts with anything but the floor are
+    recorded); HAZARD launches BALL at its tick.
+    """
     robot.place(plan[0], robot.start_xy, robot.start_yaw)
     for _ in range(SETTLE_STEPS):
         robot.command(plan[0])
         pb.stepSimulation(physicsClientId=world.client)
-    joints, heights, frames = [], [], []
+    _, quat = pb.getBasePositionAndOrientation(robot.body, physicsClientId=world.client)
+    r0 = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
+    run = _Run(threshold_m)
+    walked_xy: list[np.ndarray] = []
+    fallen = False
     for k in range(n_ticks):
-        joints.append(robot.joint_angles())
+        if hazard is not None and ball is not None and k == hazard.launch_tick:
+            _launch(ball, robot, hazard, r0, robot.start_dir, bodies or {})
+        walked_xy.append(robot.base_xy())
+        run.joints.append(robot.joint_angles())
         h = robot.head_height_m()
-        heights.append(h)
+        run.heights.append(h)
+        if h < threshold_m and not fallen:
+            fallen = True
+            run.end_xy = walked_xy[max(0, k - RATE_HZ)]
+        if bodies is not None and run.first_contact_tick is None:
+            for contact in pb.getContactPoints(bodyA=robot.body, physicsClientId=world.client):
+                other = bodies.get(contact[2], "ball" if contact[2] == ball else "body")
+                if other != "floor":
+                    run.first_contact_tick, run.contact_with = k, other
+                    break
         if camera is not None:
-            frames.append(encode_jpeg(camera.frame()))
-        if stop_on_fall and h < threshold_m:
+            run.frames.append(encode_jpeg(camera.frame()))
+        if stop_on_fall and fallen:
             break
         for s in range(1, STEPS_PER_TICK + 1):
             a = s / STEPS_PER_TICK
             robot.command((1 - a) * plan[k] + a * plan[k + 1])
             pb.stepSimulation(physicsClientId=world.client)
-    return np.array(joints), np.array(heights), frames
+    if run.end_xy is None:
+        run.end_xy = robot.base_xy()
+    return run
 
 
 def joint_limits(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
@@ -216,68 +427,117 @@ def joint_limits(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
     return np.array([i[8] for i in info]), np.array([i[9] for i in info])
 
 
+def _add_ball(client: int, hazard: Hazard) -> int:
+    col = pb.createCollisionShape(pb.GEOM_SPHERE, radius=hazard.radius_m, physicsClientId=client)
+    vis = pb.createVisualShape(pb.GEOM_SPHERE, radius=hazard.radius_m, rgbaColor=[*hazard.rgb, 1.0],
+                               physicsClientId=client)
+    return pb.createMultiBody(hazard.mass_kg, col, vis,
+                              basePosition=(*HAZARD_PARK_XY, hazard.radius_m), physicsClientId=client)
+
+
 def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = DURATION_S,
-                     render: bool = True, gait: bool = True) -> Episode:
+                     render: bool = True, gait: bool = True, hazard: bool | None = None,
+                     counterfactual_lead_ticks: int | None = None, counterfactual_draw: int = 1) -> Episode:
     """Simulate the episode of SEED. SIGMA None draws it from SIGMAS; 0 means unperturbed.
 
-    GAIT False keeps the standing pose (for the standing test).
+    GAIT False keeps the standing pose (for the standing test). HAZARD None
+    draws whether a ball is rolled at the robot (HAZARD_PROBABILITY); True or
+    False forces it. COUNTERFACTUAL_LEAD_TICKS: when the episode falls, run it
+    again with the perturbation knots from onset - lead on redrawn (draw
+    COUNTERFACTUAL_DRAW) and record that run's onset.
     """
     rng = np.random.default_rng(seed)
     if sigma is None:
         sigma = float(SIGMAS[rng.integers(len(SIGMAS))])
     n_ticks = int(round(duration_s * RATE_HZ))
     n_plan = n_ticks + PLAN_FUTURE_TICKS + 1
+    n_knots = len(knot_ticks(n_plan))
     standing = standing_head_height_m()
     threshold = round(FALL_FRACTION * standing, 4)
+    # Drawn before anything else, so that forcing it leaves the rest of the episode as it was.
+    hazard_drawn = bool(rng.uniform() < HAZARD_PROBABILITY)
+    with_hazard = hazard_drawn if hazard is None else hazard
     world = World()
     try:
         yaw = float(rng.uniform(-math.pi, math.pi))
         start_xy = rng.uniform(-0.6, 0.6, 2)
         heading = yaw - math.pi / 2  # yaw 0 faces -y
-        scene = build_room(world.client, rng, start_xy, heading)
+        scene, bodies = build_room(world.client, rng, start_xy, heading)
+        # Always drawn, so that HAZARD True or False changes nothing else in the episode.
+        haz_drawn = Hazard.sample(rng, n_ticks)
+        haz = haz_drawn if with_hazard else None
+        ball = _add_ball(world.client, haz) if haz is not None else None
         robot = Robot(world.client)
-        robot.start_xy, robot.start_yaw = start_xy, yaw
+        direction = np.array([math.cos(heading), math.sin(heading)])
+        robot.start_xy, robot.start_yaw, robot.start_dir = start_xy, yaw, direction
         camera = HeadCamera(robot) if render else None
         lo, hi = joint_limits(robot)
         initial_state = pb.saveState(physicsClientId=world.client)
-        direction = np.array([math.cos(heading), math.sin(heading)])
         # Progress asked of a kept plan: MIN_PROGRESS_M over 10 s, pro rata after the 2 s start-up.
         min_progress_m = MIN_PROGRESS_M * min(1.0, max(0.0, duration_s - 2.0) / 8.0)
 
-        # Plan search: sample gait parameters, keep the first plan that, run
-        # without perturbation in this very room, stays up and walks forward.
+        def perturbed(base_plan: np.ndarray, s: float, eta: np.ndarray) -> np.ndarray:
+            return np.clip(base_plan + knot_deviation(eta, s, n_plan), lo, hi)
+
+        def stays_up(candidate: np.ndarray) -> tuple[bool, float]:
+            pb.restoreState(initial_state, physicsClientId=world.client)
+            run = _rollout(world, robot, candidate, n_ticks, threshold, True, None)
+            moved = float((robot.base_xy() - start_xy) @ direction)
+            return len(run.heights) == n_ticks and min(run.heights) >= threshold, moved
+
+        # Plan search: sample gait parameters, keep the first plan that, in this
+        # very room, stays up and walks forward unperturbed, and stays up under
+        # VALIDATION_DRAWS knot perturbations at VALIDATION_SIGMA.
         params, plan, attempts, progress = None, np.tile(standing_pose(), (n_plan, 1)), 0, 0.0
         if gait:
             for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):  # noqa: B007 (read after the loop)
                 cand = GaitParams.sample(rng)
                 cand_plan = gait_waypoints(cand, n_plan, RATE_HZ)
-                pb.restoreState(initial_state, physicsClientId=world.client)
-                _, heights, _ = _rollout(world, robot, cand_plan, n_ticks, threshold, True, None)
-                moved = float((robot.base_xy() - start_xy) @ direction)
-                if len(heights) == n_ticks and heights.min() >= threshold and moved >= min_progress_m:
+                ok, moved = stays_up(cand_plan)
+                ok = ok and moved >= min_progress_m
+                for _ in range(VALIDATION_DRAWS if ok else 0):
+                    eta = rng.normal(0.0, VALIDATION_SIGMA, (n_knots, len(JOINT_NAMES)))
+                    if not stays_up(perturbed(cand_plan, VALIDATION_SIGMA, eta))[0]:
+                        ok = False
+                        break
+                if ok:
                     params, plan, progress = cand, cand_plan, moved
                     break
             else:
                 raise RuntimeError(f"episode seed {seed}: no walking plan kept in {MAX_PLAN_ATTEMPTS} attempts")
 
-        # Perturbation per waypoint and joint (i.i.d., not cumulative).
-        rho = np.arange(n_plan) * STEPS_PER_TICK
-        eta = rng.normal(0.0, 1.0, plan.shape) * sigma
-        perturbed = np.clip(plan + perturbation_factor(sigma, rho)[:, None] * eta, lo, hi)
-        full_plan = np.vstack([np.tile(perturbed[0], (PLAN_PAST_TICKS, 1)), perturbed])
+        knot_eta = rng.normal(0.0, 1.0, (n_knots, len(JOINT_NAMES))) * sigma
+        final = perturbed(plan, sigma, knot_eta)
+        full_plan = np.vstack([np.tile(final[0], (PLAN_PAST_TICKS, 1)), final])
 
         pb.restoreState(initial_state, physicsClientId=world.client)
-        joints, heights, frames = _rollout(world, robot, perturbed, n_ticks, threshold, False, camera)
+        run = _rollout(world, robot, final, n_ticks, threshold, False, camera, bodies, haz, ball)
         if sigma == 0:
             progress = float((robot.base_xy() - start_xy) @ direction)
+        distance = float(np.linalg.norm(run.end_xy - start_xy))
+        onset = run.onset_tick
+        cf_onset, cf_from = None, None
+        if counterfactual_lead_ticks is not None and onset is not None:
+            cf_from = max(0, onset - counterfactual_lead_ticks)
+            redraw = knot_ticks(n_plan) >= cf_from
+            cf_eta = knot_eta.copy()
+            cf_rng = np.random.default_rng([seed, 2, counterfactual_draw])
+            cf_eta[redraw] = cf_rng.normal(0.0, 1.0, (int(redraw.sum()), len(JOINT_NAMES))) * sigma
+            pb.restoreState(initial_state, physicsClientId=world.client)
+            cf_run = _rollout(world, robot, perturbed(plan, sigma, cf_eta), n_ticks, threshold, True, None,
+                              bodies, haz, ball)
+            cf_onset = cf_run.onset_tick
     finally:
         world.close()
+    heights = np.array(run.heights)
     fallen = np.maximum.accumulate(heights < threshold)
-    return Episode(seed=seed, sigma=sigma, params=params, n_ticks=n_ticks, joints_rad=joints,
-                   plan_rad=full_plan, head_height_m=heights, fallen=fallen, jpeg_frames=frames,
+    return Episode(seed=seed, sigma=sigma, params=params, n_ticks=n_ticks, joints_rad=np.array(run.joints),
+                   plan_rad=full_plan, head_height_m=heights, fallen=fallen, jpeg_frames=run.frames,
                    standing_head_height_m=standing, scene=scene, plan_attempts=attempts,
-                   progress_m=progress)
+                   progress_m=progress, hazard=haz, first_contact_tick=run.first_contact_tick,
+                   contact_with=run.contact_with, distance_m=distance,
+                   counterfactual_onset_tick=cf_onset, counterfactual_from_tick=cf_from)
 
 
-__all__ = ["Episode", "simulate_episode", "stamp_ns", "perturbation_factor", "SIGMAS", "RATE_HZ",
-           "JOINT_NAMES"]
+__all__ = ["Episode", "Hazard", "simulate_episode", "stamp_ns", "perturbation_factor", "knot_deviation",
+           "SIGMAS", "RATE_HZ", "JOINT_NAMES", "GENERATOR_VERSION"]

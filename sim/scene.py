@@ -194,10 +194,12 @@ def _add_furniture(client: int, kind: str, xy, yaw_rad: float, rng: np.random.Ge
                               physicsClientId=client)
 
 
-def build_room(client: int, rng: np.random.Generator, robot_xy, heading_rad: float) -> dict:
-    """Floor, walls, ceiling and six furniture pieces; returns what was chosen.
+def build_room(client: int, rng: np.random.Generator, robot_xy, heading_rad: float) -> tuple[dict, dict[int, str]]:
+    """Floor, walls, ceiling and six furniture pieces; returns what was chosen and the body names.
 
-    HEADING_RAD is the robot's walking direction in the world (0 = +x).
+    HEADING_RAD is the robot's walking direction in the world (0 = +x). The
+    names ({body id: "floor" | "wall" | "ceiling" | furniture kind}) let a
+    rollout say what the robot touched.
     """
     assets = ensure_assets()
     plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=client)
@@ -210,10 +212,12 @@ def build_room(client: int, rng: np.random.Generator, robot_xy, heading_rad: flo
     textures = [pb.loadTexture(str(assets / f"wallpaper_{i:02d}.png"), physicsClientId=client) for i in papers]
     r, h = ROOM_HALF_M, ROOM_HEIGHT_M
     walls = [((0, r, h / 2), 0.0), ((0, -r, h / 2), 0.0), ((r, 0, h / 2), math.pi / 2), ((-r, 0, h / 2), math.pi / 2)]
+    bodies = {floor: "floor"}
     for (centre, yaw), tex in zip(walls, textures):
-        _quad(client, assets, centre, yaw, 2 * r, h, texture=tex)
-    _quad(client, assets, (0, 0, h), 0.0, 2 * r, 2 * r, roll_rad=math.pi / 2,
-          rgba=np.append(rng.uniform(0.75, 0.95, 3), 1).tolist())
+        bodies[_quad(client, assets, centre, yaw, 2 * r, h, texture=tex)] = "wall"
+    ceiling = _quad(client, assets, (0, 0, h), 0.0, 2 * r, 2 * r, roll_rad=math.pi / 2,
+                    rgba=np.append(rng.uniform(0.75, 0.95, 3), 1).tolist())
+    bodies[ceiling] = "ceiling"
     kinds = [str(k) for k in rng.choice(FURNITURE_KINDS, N_FURNITURE, replace=True)]
     placed: list[tuple[float, float]] = []
     for kind in kinds:
@@ -227,5 +231,5 @@ def build_room(client: int, rng: np.random.Generator, robot_xy, heading_rad: flo
         placed.append(xy)
         # Face the robot (the furniture's front is its -y side).
         face = math.atan2(robot_xy[1] - xy[1], robot_xy[0] - xy[0]) + math.pi / 2
-        _add_furniture(client, kind, xy, face + rng.uniform(-0.4, 0.4), rng)
-    return {"wallpapers": papers, "furniture": kinds, "furniture_xy": placed}
+        bodies[_add_furniture(client, kind, xy, face + rng.uniform(-0.4, 0.4), rng)] = kind
+    return {"wallpapers": papers, "furniture": kinds, "furniture_xy": placed}, bodies

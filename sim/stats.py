@@ -1,17 +1,31 @@
-"""Summary of a data set directory: episodes, fall rate per sigma, onset times, progress.
+"""Summary of a data set directory: fall rate per sigma, onsets, distance, causes, counterfactuals.
 
 Data enters as the ``fall_guard.episode`` metadata of each ``.mcap`` in a
 directory; leaves as a JSON summary on stdout (``python -m sim stats DIR``).
+With ``--counterfactual N`` it also re-simulates (no camera) up to N of the
+directory's perturbation falls with the perturbation knots from
+``onset - 1.5 s`` on redrawn, and reports the share of falls that were
+averted or moved by more than 15 ticks: the share whose cause lay in the
+plan the network is given rather than in hidden state.
 """
 
 from __future__ import annotations
 
+import json
 from collections import defaultdict
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import numpy as np
 from mcap.reader import make_reader
 
+from .episode import RATE_HZ
 from .recording import METADATA_NAME
+
+#: The counterfactual redraws the perturbation from this long before the onset...
+COUNTERFACTUAL_LEAD_TICKS = 45
+#: ...and counts a fall as moved when its onset shifts by more than this.
+COUNTERFACTUAL_MOVE_TICKS = 15
 
 
 def read_episode_metadata(path: Path) -> dict[str, str]:
@@ -22,31 +36,89 @@ def read_episode_metadata(path: Path) -> dict[str, str]:
     raise ValueError(f"{path}: no {METADATA_NAME} metadata record")
 
 
-def _spread(values: list[float], digits: int) -> dict[str, float]:
-    return {"min": min(values), "max": max(values), "mean": round(sum(values) / len(values), digits)}
+def _spread(values: list[float], digits: int) -> dict[str, float] | None:
+    if not values:
+        return None
+    v = np.array(values, dtype=float)
+    return {"min": round(float(v.min()), digits), "p10": round(float(np.percentile(v, 10)), digits),
+            "median": round(float(np.median(v)), digits), "p90": round(float(np.percentile(v, 90)), digits),
+            "max": round(float(v.max()), digits), "mean": round(float(v.mean()), digits)}
 
 
-def summarise(directory: Path) -> dict:
+def counterfactual(seed: int, sigma: float, duration_s: float, draw: int = 1) -> dict:
+    """Re-simulate one episode (no camera) and its counterfactual; what happened to the fall."""
+    from .episode import simulate_episode
+    ep = simulate_episode(seed, sigma=sigma, duration_s=duration_s, render=False,
+                          counterfactual_lead_ticks=COUNTERFACTUAL_LEAD_TICKS, counterfactual_draw=draw)
+    onset, cf = ep.fall_onset_tick, ep.counterfactual_onset_tick
+    return {"seed": seed, "sigma": sigma, "onset_tick": onset, "cause": ep.fall_cause,
+            "counterfactual_onset_tick": cf,
+            "averted": onset is not None and cf is None,
+            "moved": onset is not None and cf is not None and abs(cf - onset) > COUNTERFACTUAL_MOVE_TICKS}
+
+
+def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict:
     files = sorted(directory.glob("*.mcap"))
     if not files:
         raise ValueError(f"{directory}: no .mcap recordings")
-    per_sigma: dict[str, list[int]] = defaultdict(lambda: [0, 0])
-    onsets_s, progress = [], []
+    rows = []
     for path in files:
         meta = read_episode_metadata(path)
-        row = per_sigma[meta["sigma"]]
-        row[1] += 1
-        if "fall_onset_ns" in meta:
-            row[0] += 1
-            onsets_s.append(int(meta["fall_onset_ns"]) / 1e9)
-        progress.append(float(meta.get("progress_m", "nan")))
-    falls = sum(r[0] for r in per_sigma.values())
-    return {
-        "episodes": len(files),
-        "falling": falls,
-        "fall_rate": round(falls / len(files), 3),
-        "per_sigma": {s: {"falling": r[0], "episodes": r[1]}
-                      for s, r in sorted(per_sigma.items(), key=lambda kv: float(kv[0]))},
-        "onset_s": _spread(onsets_s, 2) if onsets_s else None,
-        "plan_progress_m": _spread(progress, 3),
+        hazard = json.loads(meta.get("hazard", "null") or "null")
+        rows.append({
+            "sigma": meta["sigma"], "seed": int(meta["seed"]), "duration_s": float(meta["duration_s"]),
+            "onset_s": int(meta["fall_onset_ns"]) / 1e9 if "fall_onset_ns" in meta else None,
+            "cause": meta.get("fall_cause"),
+            "hazard": hazard is not None and hazard.get("launched", True),
+            "distance_m": float(meta.get("distance_m", "nan")),
+            "progress_m": float(meta.get("progress_m", "nan")),
+            "generator": meta.get("generator", "1"),
+        })
+    per_sigma: dict[str, dict] = {}
+    by_sigma = defaultdict(list)
+    for r in rows:
+        by_sigma[r["sigma"]].append(r)
+    for s, rs in sorted(by_sigma.items(), key=lambda kv: float(kv[0])):
+        falls = [r for r in rs if r["onset_s"] is not None]
+        plain = [r for r in rs if not r["hazard"]]
+        per_sigma[s] = {
+            "episodes": len(rs), "falling": len(falls), "fall_rate": round(len(falls) / len(rs), 3),
+            "episodes_without_ball": len(plain),
+            "fall_rate_without_ball": (round(sum(r["onset_s"] is not None for r in plain) / len(plain), 3)
+                                       if plain else None),
+            "collision_falls": sum(r["cause"] == "collision" for r in falls),
+            "onset_s": _spread([r["onset_s"] for r in falls], 2),
+            "distance_m": _spread([r["distance_m"] for r in rs], 3),
+            "distance_m_not_falling": _spread([r["distance_m"] for r in rs if r["onset_s"] is None], 3),
+        }
+    falls = [r for r in rows if r["onset_s"] is not None]
+    summary = {
+        "episodes": len(rows),
+        "generators": sorted({r["generator"] for r in rows}),
+        "falling": len(falls),
+        "fall_rate": round(len(falls) / len(rows), 3),
+        "collision_share_of_falls": round(sum(r["cause"] == "collision" for r in falls) / len(falls), 3) if falls else None,
+        "episodes_with_ball": sum(r["hazard"] for r in rows),
+        "per_sigma": per_sigma,
+        "onset_s": _spread([r["onset_s"] for r in falls], 2),
+        "distance_m": _spread([r["distance_m"] for r in rows], 3),
+        "distance_m_not_falling": _spread([r["distance_m"] for r in rows if r["onset_s"] is None], 3),
+        "plan_progress_m": _spread([r["progress_m"] for r in rows], 3),
     }
+    if counterfactual_n > 0:
+        picks = [r for r in falls if r["cause"] == "perturbation"][:counterfactual_n]
+        args = [(r["seed"], float(r["sigma"]), r["duration_s"]) for r in picks]
+        if jobs > 1:
+            with ProcessPoolExecutor(max_workers=jobs) as pool:
+                results = list(pool.map(counterfactual, *zip(*args))) if args else []
+        else:
+            results = [counterfactual(*a) for a in args]
+        changed = [r for r in results if r["averted"] or r["moved"]]
+        summary["counterfactual"] = {
+            "lead_s": COUNTERFACTUAL_LEAD_TICKS / RATE_HZ, "move_ticks": COUNTERFACTUAL_MOVE_TICKS,
+            "perturbation_falls_tried": len(results),
+            "reproduced": sum(r["onset_tick"] is not None for r in results),
+            "averted": sum(r["averted"] for r in results), "moved": sum(r["moved"] for r in results),
+            "share_averted_or_moved": round(len(changed) / len(results), 3) if results else None,
+        }
+    return summary

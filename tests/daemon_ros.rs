@@ -276,8 +276,14 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         }
     }
 
-    // The safety signal: true before the fall onset (5.067 s: tick 152).
-    let onset_tick = 152;
+    // The safety signal: true before the fall onset (the recording's metadata, on the 30 Hz grid).
+    let onset_ns = fall_guard::recording::Recording::open(&repo(FALLING_FIXTURE))
+        .expect("falling fixture reads")
+        .episode()
+        .expect("episode metadata")
+        .fall_onset_ns
+        .expect("the falling fixture falls");
+    let onset_tick = (onset_ns as f64 * 30.0 / 1e9).round() as i64;
     let first_warned = lines
         .iter()
         .find(|l| l.imminent)

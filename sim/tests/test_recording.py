@@ -112,3 +112,30 @@ def test_manifest(small_dataset):
     names = manifest["train"] + manifest["validation"] + manifest["test"]
     assert sorted(names) == ["episode_00000.mcap", "episode_00001.mcap"]
     assert manifest["generator"]["seed"] == 3 and manifest["generator"]["rate_hz"] == 30
+    assert manifest["generator"]["version"] == 2
+    for name in names:
+        assert read_metadata(out / name)["generator"] == "2"
+
+
+def test_stats_report_causes_distance_and_refuse_nothing(small_dataset):
+    from sim.stats import summarise
+
+    out, stats = small_dataset
+    s = summarise(out)
+    assert s["episodes"] == 2 and s["generators"] == ["2"]
+    assert s["falling"] == sum(r["fall_onset_tick"] is not None for r in stats)
+    for row in s["per_sigma"].values():
+        assert row["distance_m"]["min"] >= 0.0
+        assert row["collision_falls"] <= row["falling"]
+
+
+def test_generator_1_directory_is_refused(tmp_path):
+    from sim.dataset import DatasetError, generate
+
+    (tmp_path / "manifest.json").write_text(json.dumps({"generator": {"seed": 3, "duration_s": 4.0}}))
+    try:
+        generate(tmp_path, episodes=1, seed=3, jobs=1, duration_s=4.0, progress=False)
+    except DatasetError as e:
+        assert "version=1" in str(e) and "version=2" in str(e)
+    else:
+        raise AssertionError("a generator 1 directory was extended with generator 2 episodes")
