@@ -14,7 +14,9 @@
 //! Model choice ([`ModelChoice`]): camera lost -> MP, plan lost -> EP, both
 //! -> P; a lost stream counts as back once it has been fresh for a whole
 //! window (N ticks), so that the bigger network never sees a window of held,
-//! stale values. Each switch is logged and counted.
+//! stale values. The same rule makes a forecast valid again after a gap in
+//! a stream the active network reads ([`ModelChoice::refilled`]). Each
+//! switch is logged and counted.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -31,6 +33,7 @@ use crate::config::{Config, ConfigError, ModelFacts};
 use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster, TrajectoryInput};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
+use crate::sources::StreamKind;
 use crate::window::{TickInput, WindowSpec};
 
 #[derive(Debug, Error)]
@@ -247,7 +250,8 @@ pub struct Freshness {
 pub struct ModelChoice {
     available: Vec<Ablation>,
     active: Ablation,
-    /// Consecutive fresh ticks of camera and plan.
+    /// Consecutive fresh ticks of joints, camera and plan (0 on a stale tick).
+    joints_run: usize,
     camera_run: usize,
     plan_run: usize,
     window_ticks: usize,
@@ -262,6 +266,7 @@ impl ModelChoice {
         ModelChoice {
             available,
             active: Ablation::EMP,
+            joints_run: 0,
             camera_run: 0,
             plan_run: 0,
             window_ticks,
@@ -277,8 +282,25 @@ impl ModelChoice {
         self.switches
     }
 
+    /// Consecutive fresh ticks of `stream` up to the last update.
+    pub fn fresh_ticks(&self, stream: StreamKind) -> usize {
+        match stream {
+            StreamKind::Joints => self.joints_run,
+            StreamKind::Camera => self.camera_run,
+            StreamKind::Plan => self.plan_run,
+        }
+    }
+
+    /// True when the last N ticks (a whole window) of `stream` were all
+    /// fresh: a stream that was stale or absent counts as back only then,
+    /// so that no window of held values is trusted.
+    pub fn refilled(&self, stream: StreamKind) -> bool {
+        self.fresh_ticks(stream) >= self.window_ticks
+    }
+
     /// Update with one tick's freshness; returns the new ablation if it changed.
     pub fn update(&mut self, fresh: Freshness) -> Option<Ablation> {
+        self.joints_run = if fresh.joints { self.joints_run + 1 } else { 0 };
         self.camera_run = if fresh.camera { self.camera_run + 1 } else { 0 };
         self.plan_run = if fresh.plan { self.plan_run + 1 } else { 0 };
         // A stream the active network reads may stay as long as it is fresh;
@@ -489,6 +511,10 @@ fn inference_loop(
                 Ok(p) => {
                     latency_us =
                         Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
+                    if valid && p.iter().any(|x| !x.is_finite()) {
+                        valid = false;
+                        invalid_reason = "the network produced a non-finite probability".into();
+                    }
                     probabilities = p;
                 }
                 Err(ForecastFailure::Input(e)) => {

@@ -43,12 +43,22 @@ enum Command {
     Bench(fall_guard::train::bench::BenchArgs),
 }
 
+/// Logs when `RUST_LOG` is unset: fall-guard at info; DDS (rustdds,
+/// ros2-client) only from warnings up, less two sources that say nothing an
+/// operator can act on (set `RUST_LOG` to see them again):
+/// - `rustdds::rtps::writer`: with `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`
+///   every sample to a discovered reader whose locators are all off
+///   loopback logs `No locators` (about 30 lines per second with one rclpy
+///   peer); delivery to the readers that can be reached goes on;
+/// - `rustdds::network::udp_listener`: leaving the DDS multicast group on a
+///   loopback-only participant at shutdown fails (`AddrNotAvailable`) and
+///   logs an ERROR although nothing was lost.
+const DEFAULT_LOG_FILTER: &str =
+    "info,rustdds=warn,ros2_client=warn,rustdds::rtps::writer=error,rustdds::network::udp_listener=off";
+
 fn init_logging() {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        // DDS discovery chatter (rustdds, ros2-client) only from warnings up.
-        .unwrap_or_else(|_| {
-            tracing_subscriber::EnvFilter::new("info,rustdds=warn,ros2_client=warn")
-        });
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
     // Logs go to stderr: stdout carries the forecasts of `replay`.
     tracing_subscriber::fmt()
         .with_env_filter(filter)

@@ -213,11 +213,23 @@ pub mod qos {
 }
 
 /// A running ROS 2 node: the DDS participant, the node and its spinner task.
-/// Dropping it stops the spinner and leaves the DDS domain.
+/// [`RosNode::shutdown`] leaves the DDS domain in order; dropping it does the
+/// same without waiting for the spinner.
+///
+/// Order matters: ros2-client's `Node` drops its context handle before its
+/// own readers and writers, so when the node holds the last handle the
+/// participant's event loop is gone before they are removed, and every one
+/// of them logs an ERROR (`Cannot remove Writer GUID`). `context` is held
+/// here, declared after `node` and `spinner`, so that the participant
+/// outlives all of them.
 pub struct RosNode {
+    /// Dropping it tells the spinner to stop (`Node::drop` sends the signal;
+    /// sending it ourselves as well fills the one-slot channel, which
+    /// ros2-client logs as an ERROR).
     node: Node,
     settings: RosSettings,
     spinner: tokio::task::JoinHandle<()>,
+    context: Context,
 }
 
 impl RosNode {
@@ -256,11 +268,33 @@ impl RosNode {
             node,
             settings: settings.clone(),
             spinner,
+            context,
         })
     }
 
     pub fn settings(&self) -> &RosSettings {
         &self.settings
+    }
+
+    /// Leave the DDS domain cleanly: drop the node (which stops the
+    /// spinner), wait for the spinner to end (it owns some of the node's
+    /// built-in readers and writers), then the participant. Publishers and
+    /// subscriptions made on this node must be dropped before.
+    pub async fn shutdown(self) {
+        let RosNode {
+            node,
+            spinner,
+            context,
+            ..
+        } = self;
+        drop(node);
+        if tokio::time::timeout(std::time::Duration::from_secs(2), spinner)
+            .await
+            .is_err()
+        {
+            tracing::warn!("ROS 2 spinner did not stop within 2 s: leaving the domain anyway");
+        }
+        drop(context);
     }
 
     /// The underlying ros2-client node, to create publishers and subscriptions.
@@ -298,13 +332,6 @@ impl RosNode {
     /// The fully qualified name a topic name resolves to on this node.
     pub fn resolve(&self, topic: &str) -> String {
         resolve_topic(&self.settings.namespace, topic)
-    }
-}
-
-impl Drop for RosNode {
-    fn drop(&mut self) {
-        self.node.stop_spinner();
-        self.spinner.abort();
     }
 }
 

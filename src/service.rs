@@ -319,7 +319,9 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
     if let Some(p) = publisher {
         let _ = p.await;
     }
-    drop(ros);
+    if let Some(ros) = ros {
+        ros.shutdown().await;
+    }
     signals.abort();
     if summary.inference_failed {
         return Err(ServiceError::Source(format!(
@@ -557,7 +559,9 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     if let Some(p) = publisher {
         let _ = p.await;
     }
-    drop(ros);
+    if let Some(ros) = ros {
+        ros.shutdown().await;
+    }
     signals.abort();
     if inference_died {
         return Err(ServiceError::Source(
@@ -615,7 +619,9 @@ pub async fn record(
     for s in sources {
         s.join().await;
     }
-    drop(ros);
+    if let Some(ros) = ros {
+        ros.shutdown().await;
+    }
     signals.abort();
     result?;
     Ok(summary?)

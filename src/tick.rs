@@ -128,13 +128,16 @@ pub struct TickLoop {
     last_reason: String,
 }
 
-/// Why a tick's forecast is not valid (`None`: valid).
+/// Why a tick's forecast is not valid (`None`: valid). Valid means: the
+/// ring holds N ticks, and every stream the active network reads was fresh
+/// in each of them. A stream back after a gap therefore keeps the forecast
+/// invalid until N fresh ticks have refilled the window, as a lost camera or
+/// plan must before the model choice takes it back.
 fn invalid_reason(
     ring: &Ring,
     tick: &TickInput,
-    fresh: [bool; 3],
+    choice: &ModelChoice,
     slots: &[StreamSlot; 3],
-    active: Ablation,
 ) -> Option<String> {
     if !ring.is_full() {
         return Some(format!(
@@ -148,15 +151,26 @@ fn invalid_reason(
         tick.age_ns.frame_ns,
         tick.age_ns.plan_ns,
     ];
+    let active = choice.active();
     let used = [true, active.uses_vision(), active.uses_plan()];
-    let stale: Vec<String> = (0..3)
-        .filter(|&i| used[i] && !fresh[i])
-        .map(|i| match ages[i] {
-            Some(age) => format!("{} stale ({} ms old)", slots[i].kind, age / 1_000_000),
-            None => format!("no {} sample yet", slots[i].kind),
+    let window = ring.capacity();
+    let not_ready: Vec<String> = (0..3)
+        .filter(|&i| used[i] && !choice.refilled(slots[i].kind))
+        .map(|i| {
+            let kind = slots[i].kind;
+            match ages[i] {
+                None => format!("no {kind} sample yet"),
+                Some(age) if age > slots[i].stale_ns => {
+                    format!("{kind} stale ({} ms old)", age / 1_000_000)
+                }
+                Some(_) => format!(
+                    "{kind} back, window refilling ({}/{window} fresh ticks)",
+                    choice.fresh_ticks(kind)
+                ),
+            }
         })
         .collect();
-    (!stale.is_empty()).then(|| stale.join(", "))
+    (!not_ready.is_empty()).then(|| not_ready.join(", "))
 }
 
 impl TickLoop {
@@ -261,7 +275,7 @@ impl TickLoop {
         let latest = self.ring.latest().cloned();
         let reason = latest
             .as_ref()
-            .and_then(|t| invalid_reason(&self.ring, t, fresh, slots, active));
+            .and_then(|t| invalid_reason(&self.ring, t, &self.choice, slots));
         self.last_valid = reason.is_none();
         self.last_reason = reason.clone().unwrap_or_default();
         if dispatch {

@@ -1,14 +1,15 @@
 //! The daemon replays real MCAP recordings end to end (the real binary):
 //! one forecast per tick once the ring is full, equal to an offline forward
 //! pass over the same windows, the safety latch consistent with its
-//! thresholds, and the model degrading and recovering when the camera
-//! stream disappears from the recording for a while.
+//! thresholds, the model degrading and recovering when the camera
+//! stream disappears from the recording for a while, and forecasts not
+//! valid (the latch asserted) from a joints gap until the window refills.
 
 mod daemon_common;
 
 use daemon_common::*;
 use fall_guard::model::LoadedModel;
-use fall_guard::recording::{topics, Recording, RecordingWriter};
+use fall_guard::recording::{topics, Recording};
 use fall_guard::window::{EpisodeTicks, Streams, WindowSpec};
 
 fn spec() -> WindowSpec {
@@ -42,6 +43,7 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
             );
             assert!(line.reason.starts_with("ring filling"), "{line:?}");
             assert!(line.probabilities.is_empty());
+            assert!(line.imminent, "latch asserted while the ring fills");
         } else {
             assert!(line.valid, "tick {} not valid: {}", line.tick, line.reason);
             assert_eq!(line.ablation, "EMP");
@@ -71,8 +73,9 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
         }
     }
 
-    // The latch follows its thresholds (trigger 0.6, release 0.3) at 533 ms.
-    let mut on = false;
+    // The latch follows its thresholds (trigger 0.6, release 0.3) at 533 ms,
+    // asserted while the ring fills (no valid forecast yet).
+    let mut on = true;
     for line in lines.iter().filter(|l| l.valid) {
         let p = line.probabilities[1];
         if !on && p >= 0.6 {
@@ -87,57 +90,16 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
     }
 }
 
-/// Copies `src` to `dst` without the camera frames logged in `[from_ns, to_ns)`.
-fn drop_camera(src: &std::path::Path, dst: &std::path::Path, from_ns: i64, to_ns: i64) {
-    let rec = Recording::open(src).expect("read");
-    let mut w = RecordingWriter::create(dst).expect("create");
-    let mut i = (0, 0, 0);
-    loop {
-        let next = [
-            rec.joint_states.get(i.0).map(|m| (m.file_order, 0)),
-            rec.images.get(i.1).map(|m| (m.file_order, 1)),
-            rec.plans.get(i.2).map(|m| (m.file_order, 2)),
-        ]
-        .into_iter()
-        .flatten()
-        .min();
-        match next {
-            None => break,
-            Some((_, 0)) => {
-                let m = &rec.joint_states[i.0];
-                w.write(topics::JOINT_STATES, m.log_time_ns, &m.msg)
-                    .expect("write");
-                i.0 += 1;
-            }
-            Some((_, 1)) => {
-                let m = &rec.images[i.1];
-                if !(from_ns..to_ns).contains(&m.log_time_ns) {
-                    w.write(topics::HEAD_CAMERA, m.log_time_ns, &m.msg)
-                        .expect("write");
-                }
-                i.1 += 1;
-            }
-            Some(_) => {
-                let m = &rec.plans[i.2];
-                w.write(topics::PLANNED_TRAJECTORY, m.log_time_ns, &m.msg)
-                    .expect("write");
-                i.2 += 1;
-            }
-        }
-    }
-    w.write_episode(rec.episode().expect("meta")).expect("meta");
-    w.finish().expect("finish");
-}
-
 #[test]
 fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
     let scene = Scene::new("no_camera.mcap");
     let full = scene.path("full.mcap");
     write_recording(&full, 3, false, 120);
     // Camera gone from 1.5 s to 2.5 s (ticks 45..75).
-    drop_camera(
+    copy_without(
         &full,
         &scene.path("no_camera.mcap"),
+        topics::HEAD_CAMERA,
         1_500_000_000,
         2_500_000_000,
     );
@@ -199,4 +161,70 @@ fn label_marks_the_fall_onset_in_place() {
         "{}",
         stderr(&out)
     );
+}
+
+#[test]
+fn joints_gap_invalidates_forecasts_until_the_window_refills() {
+    let scene = Scene::new("joints_gap.mcap");
+    // Thresholds no untrained network reaches: every valid forecast is below
+    // release, so the latch is off whenever the forecast is valid.
+    let config = std::fs::read_to_string(&scene.config).expect("config");
+    std::fs::write(
+        &scene.config,
+        config.replace(
+            "trigger = 0.6\nrelease = 0.3",
+            "trigger = 0.999\nrelease = 0.998",
+        ),
+    )
+    .expect("config");
+    let full = scene.path("full.mcap");
+    write_recording(&full, 4, false, 150);
+    // Joint states gone from 2.0 s to 2.5 s (ticks 60..75): the servo bus
+    // unplugged, camera and plan going on.
+    copy_without(
+        &full,
+        &scene.path("joints_gap.mcap"),
+        topics::JOINT_STATES,
+        2_000_000_000,
+        2_500_000_000,
+    );
+    let (lines, _) = scene.replay_max_speed();
+    assert!(lines.windows(2).all(|w| w[1].tick == w[0].tick + 1));
+
+    // Valid before the gap, with the latch off.
+    let before = lines.iter().find(|l| l.tick == 55).expect("tick 55");
+    assert!(before.valid && !before.imminent, "{before:?}");
+    // Stale joints: invalid, named, the latch asserted.
+    let stale: Vec<&Line> = lines
+        .iter()
+        .filter(|l| l.reason.contains("joints stale"))
+        .collect();
+    assert!(!stale.is_empty(), "no tick with stale joints");
+    let (first_stale, last_stale) = (stale[0].tick, stale[stale.len() - 1].tick);
+    assert!((61..=65).contains(&first_stale), "stale from {first_stale}");
+    assert_eq!(
+        stale.len() as i64,
+        last_stale - first_stale + 1,
+        "one stale run"
+    );
+    // Joints back: still invalid until N fresh ticks fill the window, so the
+    // first valid forecast is the one whose whole window is fresh again.
+    let back = last_stale + 1;
+    let first_valid = back + N_TICKS as i64 - 1;
+    for line in lines.iter().filter(|l| l.tick >= first_stale) {
+        if line.tick < back {
+            assert!(!line.valid && line.imminent, "{line:?}");
+        } else if line.tick < first_valid {
+            assert!(!line.valid, "tick {} valid on held joints", line.tick);
+            assert!(
+                line.reason.contains("joints back, window refilling"),
+                "{line:?}"
+            );
+            assert!(line.imminent, "latch asserted while refilling: {line:?}");
+        } else {
+            assert!(line.valid, "tick {} not valid: {}", line.tick, line.reason);
+            assert!(!line.imminent, "latch off on a valid low forecast");
+        }
+    }
+    assert!(lines.last().expect("lines").tick > first_valid + 5);
 }

@@ -4,10 +4,15 @@
 //! - replaying the bundled falling fixture, it publishes one forecast per
 //!   tick; every forecast after the ring fills reaches an rclpy subscriber,
 //!   equal to what `fall-guard eval --recording` computes offline for the
-//!   same ticks, and `/fall_guard/fall_imminent` turns true before the fall;
+//!   same ticks, and `/fall_guard/fall_imminent` (asserted while the ring
+//!   fills) is on from a real warning before the fall;
 //! - run live with `/joint_states` and `/planned_trajectory` coming from an
 //!   rclpy publisher (no camera), it forecasts with the MP network and says
 //!   so on `/diagnostics`;
+//!   a SIGTERM stops it with no ERROR and no DDS chatter in its log;
+//! - a joints gap in a replay: NaN on `/fall_guard/forecast` from the
+//!   stale tick until N fresh ticks have refilled the window, and
+//!   `fall_imminent` asserted meanwhile;
 //! - `record` then `label` then `replay` of live ROS 2 streams;
 //! - run on the Dynamixel servo buses (both emulated on pseudo-terminals):
 //!   faults (no reply, bad checksums, garbage, an error bit, an unplugged
@@ -26,7 +31,9 @@ use serde_json::Value;
 use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
 mod daemon_common;
-use daemon_common::{parse_lines, robot_joints};
+use daemon_common::{
+    copy_without, parse_lines, robot_joints, write_recording, Line, Scene, N_TICKS,
+};
 
 const FALLING_FIXTURE: &str = "tests/fixtures/episode_00005.mcap";
 
@@ -108,9 +115,11 @@ struct Daemon {
 
 impl Daemon {
     fn start(args: &[&str]) -> Daemon {
+        // The default log filter, as an operator gets it: the tests check
+        // that it keeps DDS chatter out and that a stop logs no ERROR.
         let mut child = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
             .args(args)
-            .env("RUST_LOG", "info,rustdds=warn,ros2_client=warn")
+            .env_remove("RUST_LOG")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
@@ -276,7 +285,10 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         }
     }
 
-    // The safety signal: true before the fall onset (the recording's metadata, on the 30 Hz grid).
+    // The safety signal: asserted while the ring fills (no valid forecast),
+    // then a real warning before the fall onset (the recording's metadata, on
+    // the 30 Hz grid): a valid forecast at the latch's horizon (1 s, index 1)
+    // at or above the trigger (0.4), with the latch on.
     let onset_ns = fall_guard::recording::Recording::open(&repo(FALLING_FIXTURE))
         .expect("falling fixture reads")
         .episode()
@@ -284,29 +296,33 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         .fall_onset_ns
         .expect("the falling fixture falls");
     let onset_tick = (onset_ns as f64 * 30.0 / 1e9).round() as i64;
-    let first_warned = lines
+    assert!(lines.iter().filter(|l| !l.valid).all(|l| l.imminent));
+    let first_warned = valid
         .iter()
-        .find(|l| l.imminent)
-        .map(|l| l.tick)
-        .expect("fall_imminent never turned true on a falling episode");
+        .find(|l| l.probabilities[1] >= 0.4)
+        .expect("no valid forecast reached the trigger on a falling episode");
+    assert!(first_warned.imminent, "{first_warned:?}");
     assert!(
-        first_warned < onset_tick,
-        "warned at tick {first_warned}, after the onset (tick {onset_tick})"
+        first_warned.tick < onset_tick,
+        "warned at tick {}, after the onset (tick {onset_tick})",
+        first_warned.tick
     );
-    let true_at = msgs(&events, "/fall_guard/fall_imminent")
-        .find(|e| e["msg"]["data"] == true)
-        .and_then(|e| e["t"].as_f64())
-        .expect("rclpy never received fall_imminent = true");
+    // rclpy: the last fall_imminent received before the onset tick's
+    // forecast is true.
     let onset_forecast_at = valid
         .iter()
         .zip(&numbers)
         .find(|(l, _)| l.tick >= onset_tick)
         .map(|(_, (t, _))| *t)
         .expect("a forecast at or after the onset");
-    assert!(
-        true_at < onset_forecast_at,
-        "fall_imminent reached rclpy {:.3} s after the onset tick's forecast",
-        true_at - onset_forecast_at
+    let at_onset = msgs(&events, "/fall_guard/fall_imminent")
+        .filter(|e| e["t"].as_f64().is_some_and(|t| t <= onset_forecast_at))
+        .last()
+        .map(|e| e["msg"]["data"].clone());
+    assert_eq!(
+        at_onset,
+        Some(Value::Bool(true)),
+        "fall_imminent at the onset as rclpy saw it"
     );
 }
 
@@ -362,6 +378,14 @@ async fn rclpy_joint_states_and_plan_drive_the_daemon() {
         walker.stderr()
     );
     assert!(success, "daemon exit on SIGTERM: {stderr}");
+    // Quiet logs with an rclpy peer on loopback: no per-sample DDS warning,
+    // and a clean stop (no ERROR from leaving the DDS domain).
+    assert!(
+        !stderr.contains("No locators"),
+        "DDS chatter in the default log: {stderr}"
+    );
+    let errors: Vec<&str> = stderr.lines().filter(|l| l.contains(" ERROR ")).collect();
+    assert!(errors.is_empty(), "ERROR lines after SIGTERM: {errors:#?}");
 
     // Forecasts: numbers once the ring is full, from the MP network.
     let forecasts: Vec<Vec<f32>> = msgs(&seen, "/fall_guard/forecast")
@@ -693,5 +717,135 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
             .iter()
             .any(|l| !l.valid && l.reason.contains("joints")),
         "no invalid line naming the joints"
+    );
+}
+
+/// Lengths of the runs of NaN (`true`) and number (`false`) forecasts.
+fn nan_runs(forecasts: &[Vec<f32>]) -> Vec<(bool, usize)> {
+    let mut runs: Vec<(bool, usize)> = Vec::new();
+    for p in forecasts {
+        let nan = p.iter().all(|v| v.is_nan());
+        assert!(
+            nan || p.iter().all(|v| v.is_finite()),
+            "a forecast mixes NaN and numbers: {p:?}"
+        );
+        match runs.last_mut() {
+            Some((n, len)) if *n == nan => *len += 1,
+            _ => runs.push((nan, 1)),
+        }
+    }
+    runs
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn joints_gap_publishes_nan_forecasts_until_the_window_refills() {
+    use fall_guard::recording::topics;
+
+    let test = "joints_gap_publishes_nan_forecasts_until_the_window_refills";
+    let Some(python) = rclpy_python(test) else {
+        return;
+    };
+    let domain = domain_id(4);
+    // Small test networks, replayed in real time; thresholds no untrained
+    // network reaches, so the latch is off whenever the forecast is valid.
+    let scene = Scene::new("joints_gap.mcap");
+    let config = std::fs::read_to_string(&scene.config)
+        .expect("config")
+        .replace(
+            "trigger = 0.6\nrelease = 0.3",
+            "trigger = 0.999\nrelease = 0.998",
+        )
+        .replace("max_speed = true", "max_speed = false")
+        .replace(
+            "[ros]\nenabled = false",
+            &format!("[ros]\nenabled = true\ndomain_id = {domain}\nlocalhost_only = true"),
+        );
+    assert!(config.contains("trigger = 0.999") && config.contains("enabled = true"));
+    std::fs::write(&scene.config, config).expect("config");
+    // 5 s at 30 Hz; joint states gone from 2.0 s to 2.5 s.
+    let full = scene.path("full.mcap");
+    write_recording(&full, 4, false, 150);
+    copy_without(
+        &full,
+        &scene.path("joints_gap.mcap"),
+        topics::JOINT_STATES,
+        2_000_000_000,
+        2_500_000_000,
+    );
+
+    let mut listener = listen(
+        &python,
+        domain,
+        &[
+            "--sub",
+            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast_log",
+            "--sub",
+            "/fall_guard/fall_imminent:std_msgs/msg/Bool:latched",
+            "--timeout",
+            "60",
+        ],
+    )
+    .await;
+    let daemon = Daemon::start(&["replay", "--config", scene.config.to_str().expect("utf8")]);
+    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
+        .await
+        .expect("join");
+    assert!(success, "replay failed: {stderr}");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let events = listener.drain();
+
+    // What the daemon decided, per dispatched tick: valid, then the gap
+    // (stale, then refilling), then valid again.
+    let lines = parse_lines(&stdout);
+    let first_valid = lines.iter().position(|l| l.valid).expect("a valid tick");
+    let gap_start = first_valid
+        + lines[first_valid..]
+            .iter()
+            .position(|l| !l.valid)
+            .expect("the joints gap makes ticks invalid");
+    let gap_len = lines[gap_start..]
+        .iter()
+        .position(|l| l.valid)
+        .expect("valid again after the gap");
+    let gap: &[Line] = &lines[gap_start..gap_start + gap_len];
+    let after = &lines[gap_start + gap_len..];
+    assert!(gap[0].reason.contains("joints stale"), "{:?}", gap[0]);
+    let refilling: Vec<&Line> = gap
+        .iter()
+        .filter(|l| l.reason.contains("joints back, window refilling"))
+        .collect();
+    assert!(!refilling.is_empty(), "no refilling tick: {gap:?}");
+    // Fresh again from the first refilling tick: valid N ticks later, not before.
+    let back = refilling[0].tick;
+    assert_eq!(
+        after[0].tick,
+        back + N_TICKS as i64 - 1,
+        "first valid tick after the gap"
+    );
+    assert!(after.iter().all(|l| l.valid), "one gap only");
+    assert!(gap.iter().all(|l| l.imminent) && !after[0].imminent);
+
+    // What rclpy read on /fall_guard/forecast: numbers, then NaN for exactly
+    // the gap's ticks, then numbers for every tick after it.
+    let forecasts: Vec<Vec<f32>> = msgs(&events, "/fall_guard/forecast")
+        .map(forecast_values)
+        .collect();
+    let runs = nan_runs(&forecasts);
+    assert!(runs.len() >= 3, "runs of NaN/numbers: {runs:?}");
+    let tail = &runs[runs.len() - 3..];
+    assert_eq!(
+        tail,
+        [(false, tail[0].1), (true, gap.len()), (false, after.len())],
+        "NaN exactly while the daemon said not valid; runs {runs:?}"
+    );
+
+    // fall_imminent as documented: off while valid and low, asserted
+    // through the gap, off again once the window has refilled.
+    let imminent: Vec<bool> = msgs(&events, "/fall_guard/fall_imminent")
+        .map(|e| e["msg"]["data"].as_bool().expect("bool"))
+        .collect();
+    assert!(
+        imminent.ends_with(&[false, true, false]),
+        "fall_imminent received: {imminent:?}"
     );
 }

@@ -4,9 +4,14 @@
 //! Each tick's probabilities enter through [`SafetyLatch::update`]; the latch
 //! turns on when the probability at its horizon reaches `trigger`, and off
 //! only once it drops below `release` (< `trigger`), so a probability that
-//! hovers around one threshold does not make the signal chatter. A forecast
-//! that is not valid leaves the state as it is: the latch never releases on
-//! data it cannot trust (a safety node reads validity on `/diagnostics`).
+//! hovers around one threshold does not make the signal chatter.
+//!
+//! A forecast that is not valid (or has no finite probability at the
+//! latch's horizon) **asserts** the latch: `false` is a claim that a
+//! trusted forecast said "below release", and a blind predictor cannot make
+//! it. After the gap the latch is released by the hysteresis rule alone:
+//! only a valid forecast below `release` turns it off. See `docs/ros.md`
+//! ("Safety signal") for why this is the fail-safe choice.
 
 use thiserror::Error;
 
@@ -25,8 +30,11 @@ pub struct SafetyLatch {
     trigger: f32,
     release: f32,
     imminent: bool,
-    /// Number of off -> on transitions since start.
+    /// Number of off -> on transitions on a probability since start (an
+    /// assertion for lack of a valid forecast is not counted).
     triggers: u64,
+    /// The latest update had no valid forecast.
+    blind: bool,
     /// Log each switch (the daemon); off for offline analysis.
     log: bool,
 }
@@ -48,6 +56,7 @@ impl SafetyLatch {
             release,
             imminent: false,
             triggers: 0,
+            blind: false,
             log: true,
         })
     }
@@ -58,14 +67,26 @@ impl SafetyLatch {
         self
     }
 
-    /// Feed one tick's forecast; returns the state after it.
+    /// Feed one tick's forecast; returns the state after it. Not `valid`,
+    /// or no finite probability at the horizon: on (asserted) until a valid
+    /// forecast falls below `release`.
     pub fn update(&mut self, probabilities: &[f32], valid: bool) -> bool {
-        let Some(&p) = probabilities.get(self.horizon_index) else {
-            return self.imminent;
+        let p = probabilities
+            .get(self.horizon_index)
+            .copied()
+            .filter(|p| valid && p.is_finite());
+        let Some(p) = p else {
+            if !self.blind && self.log {
+                tracing::warn!(
+                    was_imminent = self.imminent,
+                    "forecast not valid: fall_imminent asserted until a valid forecast is below release"
+                );
+            }
+            self.blind = true;
+            self.imminent = true;
+            return true;
         };
-        if !valid || p.is_nan() {
-            return self.imminent;
-        }
+        self.blind = false;
         if !self.imminent && p >= self.trigger {
             self.imminent = true;
             self.triggers += 1;
@@ -133,14 +154,24 @@ mod tests {
     }
 
     #[test]
-    fn invalid_or_nan_forecasts_hold_the_state() {
+    fn invalid_or_nan_forecasts_assert_until_a_valid_one_is_below_release() {
         let mut latch = SafetyLatch::new(0, 0.5, 0.3).expect("valid");
-        assert!(!latch.update(&[0.9], false));
-        assert!(latch.update(&[0.9], true));
+        // Blind from the start (the ring filling): asserted.
         assert!(latch.update(&[0.0], false));
-        assert!(latch.update(&[f32::NAN], true));
         assert!(latch.update(&[], true));
+        // Valid again: between release and trigger holds, below release frees.
+        assert!(latch.update(&[0.4], true));
+        assert!(!latch.update(&[0.1], true));
+        // A NaN probability or an invalid forecast asserts it again, even
+        // when the untrusted number itself is low.
+        assert!(latch.update(&[f32::NAN], true));
+        assert!(!latch.update(&[0.2], true));
+        assert!(latch.update(&[0.0], false));
         assert!(!latch.update(&[0.0], true));
+        // Assertions for lack of data are not counted as triggers.
+        assert_eq!(latch.triggers(), 0);
+        assert!(latch.update(&[0.9], true));
+        assert_eq!(latch.triggers(), 1);
     }
 
     #[test]

@@ -11,8 +11,9 @@
 //! measured at the real publish point.
 //!
 //! Mapping to ROS 2 (see `interfaces.md`):
-//! - `/fall_guard/forecast` (`Float32MultiArray`): `probabilities`, one dim
-//!   labelled `horizon_ms` with `horizons_ms.len()` entries; every tick.
+//! - `/fall_guard/forecast` (`Float32MultiArray`): `probabilities` when
+//!   `valid`, NaN for every horizon otherwise; one dim labelled
+//!   `horizon_ms` with `horizons_ms.len()` entries; every tick.
 //! - `/fall_guard/fall_imminent` (`Bool`): `imminent` (already latched with
 //!   hysteresis by [`latch::SafetyLatch`]).
 //! - `/diagnostics` (`DiagnosticArray`): [`DiagnosticsSnapshot::statuses`],
@@ -40,7 +41,10 @@ pub struct ForecastOutput {
     pub probabilities: Vec<f32>,
     /// The horizons, in ms ahead of `stamp_ns`.
     pub horizons_ms: Vec<u32>,
-    /// False until the ring is full and whenever an input stream is stale.
+    /// False until the ring is full, whenever a stream the network reads is
+    /// stale, and until such a stream has been fresh for a whole window again.
+    /// Published as NaN when false (the probabilities stay here for the
+    /// stdout line of a replay).
     pub valid: bool,
     /// The safety latch state after this tick.
     pub imminent: bool,

@@ -121,6 +121,14 @@ impl RosBridge {
         })
     }
 
+    /// Leave the DDS domain: subscriptions first, then the node (see
+    /// [`RosNode::shutdown`]). Call after the tasks it started have ended.
+    pub async fn shutdown(self) {
+        let RosBridge { node, inputs } = self;
+        drop(inputs);
+        node.shutdown().await;
+    }
+
     /// Publish what the bus carries until `shutdown`; with `joints_out`
     /// (the daemon owns the servo bus), also every servo read on
     /// `/joint_states`, names in model order.
@@ -250,13 +258,17 @@ fn publish_tick(outputs: &RosOutputs, imminent: &mut Option<bool>, f: &ForecastO
     }
 }
 
-/// What goes on `/fall_guard/forecast` for one tick: the probabilities, or
-/// NaN for every horizon when none could be computed (the ring is filling,
-/// a stream the network needs is missing). The forecast is published every
-/// tick either way, so that a subscriber can tell silence from "safe";
-/// `/diagnostics` (model status, key `valid`) says why it is not valid.
+/// What goes on `/fall_guard/forecast` for one tick: the probabilities of a
+/// valid forecast, or NaN for every horizon when it is not valid (the ring
+/// is filling, a stream the network needs is stale, absent, or back but not
+/// yet fresh for a whole window). A subscriber reading only this topic can
+/// thus never mistake a forecast on held data for one it may trust
+/// (`p >= threshold` is false for NaN, `isnan` says "unknown"). The forecast
+/// is published every tick either way, so that a subscriber can tell
+/// silence from "safe"; `/diagnostics` (model status, `invalid_reason`)
+/// says why it is not valid.
 pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
-    if f.probabilities.len() == f.horizons_ms.len() {
+    if f.valid && f.probabilities.len() == f.horizons_ms.len() {
         f.probabilities.clone()
     } else {
         vec![f32::NAN; f.horizons_ms.len()]
@@ -296,4 +308,36 @@ where
             }
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn output(valid: bool, probabilities: Vec<f32>) -> ForecastOutput {
+        ForecastOutput {
+            tick: 7,
+            stamp_ns: 0,
+            probabilities,
+            horizons_ms: vec![500, 1000],
+            valid,
+            imminent: true,
+            ablation: "MP",
+            invalid_reason: String::new(),
+            sensed_at: std::time::Instant::now(),
+        }
+    }
+
+    #[test]
+    fn only_a_valid_forecast_is_published_as_numbers() {
+        assert_eq!(
+            published_probabilities(&output(true, vec![0.1, 0.2])),
+            [0.1, 0.2]
+        );
+        for invalid in [output(false, vec![0.1, 0.2]), output(true, Vec::new())] {
+            let p = published_probabilities(&invalid);
+            assert_eq!(p.len(), 2);
+            assert!(p.iter().all(|x| x.is_nan()), "{p:?}");
+        }
+    }
 }

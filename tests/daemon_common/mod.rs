@@ -9,6 +9,7 @@ use std::process::{Command, Output};
 
 use fall_guard::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
 use fall_guard::recording::synthetic::learnable_episode;
+use fall_guard::recording::{topics, Recording, RecordingWriter};
 use fall_guard::robot::JointTable;
 
 /// Window and horizons of the test networks: small, so a replay is quick.
@@ -187,4 +188,54 @@ pub fn parse_lines(stdout: &[u8]) -> Vec<Line> {
 
 pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// Copies `src` to `dst` without the messages of `topic`
+/// ([`topics::JOINT_STATES`], [`topics::HEAD_CAMERA`] or
+/// [`topics::PLANNED_TRAJECTORY`]) logged in `[from_ns, to_ns)`: a stream
+/// lost for a while, the others going on.
+pub fn copy_without(src: &Path, dst: &Path, topic: &str, from_ns: i64, to_ns: i64) {
+    let keep = |t: &str, log_time_ns: i64| t != topic || !(from_ns..to_ns).contains(&log_time_ns);
+    let rec = Recording::open(src).expect("read");
+    let mut w = RecordingWriter::create(dst).expect("create");
+    let mut i = (0, 0, 0);
+    loop {
+        let next = [
+            rec.joint_states.get(i.0).map(|m| (m.file_order, 0)),
+            rec.images.get(i.1).map(|m| (m.file_order, 1)),
+            rec.plans.get(i.2).map(|m| (m.file_order, 2)),
+        ]
+        .into_iter()
+        .flatten()
+        .min();
+        match next {
+            None => break,
+            Some((_, 0)) => {
+                let m = &rec.joint_states[i.0];
+                if keep(topics::JOINT_STATES, m.log_time_ns) {
+                    w.write(topics::JOINT_STATES, m.log_time_ns, &m.msg)
+                        .expect("write");
+                }
+                i.0 += 1;
+            }
+            Some((_, 1)) => {
+                let m = &rec.images[i.1];
+                if keep(topics::HEAD_CAMERA, m.log_time_ns) {
+                    w.write(topics::HEAD_CAMERA, m.log_time_ns, &m.msg)
+                        .expect("write");
+                }
+                i.1 += 1;
+            }
+            Some(_) => {
+                let m = &rec.plans[i.2];
+                if keep(topics::PLANNED_TRAJECTORY, m.log_time_ns) {
+                    w.write(topics::PLANNED_TRAJECTORY, m.log_time_ns, &m.msg)
+                        .expect("write");
+                }
+                i.2 += 1;
+            }
+        }
+    }
+    w.write_episode(rec.episode().expect("meta")).expect("meta");
+    w.finish().expect("finish");
 }
