@@ -35,7 +35,9 @@ use daemon_common::{
     copy_without, parse_lines, robot_joints, write_recording, Line, Scene, N_TICKS,
 };
 
-const FALLING_FIXTURE: &str = "tests/fixtures/episode_00005.mcap";
+/// A generator-1 episode: the shipped networks are trained on generator-1 data
+/// (models/README.md); the v2 fixtures replace it when they are retrained on v2.
+const FALLING_FIXTURE: &str = "tests/fixtures/gen1/episode_00005.mcap";
 
 fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
