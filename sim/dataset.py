@@ -98,7 +98,8 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
     check_args(out, episodes, seed, jobs, duration_s)
     manifest_path = out / "manifest.json"
     generator = {
-        "name": "fall_guard.sim", "version": GENERATOR_VERSION, "robot": ROBOT_NAME, "rate_hz": RATE_HZ, "physics_hz": PHYSICS_HZ,
+        "name": "fall_guard.sim", "version": GENERATOR_VERSION, "robot": ROBOT_NAME, "rate_hz": RATE_HZ,
+        "physics_hz": PHYSICS_HZ,
         "seed": seed, "seed_range": [episode_seed(seed, 0), episode_seed(seed, episodes - 1)],
         "episodes": episodes, "duration_s": duration_s, "sigmas": list(SIGMAS),
         "fall_fraction": FALL_FRACTION, "joint_names": list(JOINT_NAMES),

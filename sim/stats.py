@@ -97,7 +97,8 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
         "generators": sorted({r["generator"] for r in rows}),
         "falling": len(falls),
         "fall_rate": round(len(falls) / len(rows), 3),
-        "collision_share_of_falls": round(sum(r["cause"] == "collision" for r in falls) / len(falls), 3) if falls else None,
+        "collision_share_of_falls": (round(sum(r["cause"] == "collision" for r in falls) / len(falls), 3)
+                                     if falls else None),
         "episodes_with_ball": sum(r["hazard"] for r in rows),
         "per_sigma": per_sigma,
         "onset_s": _spread([r["onset_s"] for r in falls], 2),
@@ -110,7 +111,8 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
         args = [(r["seed"], float(r["sigma"]), r["duration_s"]) for r in picks]
         if jobs > 1:
             with ProcessPoolExecutor(max_workers=jobs) as pool:
-                results = list(pool.map(counterfactual, *zip(*args))) if args else []
+                results = list(pool.map(counterfactual, [a[0] for a in args], [a[1] for a in args],
+                                         [a[2] for a in args]))
         else:
             results = [counterfactual(*a) for a in args]
         changed = [r for r in results if r["averted"] or r["moved"]]
