@@ -291,7 +291,7 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
     // then a real warning before the fall onset (the recording's metadata, on
     // the 30 Hz grid): a valid forecast at the latch's horizon (1 s, index 1)
     // at or above the trigger (0.4), with the latch on.
-    let onset_ns = fall_guard::recording::Recording::open(&repo(FALLING_FIXTURE))
+    let onset_ns = fall_guard::recording::Recording::open(repo(FALLING_FIXTURE))
         .expect("falling fixture reads")
         .episode()
         .expect("episode metadata")
