@@ -440,6 +440,10 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
                      counterfactual_lead_ticks: int | None = None, counterfactual_draw: int = 1) -> Episode:
     """Simulate the episode of SEED. SIGMA None draws it from SIGMAS; 0 means unperturbed.
 
+    A given SIGMA skips that draw, so the rest of the episode differs from the
+    one SEED makes with its sigma drawn (as ``generate`` does): re-simulate a
+    generated episode with SIGMA None (``stats.counterfactual``).
+
     GAIT False keeps the standing pose (for the standing test). HAZARD None
     draws whether a ball is rolled at the robot (HAZARD_PROBABILITY); True or
     False forces it. COUNTERFACTUAL_LEAD_TICKS: when the episode falls, run it

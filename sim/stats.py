@@ -46,10 +46,18 @@ def _spread(values: list[float], digits: int) -> dict[str, float] | None:
 
 
 def counterfactual(seed: int, sigma: float, duration_s: float, draw: int = 1) -> dict:
-    """Re-simulate one episode (no camera) and its counterfactual; what happened to the fall."""
+    """Re-simulate one generated episode (no camera) and its counterfactual; what happened to the fall.
+
+    ``generate`` lets each episode draw its sigma, so the re-simulation does
+    too (passing it would shift the episode's random stream and make another
+    episode); SIGMA is the recorded one, checked against the draw.
+    """
     from .episode import simulate_episode
-    ep = simulate_episode(seed, sigma=sigma, duration_s=duration_s, render=False,
+    ep = simulate_episode(seed, duration_s=duration_s, render=False,
                           counterfactual_lead_ticks=COUNTERFACTUAL_LEAD_TICKS, counterfactual_draw=draw)
+    if ep.sigma != sigma:
+        raise ValueError(f"episode seed {seed}: re-simulated sigma {ep.sigma} is not the recorded {sigma}; "
+                         "was it made by `sim generate` with this generator?")
     onset, cf = ep.fall_onset_tick, ep.counterfactual_onset_tick
     return {"seed": seed, "sigma": sigma, "onset_tick": onset, "cause": ep.fall_cause,
             "counterfactual_onset_tick": cf,
