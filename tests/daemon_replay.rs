@@ -177,17 +177,9 @@ fn joints_gap_invalidates_forecasts_until_the_window_refills() {
         ),
     )
     .expect("config");
-    let full = scene.path("full.mcap");
-    write_recording(&full, 4, false, 150);
     // Joint states gone from 2.0 s to 2.5 s (ticks 60..75): the servo bus
     // unplugged, camera and plan going on.
-    copy_without(
-        &full,
-        &scene.path("joints_gap.mcap"),
-        topics::JOINT_STATES,
-        2_000_000_000,
-        2_500_000_000,
-    );
+    write_joints_gap_recording(&scene);
     let (lines, _) = scene.replay_max_speed();
     assert!(lines.windows(2).all(|w| w[1].tick == w[0].tick + 1));
 

@@ -31,9 +31,7 @@ use serde_json::Value;
 use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
 mod daemon_common;
-use daemon_common::{
-    copy_without, parse_lines, robot_joints, write_recording, Line, Scene, N_TICKS,
-};
+use daemon_common::{parse_lines, robot_joints, write_joints_gap_recording, Line, Scene, N_TICKS};
 
 /// A generator-1 episode: the shipped networks are trained on generator-1 data
 /// (models/README.md); the v2 fixtures replace it when they are retrained on v2.
@@ -108,6 +106,36 @@ fn msgs<'a>(events: &'a [Value], topic: &'a str) -> impl Iterator<Item = &'a Val
         .filter(move |e| e["event"] == "msg" && e["topic"] == topic)
 }
 
+/// An rclpy listener of `/fall_guard/forecast` (every message logged) and
+/// the latched `/fall_guard/fall_imminent`, for TIMEOUT_S seconds.
+async fn listen_forecasts(python: &PathBuf, domain: u16, timeout_s: &str) -> Peer {
+    listen(
+        python,
+        domain,
+        &[
+            "--sub",
+            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast_log",
+            "--sub",
+            "/fall_guard/fall_imminent:std_msgs/msg/Bool:latched",
+            "--timeout",
+            timeout_s,
+        ],
+    )
+    .await
+}
+
+/// `fall-guard replay --config CONFIG` run to its end in real time, then
+/// what LISTENER received up to 1.5 s later: (stdout, stderr, events).
+async fn replay_heard_by(config: &Path, listener: &mut Peer) -> (Vec<u8>, String, Vec<Value>) {
+    let daemon = Daemon::start(&["replay", "--config", config.to_str().expect("utf8")]);
+    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
+        .await
+        .expect("join");
+    assert!(success, "replay failed: {stderr}");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    (stdout, stderr, listener.drain())
+}
+
 /// The daemon as a child process whose stdout and stderr are read as they
 /// come (a full pipe would block its logging and stall it).
 struct Daemon {
@@ -171,28 +199,10 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
     let dir = tempfile::tempdir().expect("tempdir");
     let config = replay_config(dir.path(), domain, |t| t);
 
-    let mut listener = listen(
-        &python,
-        domain,
-        &[
-            "--sub",
-            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast_log",
-            "--sub",
-            "/fall_guard/fall_imminent:std_msgs/msg/Bool:latched",
-            "--timeout",
-            "120",
-        ],
-    )
-    .await;
+    let mut listener = listen_forecasts(&python, domain, "120").await;
 
     // Real time: the ring fills for 2 s, long enough for discovery.
-    let daemon = Daemon::start(&["replay", "--config", config.to_str().expect("utf8")]);
-    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
-        .await
-        .expect("join");
-    assert!(success, "replay failed: {stderr}");
-    tokio::time::sleep(Duration::from_millis(1500)).await;
-    let events = listener.drain();
+    let (stdout, stderr, events) = replay_heard_by(&config, &mut listener).await;
 
     // What the daemon computed, tick by tick. A tick whose inference would
     // overrun (a loaded machine) is skipped and counted, never queued.
@@ -741,8 +751,6 @@ fn nan_runs(forecasts: &[Vec<f32>]) -> Vec<(bool, usize)> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn joints_gap_publishes_nan_forecasts_until_the_window_refills() {
-    use fall_guard::recording::topics;
-
     let test = "joints_gap_publishes_nan_forecasts_until_the_window_refills";
     let Some(python) = rclpy_python(test) else {
         return;
@@ -765,36 +773,10 @@ async fn joints_gap_publishes_nan_forecasts_until_the_window_refills() {
     assert!(config.contains("trigger = 0.999") && config.contains("enabled = true"));
     std::fs::write(&scene.config, config).expect("config");
     // 5 s at 30 Hz; joint states gone from 2.0 s to 2.5 s.
-    let full = scene.path("full.mcap");
-    write_recording(&full, 4, false, 150);
-    copy_without(
-        &full,
-        &scene.path("joints_gap.mcap"),
-        topics::JOINT_STATES,
-        2_000_000_000,
-        2_500_000_000,
-    );
+    write_joints_gap_recording(&scene);
 
-    let mut listener = listen(
-        &python,
-        domain,
-        &[
-            "--sub",
-            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast_log",
-            "--sub",
-            "/fall_guard/fall_imminent:std_msgs/msg/Bool:latched",
-            "--timeout",
-            "60",
-        ],
-    )
-    .await;
-    let daemon = Daemon::start(&["replay", "--config", scene.config.to_str().expect("utf8")]);
-    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
-        .await
-        .expect("join");
-    assert!(success, "replay failed: {stderr}");
-    tokio::time::sleep(Duration::from_millis(1500)).await;
-    let events = listener.drain();
+    let mut listener = listen_forecasts(&python, domain, "60").await;
+    let (stdout, _, events) = replay_heard_by(&scene.config, &mut listener).await;
 
     // What the daemon decided, per dispatched tick: valid, then the gap
     // (stale, then refilling), then valid again.

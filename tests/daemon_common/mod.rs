@@ -190,6 +190,23 @@ pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
+/// `joints_gap.mcap` in SCENE: 5 s at 30 Hz (seed 4, no fall) with the
+/// joint states gone from 2.0 s to 2.5 s (ticks 60..75), the servo bus
+/// unplugged while the camera and the plan go on.
+pub fn write_joints_gap_recording(scene: &Scene) -> PathBuf {
+    let full = scene.path("full.mcap");
+    write_recording(&full, 4, false, 150);
+    let gap = scene.path("joints_gap.mcap");
+    copy_without(
+        &full,
+        &gap,
+        topics::JOINT_STATES,
+        2_000_000_000,
+        2_500_000_000,
+    );
+    gap
+}
+
 /// Copies `src` to `dst` without the messages of `topic`
 /// ([`topics::JOINT_STATES`], [`topics::HEAD_CAMERA`] or
 /// [`topics::PLANNED_TRAJECTORY`]) logged in `[from_ns, to_ns)`: a stream
