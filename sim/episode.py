@@ -308,18 +308,15 @@ def encode_jpeg(rgb: np.ndarray) -> bytes:
 class _Run:
     """What one rollout measured."""
 
-    def __init__(self, threshold_m: float):
-        self.threshold_m = threshold_m
+    def __init__(self):
         self.joints: list[np.ndarray] = []
         self.heights: list[float] = []
         self.frames: list[bytes] = []
         self.first_contact_tick: int | None = None
         self.contact_with: str | None = None
         self.end_xy: np.ndarray | None = None
-
-    @property
-    def onset_tick(self) -> int | None:
-        return next((k for k, h in enumerate(self.heights) if h < self.threshold_m), None)
+        #: First tick with the head below the fall threshold (None: stayed up).
+        self.onset_tick: int | None = None
 
 
 def _facing_xy(robot: Robot, r0: np.ndarray, start_dir: np.ndarray) -> np.ndarray:
@@ -332,7 +329,7 @@ def _facing_xy(robot: Robot, r0: np.ndarray, start_dir: np.ndarray) -> np.ndarra
 
 
 def _launch(ball: int, robot: Robot, hazard: Hazard, r0: np.ndarray, start_dir: np.ndarray,
-            bodies: dict[int, str]) -> bool:
+            bodies: dict[int, str]) -> None:
     """Put the ball ahead of the robot (within the camera's view) rolling at it.
 
     It starts DISTANCE_M away at BEARING_RAD from the robot's facing, or, when
@@ -364,7 +361,7 @@ def _launch(ball: int, robot: Robot, hazard: Hazard, r0: np.ndarray, start_dir: 
     start = next((p for p in starts if path_clear(p)), None)
     if start is None:  # furniture blocks every path: the ball stays parked, and the episode says so
         pb.resetBasePositionAndOrientation(ball, (*HAZARD_PARK_XY, z), (0, 0, 0, 1), physicsClientId=robot.client)
-        return False
+        return
     hazard.start_xy = (float(start[0]), float(start[1]))
     v = target - start
     v = hazard.speed_m_s * v / np.linalg.norm(v)
@@ -373,7 +370,6 @@ def _launch(ball: int, robot: Robot, hazard: Hazard, r0: np.ndarray, start_dir: 
     # Rolling without slipping: omega = z x v / r.
     pb.resetBaseVelocity(ball, (v[0], v[1], 0.0), (-v[1] / hazard.radius_m, v[0] / hazard.radius_m, 0.0),
                          physicsClientId=robot.client)
-    return True
 
 
 def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, threshold_m: float,
@@ -390,9 +386,8 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
         pb.stepSimulation(physicsClientId=world.client)
     _, quat = pb.getBasePositionAndOrientation(robot.body, physicsClientId=world.client)
     r0 = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
-    run = _Run(threshold_m)
+    run = _Run()
     walked_xy: list[np.ndarray] = []
-    fallen = False
     for k in range(n_ticks):
         if hazard is not None and ball is not None and k == hazard.launch_tick:
             _launch(ball, robot, hazard, r0, robot.start_dir, bodies or {})
@@ -400,8 +395,8 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
         run.joints.append(robot.joint_angles())
         h = robot.head_height_m()
         run.heights.append(h)
-        if h < threshold_m and not fallen:
-            fallen = True
+        if h < threshold_m and run.onset_tick is None:
+            run.onset_tick = k
             run.end_xy = walked_xy[max(0, k - RATE_HZ)]
         if bodies is not None and run.first_contact_tick is None:
             for contact in pb.getContactPoints(bodyA=robot.body, physicsClientId=world.client):
@@ -411,7 +406,7 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
                     break
         if camera is not None:
             run.frames.append(encode_jpeg(camera.frame()))
-        if stop_on_fall and fallen:
+        if stop_on_fall and run.onset_tick is not None:
             break
         for s in range(1, STEPS_PER_TICK + 1):
             a = s / STEPS_PER_TICK
@@ -487,7 +482,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
             pb.restoreState(initial_state, physicsClientId=world.client)
             run = _rollout(world, robot, candidate, n_ticks, threshold, True, None)
             moved = float((robot.base_xy() - start_xy) @ direction)
-            return len(run.heights) == n_ticks and min(run.heights) >= threshold, moved
+            return run.onset_tick is None, moved
 
         # Plan search: sample gait parameters, keep the first plan that, in this
         # very room, stays up and walks forward unperturbed, and stays up under

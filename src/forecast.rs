@@ -305,12 +305,12 @@ impl ModelChoice {
         self.plan_run = if fresh.plan { self.plan_run + 1 } else { 0 };
         // A stream the active network reads may stay as long as it is fresh;
         // one it does not read must be back for a whole window first.
-        let usable = |uses: bool, active_uses: bool, fresh: bool, run: usize| {
+        let usable = |uses: bool, active_uses: bool, fresh: bool, stream: StreamKind| {
             !uses
                 || if active_uses {
                     fresh
                 } else {
-                    run >= self.window_ticks
+                    self.refilled(stream)
                 }
         };
         let current = self.active;
@@ -320,13 +320,13 @@ impl ModelChoice {
                     a.uses_vision(),
                     current.uses_vision(),
                     fresh.camera,
-                    self.camera_run,
+                    StreamKind::Camera,
                 )
                 && usable(
                     a.uses_plan(),
                     current.uses_plan(),
                     fresh.plan,
-                    self.plan_run,
+                    StreamKind::Plan,
                 )
         });
         match choice {
