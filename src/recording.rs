@@ -314,6 +314,32 @@ impl Recording {
     }
 }
 
+/// Every message on `topic` of the recording at `path`, decoded as `T`, in
+/// file order with its log time (for topics [`Recording`] does not keep,
+/// e.g. the daemon's outputs in a `replay --out` file).
+pub fn read_topic<T: RosMessage>(
+    path: impl AsRef<Path>,
+    topic: &str,
+) -> Result<Vec<(i64, T)>, RecordingError> {
+    let path = path.as_ref();
+    let raw = RawMcap::read(path)?;
+    let mut out = Vec::new();
+    for (order, m) in raw.messages.iter().enumerate() {
+        let channel = raw.channel(path, m)?;
+        if channel.topic != topic {
+            continue;
+        }
+        let log_time_ns = i64::try_from(m.log_time).map_err(|_| RecordingError::Corrupt {
+            path: path.to_path_buf(),
+            offset: m.offset,
+            reason: format!("log time {} ns does not fit i64", m.log_time),
+        })?;
+        let s: Stamped<T> = decode(path, &raw, channel, m, log_time_ns, order as u64)?;
+        out.push((s.log_time_ns, s.msg));
+    }
+    Ok(out)
+}
+
 fn decode<T: RosMessage>(
     path: &Path,
     raw: &RawMcap,
@@ -724,52 +750,22 @@ pub fn label(
             .map(|m| (m.log_time_ns, onset_ns.is_some_and(|o| m.log_time_ns >= o)))
             .collect();
         let mut next_fallen = 0;
-        let mut ids: HashMap<u16, u16> = HashMap::new();
-        for m in &raw.messages {
-            let channel = raw.channel(path, m)?;
-            if channel.topic == topics::GROUND_TRUTH_FALLEN {
-                continue;
-            }
-            while next_fallen < fallen.len() && (fallen[next_fallen].0 as u64) <= m.log_time {
-                let (t, data) = fallen[next_fallen];
-                w.write(topics::GROUND_TRUTH_FALLEN, t, &Bool { data })?;
-                next_fallen += 1;
-            }
-            let new_id = match ids.get(&channel.id) {
-                Some(&id) => id,
-                None => {
-                    let inner = w.inner()?;
-                    let schema_id = match raw.schemas.get(&channel.schema_id) {
-                        Some((h, data)) => inner.add_schema(&h.name, &h.encoding, data),
-                        None => Ok(0),
-                    };
-                    let id = schema_id
-                        .and_then(|s| {
-                            inner.add_channel(
-                                s,
-                                &channel.topic,
-                                &channel.message_encoding,
-                                &channel.metadata,
-                            )
-                        })
-                        .map_err(|e| w.err(e))?;
-                    ids.insert(channel.id, id);
-                    id
+        copy_messages(
+            path,
+            &raw,
+            &mut w,
+            &[topics::GROUND_TRUTH_FALLEN],
+            |w, until| {
+                while next_fallen < fallen.len()
+                    && until.is_none_or(|t| (fallen[next_fallen].0 as u64) <= t)
+                {
+                    let (t, data) = fallen[next_fallen];
+                    w.write(topics::GROUND_TRUTH_FALLEN, t, &Bool { data })?;
+                    next_fallen += 1;
                 }
-            };
-            let header = records::MessageHeader {
-                channel_id: new_id,
-                sequence: m.sequence,
-                log_time: m.log_time,
-                publish_time: m.publish_time,
-            };
-            let inner = w.inner()?;
-            let written = inner.write_to_known_channel(&header, &m.data);
-            written.map_err(|e| w.err(e))?;
-        }
-        for &(t, data) in &fallen[next_fallen..] {
-            w.write(topics::GROUND_TRUTH_FALLEN, t, &Bool { data })?;
-        }
+                Ok(())
+            },
+        )?;
         w.finish()?;
         // the new file must read back before it replaces the old one
         let check = Recording::open(&tmp)?;
@@ -791,4 +787,95 @@ pub fn label(
     result?;
     tracing::info!(path = %path.display(), fall_onset_ns = ?onset_ns, "recording labelled");
     Ok(onset_ns)
+}
+
+/// Copies every message of `raw` (read from `path`) into `w` unchanged, in
+/// file order, except those on the `skip` topics. Before each copied message
+/// at log time `t`, `merge(w, Some(t))` lets the caller write its own
+/// messages up to `t`; `merge(w, None)` at the end writes the rest, so that
+/// the output stays in log-time order.
+fn copy_messages<W: Write + Seek>(
+    path: &Path,
+    raw: &RawMcap,
+    w: &mut RecordingWriter<W>,
+    skip: &[&str],
+    mut merge: impl FnMut(&mut RecordingWriter<W>, Option<u64>) -> Result<(), RecordingError>,
+) -> Result<(), RecordingError> {
+    let mut ids: HashMap<u16, u16> = HashMap::new();
+    for m in &raw.messages {
+        let channel = raw.channel(path, m)?;
+        if skip.contains(&channel.topic.as_str()) {
+            continue;
+        }
+        merge(w, Some(m.log_time))?;
+        let new_id = match ids.get(&channel.id) {
+            Some(&id) => id,
+            None => {
+                let inner = w.inner()?;
+                let schema_id = match raw.schemas.get(&channel.schema_id) {
+                    Some((h, data)) => inner.add_schema(&h.name, &h.encoding, data),
+                    None => Ok(0),
+                };
+                let id = schema_id
+                    .and_then(|s| {
+                        inner.add_channel(
+                            s,
+                            &channel.topic,
+                            &channel.message_encoding,
+                            &channel.metadata,
+                        )
+                    })
+                    .map_err(|e| w.err(e))?;
+                ids.insert(channel.id, id);
+                id
+            }
+        };
+        let header = records::MessageHeader {
+            channel_id: new_id,
+            sequence: m.sequence,
+            log_time: m.log_time,
+            publish_time: m.publish_time,
+        };
+        let inner = w.inner()?;
+        let written = inner.write_to_known_channel(&header, &m.data);
+        written.map_err(|e| w.err(e))?;
+    }
+    merge(w, None)
+}
+
+/// Writes a copy of the recording at `input` to `out` with messages of the
+/// caller's merged in log-time order (`fall-guard replay --out`: the inputs
+/// and the daemon's outputs in one file for Foxglove). Metadata and every
+/// input message are copied unchanged. `merge(w, Some(t))` is called before
+/// each copied message at log time `t` and must write the caller's messages
+/// up to `t`; `merge(w, None)` writes the rest. The file is written as
+/// `out.partial` and renamed to `out` only when complete.
+pub fn copy_with(
+    input: impl AsRef<Path>,
+    out: impl AsRef<Path>,
+    merge: impl FnMut(&mut RecordingWriter, Option<u64>) -> Result<(), RecordingError>,
+) -> Result<(), RecordingError> {
+    let (input, out) = (input.as_ref(), out.as_ref());
+    let raw = RawMcap::read(input)?;
+    let mut partial = out.as_os_str().to_owned();
+    partial.push(".partial");
+    let partial = PathBuf::from(partial);
+    let result = (|| {
+        let mut w = RecordingWriter::create(&partial)?;
+        for name in &raw.metadata_order {
+            if let Some(map) = raw.metadata.get(name) {
+                w.write_metadata(name, map.clone())?;
+            }
+        }
+        copy_messages(input, &raw, &mut w, &[], merge)?;
+        w.finish()?;
+        std::fs::rename(&partial, out).map_err(|source| RecordingError::Io {
+            path: out.to_path_buf(),
+            source,
+        })
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&partial);
+    }
+    result
 }

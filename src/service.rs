@@ -82,6 +82,12 @@ pub struct ReplayArgs {
     /// Do not print one line per forecast on stdout.
     #[arg(long)]
     pub quiet: bool,
+    /// Also write the recording with the daemon's outputs merged in
+    /// (`/fall_guard/forecast`, `/fall_guard/fall_imminent`, `/diagnostics`
+    /// at recorded time), e.g. to open in Foxglove with
+    /// `docs/foxglove/fall-guard.json`.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
 }
 
 /// `fall-guard record`: record the live streams as an MCAP recording.
@@ -296,12 +302,33 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
         }
         Pacing::Speed(speed)
     };
+    if let Some(out) = &args.out {
+        let dir = match out.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        if !dir.is_dir() {
+            return Err(ServiceError::Usage(format!(
+                "--out {}: directory {} does not exist",
+                out.display(),
+                dir.display()
+            )));
+        }
+    }
     let print = config.output.print_forecasts && !args.quiet;
     let mut setup = ReplaySetup::new(config, &recording, print)?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let mut shutdown = trigger.subscribe();
     let signals = shutdown_on_signals(Arc::clone(&trigger));
     let (ros, publisher) = setup.start_ros(&trigger)?;
+    let annotate = args.out.as_ref().map(|_| {
+        crate::outputs::annotate::collect(
+            &setup.bus,
+            trigger.subscribe(),
+            setup.config.ros.node_name.clone(),
+            setup.config.robot.name.clone(),
+        )
+    });
     tracing::info!(recording = %recording.display(), ?pacing, "replay started");
     let samples = setup.recording.samples.clone();
     let summary = replay_samples(
@@ -323,6 +350,15 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
         ros.shutdown().await;
     }
     signals.abort();
+    if let (Some(out), Some(collector)) = (&args.out, annotate) {
+        let collected = collector
+            .await
+            .map_err(|e| ServiceError::Source(format!("{}: {e}", out.display())))?;
+        let forecasts = collected.forecasts;
+        crate::outputs::annotate::write(&recording, out, collected)
+            .map_err(|e| ServiceError::Source(e.to_string()))?;
+        tracing::info!(out = %out.display(), forecasts, "replay with outputs written");
+    }
     if summary.inference_failed {
         return Err(ServiceError::Source(format!(
             "{}: inference stopped at tick {} (the network panicked, see the log)",

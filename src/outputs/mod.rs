@@ -19,6 +19,7 @@
 //! - `/diagnostics` (`DiagnosticArray`): [`DiagnosticsSnapshot::statuses`],
 //!   one [`StatusEntry`] per input stream and one for the model.
 
+pub mod annotate;
 pub mod latch;
 pub mod recorder;
 pub mod ros;
