@@ -58,6 +58,7 @@ expect() {
 expect -rwxr-xr-x usr/bin/fall-guard
 for m in emp mp ep p; do expect -rw-r--r-- "usr/share/fall-guard/models/$m.bpk"; done
 expect -rw-r--r-- usr/share/fall-guard/models/README.md
+expect -rw-r--r-- usr/share/fall-guard/launch/fall_guard.launch.py
 expect -rw-r--r-- etc/fall-guard/poppy_humanoid.toml
 expect -rw-r--r-- etc/default/fall-guard
 expect -rw-r--r-- usr/lib/systemd/system/fall-guard.service

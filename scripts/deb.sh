@@ -5,6 +5,7 @@
 # library dependencies). Contents:
 #   /usr/bin/fall-guard                        the binary (stripped)
 #   /usr/share/fall-guard/models/              emp, mp, ep, p networks + model card
+#   /usr/share/fall-guard/launch/              the ROS 2 launch file
 #   /etc/fall-guard/poppy_humanoid.toml        the config (conffile)
 #   /etc/default/fall-guard                    the service's environment (conffile)
 #   /usr/lib/systemd/system/fall-guard.service the unit (ExecStart=/usr/bin/fall-guard)
@@ -75,6 +76,7 @@ install -D -m 0755 "$binary" "$root/usr/bin/fall-guard"
 "$strip_tool" --strip-unneeded "$root/usr/bin/fall-guard"
 install -D -m 0644 -t "$root/usr/share/fall-guard/models" \
   models/emp.bpk models/mp.bpk models/ep.bpk models/p.bpk models/README.md
+install -D -m 0644 launch/fall_guard.launch.py "$root/usr/share/fall-guard/launch/fall_guard.launch.py"
 install -D -m 0644 config/poppy_humanoid.toml "$root/etc/fall-guard/poppy_humanoid.toml"
 install -D -m 0644 packaging/default "$root/etc/default/fall-guard"
 install -D -m 0644 systemd/fall-guard.service "$root/usr/lib/systemd/system/fall-guard.service"
