@@ -37,5 +37,14 @@ if [ ${#missing[@]} -gt 0 ]; then
   $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
 
+# bookworm-security carries rustc-web 1.96; bookworm itself has 1.85, older
+# than the crate's rust-version.
+cd "$(dirname "$0")/.."
+need=$(sed -n 's/^rust-version = "\(.*\)"$/\1/p' Cargo.toml)
+have=$(/usr/bin/rustc -V | cut -d' ' -f2)
+if [ "$(printf '%s\n%s\n' "$need" "$have" | sort -V | head -1)" != "$need" ]; then
+  echo "/usr/bin/rustc is $have, fall-guard needs $need: enable bookworm-security in apt's sources" >&2
+  exit 1
+fi
 /usr/bin/rustc --print target-libdir --target aarch64-unknown-linux-gnu >/dev/null
 echo "cross toolchain: $(/usr/bin/rustc -V) for aarch64-unknown-linux-gnu, $(qemu-aarch64 --version | head -1)"
