@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# fall-guard on the robot's architecture, checked on this machine (after
+# scripts/setup-cross.sh):
+#   1. cross-builds the binary and the test harnesses for
+#      aarch64-unknown-linux-gnu with all default features (Flex backend,
+#      V4L2 camera, Jazzy), in one profile (dev: dependencies at opt-level 3,
+#      compiled once for the binary and the tests);
+#   2. runs the model, frame and window tests under qemu-user;
+#   3. runs a short `fall-guard bench` under qemu-user (its timings under
+#      emulation mean nothing: it shows the benchmark runs);
+#   4. forecasts a bundled recording tick by tick with each shipped network
+#      (`fall-guard eval --recording`), on aarch64 under qemu and natively,
+#      and fails when a probability differs by more than $TOLERANCE.
+# The aarch64 build goes to $AARCH64_TARGET_DIR (default target-aarch64),
+# outputs to $OUT_DIR (default out/cross).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+target=aarch64-unknown-linux-gnu
+aarch64_dir="${AARCH64_TARGET_DIR:-$PWD/target-aarch64}"
+native_dir="${CARGO_TARGET_DIR:-$PWD/target}"
+out="${OUT_DIR:-out/cross}"
+# Largest |p_aarch64 - p_native| accepted: the two builds sum the GEMMs in
+# different orders (NEON vs AVX2/FMA kernels); README "Cross build" has
+# the differences measured.
+tolerance="${TOLERANCE:-1e-4}"
+recording=tests/fixtures/gen1/episode_00005.mcap
+mkdir -p "$out"
+
+# Debian's rustc-web has the aarch64 standard library; the linker and the
+# qemu runner are in .cargo/config.toml.
+xcargo() { RUSTC=/usr/bin/rustc CARGO_TARGET_DIR="$aarch64_dir" cargo "$@"; }
+
+echo "== aarch64 build: binary and test harnesses"
+xcargo build --target "$target" --bin fall-guard
+xcargo test --target "$target" --no-run --lib --test data_window
+
+echo "== aarch64 tests under qemu-user"
+xcargo test --target "$target" --lib -- model:: frame::
+xcargo test --target "$target" --test data_window
+
+arm_bin="$aarch64_dir/$target/debug/fall-guard"
+run_arm() { qemu-aarch64 -L /usr/aarch64-linux-gnu "$arm_bin" "$@"; }
+file_machine() { readelf -h "$1" | sed -n 's/^ *Machine: *//p'; }
+echo "fall-guard binary: $(file_machine "$arm_bin")"
+
+echo "== fall-guard bench under qemu-user (timings under emulation mean nothing)"
+run_arm bench --ticks 5 --train-steps 1 --json "$out/bench-aarch64.json"
+
+echo "== per-tick forecasts of $recording: aarch64 (qemu) vs native"
+cargo build --bin fall-guard
+native_bin="$native_dir/debug/fall-guard"
+for m in emp mp ep p; do
+  run_arm eval --model "models/$m.bpk" --recording "$recording" \
+    --per-tick-out "$out/$m-aarch64.jsonl"
+  "$native_bin" eval --model "models/$m.bpk" --recording "$recording" \
+    --per-tick-out "$out/$m-native.jsonl"
+done
+python3 scripts/compare_forecasts.py --tolerance "$tolerance" "$out" emp mp ep p
