@@ -17,7 +17,6 @@
 use std::cell::RefCell;
 use std::sync::Arc;
 
-
 use super::inception::FusedConv;
 
 /// Output positions per im2col tile (keeps the tile in L2).
@@ -90,7 +89,10 @@ impl GridConv {
         let (k, c_in, c_out) = (self.k, self.c_in, self.c_out);
         assert_eq!(x.len() % c_in, 0, "input width");
         let len = x.len() / c_in;
-        assert!(len <= rows * p && out_len <= rows * p, "sequence fits the grid");
+        assert!(
+            len <= rows * p && out_len <= rows * p,
+            "sequence fits the grid"
+        );
         let kk = k * k * c_in;
         let half = (k / 2) as isize;
         let mut out = vec![0.0f32; out_len * c_out];
@@ -112,7 +114,8 @@ impl GridConv {
                         for kx in 0..k {
                             let cc = c + kx as isize - half;
                             let dst = &mut arow[(ky * k + kx) * c_in..(ky * k + kx + 1) * c_in];
-                            let inside = rr >= 0 && rr < rows as isize && cc >= 0 && cc < p as isize;
+                            let inside =
+                                rr >= 0 && rr < rows as isize && cc >= 0 && cc < p as isize;
                             let n = (rr * p as isize + cc) as usize;
                             if inside && n < len {
                                 dst.copy_from_slice(&x[n * c_in..(n + 1) * c_in]);

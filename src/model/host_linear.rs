@@ -64,7 +64,9 @@ impl HostLinear {
     pub fn new(w: Vec<f32>, bias: Vec<f32>, d_in: usize, d_out: usize) -> HostLinear {
         assert_eq!(w.len(), d_in * d_out, "weight shape");
         assert_eq!(bias.len(), d_out, "bias shape");
-        let lossless = w.iter().all(|&v| f16::from_f32(v).to_f32().to_bits() == v.to_bits());
+        let lossless = w
+            .iter()
+            .all(|&v| f16::from_f32(v).to_f32().to_bits() == v.to_bits());
         let weight = if lossless {
             let mut h = vec![f16::ZERO; w.len()];
             h.convert_from_f32_slice(&w);
@@ -117,10 +119,7 @@ impl HostLinear {
         let n = self.d_out;
         match &self.weight {
             Weights::F32(w) => {
-                for (xc, wc) in x
-                    .chunks(ROWS_PER_STEP)
-                    .zip(w.chunks(ROWS_PER_STEP * n))
-                {
+                for (xc, wc) in x.chunks(ROWS_PER_STEP).zip(w.chunks(ROWS_PER_STEP * n)) {
                     axpy_rows(xc, wc, y);
                 }
             }
@@ -137,10 +136,7 @@ impl HostLinear {
                     }
                 }
                 let mut buf = vec![0.0f32; ROWS_PER_STEP * n];
-                for (xc, wc) in x
-                    .chunks(ROWS_PER_STEP)
-                    .zip(w.chunks(ROWS_PER_STEP * n))
-                {
+                for (xc, wc) in x.chunks(ROWS_PER_STEP).zip(w.chunks(ROWS_PER_STEP * n)) {
                     let rows = &mut buf[..wc.len()];
                     wc.convert_to_f32_slice(rows);
                     axpy_rows(xc, rows, y);
@@ -250,7 +246,9 @@ mod tests {
             .map(|i| f16::from_f32(((i * 37 % 101) as f32 - 50.0) / 64.0).to_f32())
             .collect();
         let b: Vec<f32> = (0..d_out).map(|j| j as f32 * 0.25 - 1.0).collect();
-        let x: Vec<f32> = (0..d_in).map(|i| ((i * 13 % 7) as f32 - 3.0) * 0.3).collect();
+        let x: Vec<f32> = (0..d_in)
+            .map(|i| ((i * 13 % 7) as f32 - 3.0) * 0.3)
+            .collect();
         let host = HostLinear::new(w.clone(), b.clone(), d_in, d_out);
         assert!(host.is_half());
         assert_eq!(host.bytes(), 2 * d_in * d_out + 4 * d_out);

@@ -177,10 +177,11 @@ impl PlanEncoder {
                             };
                             let grid = padded.reshape([1, rows, p, d]).permute([0, 3, 1, 2]); // [1, d, rows, p]
                             let y = block.conv_out.forward(gelu(block.conv_in.forward(grid)));
-                            let y = y
-                                .permute([0, 2, 3, 1])
-                                .reshape([1, lp, d])
-                                .slice([0..1, 0..l, 0..d]);
+                            let y = y.permute([0, 2, 3, 1]).reshape([1, lp, d]).slice([
+                                0..1,
+                                0..l,
+                                0..d,
+                            ]);
                             let w = weights.clone().slice([s..s + 1, 0..1, i..i + 1]); // [1,1,1]
                             let y = y * w;
                             acc = Some(match acc {
@@ -212,7 +213,11 @@ fn fused_periods(
 ) -> Tensor<3> {
     let [b, l, d] = x.dims();
     let device = x.device();
-    let xs: Vec<f32> = x.into_data().convert::<f32>().try_into_vec().expect("f32 features");
+    let xs: Vec<f32> = x
+        .into_data()
+        .convert::<f32>()
+        .try_into_vec()
+        .expect("f32 features");
     let k = weights.dims()[2];
     let ws: Vec<f32> = weights
         .into_data()
@@ -228,10 +233,13 @@ fn fused_periods(
             let rows = l.div_ceil(p);
             let lp = rows * p;
             let h = convs[0].forward(xs, rows, p, lp);
-            let h: Vec<f32> = gelu(Tensor::<2>::from_data(TensorData::new(h, [lp, mid]), &device))
-                .into_data()
-                .try_into_vec()
-                .expect("f32 activations");
+            let h: Vec<f32> = gelu(Tensor::<2>::from_data(
+                TensorData::new(h, [lp, mid]),
+                &device,
+            ))
+            .into_data()
+            .try_into_vec()
+            .expect("f32 activations");
             let y = convs[1].forward(&h, rows, p, l);
             let w = ws[s * k + i];
             if i == 0 {

@@ -410,7 +410,9 @@ fn prepared_fill_makes_the_first_forecast_a_normal_tick() {
         for t in 0..total {
             let plan = noise(l * c, 6000 + t as u64);
             let j = &joints[t * c..(t + 1) * c];
-            stream.push_parts(t as i64, j, Some(&frames[t]), Some(&plan)).unwrap();
+            stream
+                .push_parts(t as i64, j, Some(&frames[t]), Some(&plan))
+                .unwrap();
             if t + 1 < n {
                 if prepared {
                     stream.prepare().unwrap();
@@ -433,8 +435,16 @@ fn prepared_fill_makes_the_first_forecast_a_normal_tick() {
     }
     let (with, without) = (&costs[0], &costs[1]);
     let steady = *with[1..].iter().max().unwrap();
-    assert!(with[0] <= steady, "first forecast {} slices, steady {steady}", with[0]);
-    assert!(without[0] >= n as u64, "unprepared first forecast {}", without[0]);
+    assert!(
+        with[0] <= steady,
+        "first forecast {} slices, steady {steady}",
+        with[0]
+    );
+    assert!(
+        without[0] >= n as u64,
+        "unprepared first forecast {}",
+        without[0]
+    );
 }
 
 #[test]
