@@ -366,8 +366,10 @@ pub struct InferenceJob {
     pub tick: i64,
     pub stamp_ns: i64,
     pub ablation: Ablation,
-    /// The ring (N consecutive ticks, oldest first); empty while it fills.
-    /// The window is cut from it on the inference thread, off the runtime.
+    /// The ring (N consecutive ticks, oldest first); while it fills, the
+    /// ticks so far (the forecaster prepares its vision slices from them, so
+    /// that the first full window costs one tick). The window is cut from it
+    /// on the inference thread, off the runtime.
     pub ticks: Vec<TickInput>,
     pub valid: bool,
     pub invalid_reason: String,
@@ -505,7 +507,9 @@ fn inference_loop(
         let mut invalid_reason = job.invalid_reason;
         let mut probabilities = Vec::new();
         let mut latency_us = None;
-        if !job.ticks.is_empty() {
+        if job.ticks.len() < models.spec().n_ticks {
+            forecasters.prepare(job.ablation, &job.ticks);
+        } else {
             let started = Instant::now();
             match forecasters.forecast(job.ablation, &job.ticks) {
                 Ok(p) => {
@@ -591,6 +595,8 @@ enum ForecastFailure {
 /// window's edges) is done once per frame, not once per tick.
 struct Forecasters {
     by_ablation: Vec<(Ablation, StreamingForecaster)>,
+    /// The last tick a forecaster refused while the ring filled.
+    refused_at: Option<i64>,
 }
 
 impl Forecasters {
@@ -601,6 +607,7 @@ impl Forecasters {
                 .iter()
                 .map(|m| (m.meta.ablation, StreamingForecaster::new(m)))
                 .collect(),
+            refused_at: None,
         }
     }
 
@@ -623,7 +630,13 @@ impl Forecasters {
             })?;
         let first = ticks.first().map(|t| t.tick).unwrap_or_default();
         let from = match forecaster.last_tick() {
-            Some(last) if last >= first - 1 && ticks.iter().any(|t| t.tick > last) => {
+            // Continue only a forecaster that holds the window's start (one
+            // prepared after a refused tick does not).
+            Some(last)
+                if last >= first - 1
+                    && ticks.iter().any(|t| t.tick > last)
+                    && forecaster.first_tick().is_some_and(|f| f <= first) =>
+            {
                 ticks.partition_point(|t| t.tick <= last)
             }
             _ => {
@@ -639,6 +652,53 @@ impl Forecasters {
             }
         }
         Ok(forecaster.forecast()?)
+    }
+}
+
+impl Forecasters {
+    /// While the ring fills (`ticks` fewer than N): pushes the ticks the
+    /// forecaster of `ablation` has not seen and computes their vision
+    /// slices, without a forecast. A tick the network refuses (a stream not
+    /// seen yet) restarts the forecaster after it, so each tick is pushed
+    /// once; the full window's forecast reports any such refusal.
+    fn prepare(&mut self, ablation: Ablation, ticks: &[TickInput]) {
+        let Some(forecaster) = self
+            .by_ablation
+            .iter_mut()
+            .find(|(a, _)| *a == ablation)
+            .map(|(_, f)| f)
+        else {
+            return;
+        };
+        let (Some(first), Some(newest)) = (ticks.first(), ticks.last()) else {
+            return;
+        };
+        let from = match forecaster.last_tick() {
+            Some(last) if last >= first.tick - 1 && last <= newest.tick => {
+                ticks.partition_point(|t| t.tick <= last)
+            }
+            _ => {
+                forecaster.reset();
+                // After a refused tick, start after it: no tick is pushed twice.
+                match self.refused_at {
+                    Some(r) if r >= first.tick && r < newest.tick => {
+                        ticks.partition_point(|t| t.tick <= r)
+                    }
+                    _ => 0,
+                }
+            }
+        };
+        for tick in &ticks[from..] {
+            if forecaster.push(tick).is_err() {
+                forecaster.reset();
+                self.refused_at = Some(tick.tick);
+                return;
+            }
+        }
+        if let Err(e) = forecaster.prepare() {
+            tracing::debug!(error = %e, "vision slices not prepared");
+            forecaster.reset();
+        }
     }
 }
 

@@ -282,11 +282,7 @@ impl TickLoop {
             if lockstep {
                 self.inference.wait_idle().await;
             }
-            let ticks = if self.ring.is_full() {
-                self.ring.iter().cloned().collect()
-            } else {
-                Vec::new()
-            };
+            let ticks = self.ring.iter().cloned().collect();
             let job = InferenceJob {
                 tick: tick_index,
                 stamp_ns,

@@ -12,6 +12,7 @@ use burn::prelude::*;
 use burn::tensor::activation::{gelu, softplus};
 
 use super::config::{Ablation, ModelConfig};
+use super::host_linear::HostLinear;
 use super::motion::MotionEncoder;
 use super::plan::{PlanEncoder, PlanFused};
 use super::vision::{VisionEncoder, VisionFused};
@@ -109,13 +110,23 @@ impl Emp {
         self.classifier.forward(Tensor::cat(feats, 1))
     }
 
-    /// The inference form: no autodiff, fused kernels.
+    /// The inference form: no autodiff, fused kernels, the classifier's
+    /// input projection on the host at the weights' own precision
+    /// ([`HostLinear`]). The unfused vision weights are not kept.
     pub fn to_inference(&self) -> EmpInference {
-        let model = self.valid();
+        let Emp {
+            motion,
+            plan,
+            vision,
+            classifier,
+        } = self.valid();
         EmpInference {
-            plan_fused: model.plan.as_ref().map(PlanEncoder::fuse),
-            vision_fused: model.vision.as_ref().map(VisionEncoder::fuse),
-            model,
+            plan_fused: plan.as_ref().map(PlanEncoder::fuse),
+            vision_fused: vision.as_ref().map(VisionEncoder::fuse),
+            motion,
+            plan,
+            hidden: HostLinear::from_linear(&classifier.hidden),
+            out: classifier.out,
         }
     }
 }
@@ -123,8 +134,13 @@ impl Emp {
 /// The network for inference: fused Inception kernels, no autodiff, no dropout.
 #[derive(Debug, Clone)]
 pub struct EmpInference {
-    /// The unfused weights (motion and classifier are used as they are).
-    pub model: Emp,
+    motion: MotionEncoder,
+    /// Embedding, norms and period choice (its convolutions run fused).
+    plan: Option<PlanEncoder>,
+    /// Classifier input projection `features -> d_model`.
+    hidden: HostLinear,
+    /// Classifier output `d_model -> K`.
+    out: Linear,
     /// Fused trajectory convolutions.
     pub plan_fused: Option<PlanFused>,
     /// Fused vision convolutions.
@@ -147,16 +163,21 @@ impl EmpInference {
         input: EmpInput,
         vision_features: Option<Tensor<2>>,
     ) -> Tensor<2> {
-        let m = &self.model;
-        let mut feats = vec![m.motion.forward(input.joints)];
-        if let (Some(p), Some(plan)) = (&m.plan, input.plan) {
+        let mut feats = vec![self.motion.forward(input.joints)];
+        if let (Some(p), Some(plan)) = (&self.plan, input.plan) {
             feats.push(p.forward(plan, self.plan_fused.as_ref()));
         }
-        if m.vision.is_some() {
+        if self.vision_fused.is_some() {
             if let Some(v) = vision_features {
                 feats.push(v);
             }
         }
-        m.classifier.forward(Tensor::cat(feats, 1))
+        let h = self.hidden.forward(Tensor::cat(feats, 1));
+        monotone_logits(self.out.forward(gelu(h)))
+    }
+
+    /// Bytes the classifier's input projection takes (f16 when the file was).
+    pub fn projection_bytes(&self) -> usize {
+        self.hidden.bytes()
     }
 }

@@ -7,6 +7,8 @@
 pub mod config;
 pub mod emp;
 pub mod file;
+pub mod grid_conv;
+pub mod host_linear;
 pub mod inception;
 pub mod motion;
 pub mod plan;

@@ -6,12 +6,15 @@
 //! 2-D grid and passed through Inception2d -> GELU -> Inception2d, summed with
 //! softmax weights of their amplitudes, residual, LayerNorm over `d_t`.
 
+use std::sync::OnceLock;
+
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::{gelu, softmax};
 
 use super::config::ModelConfig;
-use super::inception::{FusedConv, Inception2d};
+use super::grid_conv::GridConv;
+use super::inception::Inception2d;
 use super::spectral::dft_matrices;
 
 /// One TimesNet block.
@@ -30,10 +33,37 @@ pub struct PlanEncoder {
     top_k: usize,
 }
 
-/// The two fused convolutions of each block, for inference.
+/// The two fused convolutions of each block, for inference, and the DFT
+/// matrices of the plan length, made on the first forward (not every tick).
 #[derive(Debug, Clone)]
 pub struct PlanFused {
-    blocks: Vec<[FusedConv<4>; 2]>,
+    blocks: Vec<[GridConv; 2]>,
+    dft: OnceLock<Dft>,
+}
+
+/// `cos` and `sin` DFT rows of one length, transposed: `[1, L, L/2 + 1]` each.
+#[derive(Debug, Clone)]
+struct Dft {
+    len: usize,
+    cos_t: Tensor<3>,
+    sin_t: Tensor<3>,
+}
+
+impl Dft {
+    fn new(l: usize, device: &Device) -> Dft {
+        let (cos, sin) = dft_matrices(l);
+        let nf = l / 2 + 1;
+        let t = |m: Vec<f32>| {
+            Tensor::<2>::from_data(TensorData::new(m, [nf, l]), device)
+                .transpose()
+                .unsqueeze::<3>()
+        };
+        Dft {
+            len: l,
+            cos_t: t(cos),
+            sin_t: t(sin),
+        }
+    }
 }
 
 impl PlanEncoder {
@@ -63,8 +93,14 @@ impl PlanEncoder {
             blocks: self
                 .blocks
                 .iter()
-                .map(|b| [b.conv_in.fuse(), b.conv_out.fuse()])
+                .map(|b| {
+                    [
+                        GridConv::from_fused(&b.conv_in.fuse()),
+                        GridConv::from_fused(&b.conv_out.fuse()),
+                    ]
+                })
                 .collect(),
+            dft: OnceLock::new(),
         }
     }
 
@@ -72,14 +108,24 @@ impl PlanEncoder {
     pub fn forward(&self, plan: Tensor<3>, fused: Option<&PlanFused>) -> Tensor<2> {
         let [b, l, _] = plan.dims();
         let device = plan.device();
-        let (cos, sin) = dft_matrices(l);
         let nf = l / 2 + 1;
-        let cos_t = Tensor::<2>::from_data(TensorData::new(cos, [nf, l]), &device)
-            .transpose()
-            .unsqueeze::<3>();
-        let sin_t = Tensor::<2>::from_data(TensorData::new(sin, [nf, l]), &device)
-            .transpose()
-            .unsqueeze::<3>();
+        let fresh;
+        let dft = match fused {
+            Some(f) => {
+                let d = f.dft.get_or_init(|| Dft::new(l, &device));
+                if d.len == l {
+                    d
+                } else {
+                    fresh = Dft::new(l, &device);
+                    &fresh
+                }
+            }
+            None => {
+                fresh = Dft::new(l, &device);
+                &fresh
+            }
+        };
+        let (cos_t, sin_t) = (&dft.cos_t, &dft.sin_t);
         let mut x = self.embed.forward(plan); // [B, L, d]
         let d = x.dims()[2];
         for (bi, block) in self.blocks.iter().enumerate() {
@@ -111,41 +157,99 @@ impl PlanEncoder {
             }
             let onehot = Tensor::<3>::from_data(TensorData::new(onehot, [b, nf, k]), &device);
             let weights = softmax(amp.unsqueeze_dim::<3>(1).matmul(onehot), 2); // [B, 1, k]
-            let mut outs = Vec::with_capacity(b);
-            for (s, sample_periods) in periods.iter().enumerate() {
-                let xs = x.clone().slice([s..s + 1, 0..l, 0..d]); // [1, L, d]
-                let mut acc: Option<Tensor<3>> = None;
-                for (i, &p) in sample_periods.iter().enumerate() {
-                    let rows = l.div_ceil(p);
-                    let lp = rows * p;
-                    let padded = if lp > l {
-                        Tensor::cat(vec![xs.clone(), Tensor::zeros([1, lp - l, d], &device)], 1)
-                    } else {
-                        xs.clone()
-                    };
-                    let grid = padded.reshape([1, rows, p, d]).permute([0, 3, 1, 2]); // [1, d, rows, p]
-                    let y = match fused {
-                        Some(f) => f.blocks[bi][1].forward(gelu(f.blocks[bi][0].forward(grid))),
-                        None => block.conv_out.forward(gelu(block.conv_in.forward(grid))),
-                    };
-                    let y = y
-                        .permute([0, 2, 3, 1])
-                        .reshape([1, lp, d])
-                        .slice([0..1, 0..l, 0..d]);
-                    let w = weights.clone().slice([s..s + 1, 0..1, i..i + 1]); // [1,1,1]
-                    let y = y * w;
-                    acc = Some(match acc {
-                        None => y,
-                        Some(a) => a + y,
-                    });
+            let res = match fused {
+                Some(f) => fused_periods(&f.blocks[bi], x.clone(), &periods, weights),
+                None => {
+                    let mut outs = Vec::with_capacity(b);
+                    for (s, sample_periods) in periods.iter().enumerate() {
+                        let xs = x.clone().slice([s..s + 1, 0..l, 0..d]); // [1, L, d]
+                        let mut acc: Option<Tensor<3>> = None;
+                        for (i, &p) in sample_periods.iter().enumerate() {
+                            let rows = l.div_ceil(p);
+                            let lp = rows * p;
+                            let padded = if lp > l {
+                                Tensor::cat(
+                                    vec![xs.clone(), Tensor::zeros([1, lp - l, d], &device)],
+                                    1,
+                                )
+                            } else {
+                                xs.clone()
+                            };
+                            let grid = padded.reshape([1, rows, p, d]).permute([0, 3, 1, 2]); // [1, d, rows, p]
+                            let y = block.conv_out.forward(gelu(block.conv_in.forward(grid)));
+                            let y = y.permute([0, 2, 3, 1]).reshape([1, lp, d]).slice([
+                                0..1,
+                                0..l,
+                                0..d,
+                            ]);
+                            let w = weights.clone().slice([s..s + 1, 0..1, i..i + 1]); // [1,1,1]
+                            let y = y * w;
+                            acc = Some(match acc {
+                                None => y,
+                                Some(a) => a + y,
+                            });
+                        }
+                        outs.push(acc.expect("top_k >= 1"));
+                    }
+                    Tensor::cat(outs, 0)
                 }
-                outs.push(acc.expect("top_k >= 1"));
-            }
-            let res = Tensor::cat(outs, 0);
+            };
             x = block.norm.forward(res + x);
         }
         x.reshape([b, l * d])
     }
+}
+
+/// The period branches of one block with the fused convolutions as im2col +
+/// GEMM on the host ([`GridConv`]): `x` `[B, L, d]`, each sample's periods
+/// and softmax weights `[B, 1, k]` -> `Σ_i w_i · conv_out(gelu(conv_in(grid_i)))`,
+/// `[B, L, d]`. The same operations as the tensor path, without building
+/// the padded, permuted grids.
+fn fused_periods(
+    convs: &[GridConv; 2],
+    x: Tensor<3>,
+    periods: &[Vec<usize>],
+    weights: Tensor<3>,
+) -> Tensor<3> {
+    let [b, l, d] = x.dims();
+    let device = x.device();
+    let xs: Vec<f32> = x
+        .into_data()
+        .convert::<f32>()
+        .try_into_vec()
+        .expect("f32 features");
+    let k = weights.dims()[2];
+    let ws: Vec<f32> = weights
+        .into_data()
+        .convert::<f32>()
+        .try_into_vec()
+        .expect("f32 weights");
+    let mid = convs[0].c_out();
+    let mut res = vec![0.0f32; b * l * d];
+    for (s, sample_periods) in periods.iter().enumerate() {
+        let xs = &xs[s * l * d..(s + 1) * l * d];
+        let acc = &mut res[s * l * d..(s + 1) * l * d];
+        for (i, &p) in sample_periods.iter().enumerate() {
+            let rows = l.div_ceil(p);
+            let lp = rows * p;
+            let h = convs[0].forward(xs, rows, p, lp);
+            let h: Vec<f32> = gelu(Tensor::<2>::from_data(
+                TensorData::new(h, [lp, mid]),
+                &device,
+            ))
+            .into_data()
+            .try_into_vec()
+            .expect("f32 activations");
+            let y = convs[1].forward(&h, rows, p, l);
+            let w = ws[s * k + i];
+            if i == 0 {
+                acc.iter_mut().zip(&y).for_each(|(a, v)| *a = v * w);
+            } else {
+                acc.iter_mut().zip(&y).for_each(|(a, v)| *a += v * w);
+            }
+        }
+    }
+    Tensor::<3>::from_data(TensorData::new(res, [b, l, d]), &device)
 }
 
 /// Indices (>= 1, DC dropped) of the `k` largest amplitudes, largest first;

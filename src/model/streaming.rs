@@ -55,6 +55,8 @@ pub struct StreamingForecaster {
     plan_std: Option<Vec<f32>>,
     /// Per vision layer: stable slice (after conv, ReLU, spatial pool) by key.
     cache: Vec<HashMap<i64, Arc<Vec<f32>>>>,
+    /// Vision slices computed so far (all layers), for tests and benchmarks.
+    slices_computed: u64,
 }
 
 impl StreamingForecaster {
@@ -67,6 +69,7 @@ impl StreamingForecaster {
             ticks: VecDeque::with_capacity(cfg.n_ticks + 1),
             plan_std: None,
             cache: vec![HashMap::new(); layers],
+            slices_computed: 0,
         }
     }
 
@@ -80,6 +83,17 @@ impl StreamingForecaster {
         self.ticks.clear();
         self.plan_std = None;
         self.cache.iter_mut().for_each(HashMap::clear);
+    }
+
+    /// Vision slices computed since the forecaster was made (every layer):
+    /// how much vision work a tick did, independent of the machine's speed.
+    pub fn slices_computed(&self) -> u64 {
+        self.slices_computed
+    }
+
+    /// The oldest tick in the window, if any.
+    pub fn first_tick(&self) -> Option<i64> {
+        self.ticks.front().map(|t| t.tick)
     }
 
     /// The last tick pushed, if any.
@@ -200,6 +214,18 @@ impl StreamingForecaster {
         });
         if self.ticks.len() > cfg.n_ticks {
             self.ticks.pop_front();
+        }
+        Ok(())
+    }
+
+    /// While the window fills: computes the vision slices of the ticks pushed
+    /// so far (those that will not change once the window is full are kept),
+    /// so that the first forecast of a full window costs one tick's work, not
+    /// a whole-window forward. Nothing to do for a model without vision or
+    /// a full window.
+    pub fn prepare(&mut self) -> Result<(), ModelError> {
+        if self.model.meta.ablation.uses_vision() && !self.ticks.is_empty() && !self.is_full() {
+            self.vision_features()?;
         }
         Ok(())
     }
@@ -344,6 +370,7 @@ impl StreamingForecaster {
                     Tensor::<5>::from_data(TensorData::new(buf, [1, c_in, span, hw, hw]), &device);
                 let y = spatial_pool(relu(layer.forward_valid_time(x)));
                 let runs = j1 - j0 + 1;
+                self.slices_computed += runs as u64;
                 debug_assert_eq!(y.dims()[2], runs);
                 let y: Vec<f32> = y
                     .into_data()

@@ -389,6 +389,64 @@ fn streaming_equals_whole_window() {
     }
 }
 
+/// Vision slices prepared while the window fills: the first forecast of the
+/// full window equals the whole-window forward and computes no more slices
+/// than a steady tick (without `prepare` it computes every slice).
+#[test]
+fn prepared_fill_makes_the_first_forecast_a_normal_tick() {
+    let cfg = ModelConfig::lite(24, 25, vec![6, 12, 18, 24], 64);
+    let (meta, emp) = model(&cfg, Ablation::EMP);
+    let loaded = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+    let (n, c, s, l) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len());
+    let total = n + 3;
+    let joints = noise(total * c, 78);
+    let frames: Vec<Vec<f32>> = (0..total)
+        .map(|t| noise(3 * s * s, 2000 + t as u64))
+        .collect();
+    let mut costs = Vec::new();
+    for prepared in [true, false] {
+        let mut stream = StreamingForecaster::new(&loaded);
+        let mut per_forecast = Vec::new();
+        for t in 0..total {
+            let plan = noise(l * c, 6000 + t as u64);
+            let j = &joints[t * c..(t + 1) * c];
+            stream
+                .push_parts(t as i64, j, Some(&frames[t]), Some(&plan))
+                .unwrap();
+            if t + 1 < n {
+                if prepared {
+                    stream.prepare().unwrap();
+                }
+                continue;
+            }
+            let before = stream.slices_computed();
+            let got = stream.forecast().unwrap();
+            per_forecast.push(stream.slices_computed() - before);
+            let (wj, wf) = stream_window(&cfg, &joints, &frames, t);
+            let want = loaded.forecast_arrays(&wj, &plan, &wf).unwrap();
+            for (g, w) in got.iter().zip(&want) {
+                assert!(
+                    (g - w).abs() < 1e-5,
+                    "prepared {prepared}, tick {t}: streaming {got:?} vs window {want:?}"
+                );
+            }
+        }
+        costs.push(per_forecast);
+    }
+    let (with, without) = (&costs[0], &costs[1]);
+    let steady = *with[1..].iter().max().unwrap();
+    assert!(
+        with[0] <= steady,
+        "first forecast {} slices, steady {steady}",
+        with[0]
+    );
+    assert!(
+        without[0] >= n as u64,
+        "unprepared first forecast {}",
+        without[0]
+    );
+}
+
 #[test]
 fn calibration_is_stored_applied_everywhere_and_checked() {
     let cfg = small_config();

@@ -16,8 +16,10 @@ use crate::model::{
 /// Arguments of `fall-guard bench`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct BenchArgs {
-    /// Model file whose configuration is benchmarked (every ablation of it);
-    /// without one, the reference `lite` configuration (N=60, C=25, 64 px).
+    /// Model file whose configuration is benchmarked (every ablation of it;
+    /// the file's own ablation with its weights, held at the file's
+    /// precision); without one, the reference `lite` configuration (N=60,
+    /// C=25, 64 px) with freshly initialised f32 weights.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Configuration when no model is given: lite or paper.
@@ -32,6 +34,9 @@ pub struct BenchArgs {
     /// Training steps measured (batch 4, EMP); 0 skips.
     #[arg(long, default_value_t = 10)]
     pub train_steps: usize,
+    /// Measure only these ablations (repeatable); all four when absent.
+    #[arg(long = "ablation")]
+    pub ablations: Vec<Ablation>,
 }
 
 /// Latency summary, milliseconds.
@@ -68,8 +73,15 @@ impl Latency {
 pub struct AblationBench {
     /// Which ablation.
     pub ablation: String,
-    /// Streaming forecast per tick (push + forecast).
+    /// Streaming forecast per tick (push + forecast), wall time.
     pub streaming_per_tick: Latency,
+    /// The same in CPU time of the inference thread: what the tick costs
+    /// without the time other processes take the core away.
+    pub streaming_cpu_per_tick: Latency,
+    /// A tick while the window fills (push + vision slices prepared).
+    pub fill_tick: Latency,
+    /// The first forecast once the window is full (after a prepared fill).
+    pub first_forecast_ms: f64,
     /// Whole-window forward (fused, no cache).
     pub whole_window: Latency,
 }
@@ -106,6 +118,20 @@ pub fn backend_name() -> &'static str {
     }
 }
 
+/// CPU time of the calling thread, ms.
+fn thread_cpu_ms() -> f64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec, which `ts` is.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return 0.0;
+    }
+    ts.tv_sec as f64 * 1e3 + ts.tv_nsec as f64 * 1e-6
+}
+
 fn noise(len: usize, seed: u64) -> Vec<f32> {
     let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15) | 1;
     (0..len)
@@ -120,8 +146,12 @@ fn noise(len: usize, seed: u64) -> Vec<f32> {
 
 /// Runs the benchmark.
 pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
-    let cfg = match &args.model {
-        Some(p) => LoadedModel::load(p)?.meta.config,
+    let file_model = match &args.model {
+        Some(p) => Some(LoadedModel::load(p)?),
+        None => None,
+    };
+    let cfg = match &file_model {
+        Some(m) => m.meta.config.clone(),
         None => ModelConfig::named(&args.config, 60, 25, vec![15, 30, 45, 60], 64)
             .map_err(anyhow::Error::msg)?,
     };
@@ -130,24 +160,46 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
     let (n, c, s, l) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len());
     let mut ablations = Vec::new();
     for ablation in Ablation::ALL {
-        let meta = ModelMeta::new(cfg.clone(), ablation, 30.0, names.clone());
-        let emp = Emp::new(&cfg, ablation, &device);
-        let model = LoadedModel::from_parts(meta, &emp, device.clone(), "bench".into());
+        if !args.ablations.is_empty() && !args.ablations.contains(&ablation) {
+            continue;
+        }
+        // The file's own network (its weights, at its precision) for its
+        // ablation; freshly initialised f32 networks for the others.
+        let model = match &file_model {
+            Some(m) if m.meta.ablation == ablation => m.clone(),
+            _ => {
+                let meta = ModelMeta::new(cfg.clone(), ablation, 30.0, names.clone());
+                let emp = Emp::new(&cfg, ablation, &device);
+                LoadedModel::from_parts(meta, &emp, device.clone(), "bench".into())
+            }
+        };
         let mut stream = StreamingForecaster::new(&model);
         let total = n + args.ticks;
         let mut per_tick = Vec::with_capacity(args.ticks);
+        let mut cpu_per_tick = Vec::with_capacity(args.ticks);
+        let mut fill = Vec::with_capacity(n);
+        let mut first_forecast_ms = 0.0;
         for t in 0..total {
             let joints = noise(c, t as u64);
             let frame = noise(3 * s * s, 10_000 + t as u64);
             let plan = noise(l * c, 20_000 + t as u64);
             let start = Instant::now();
+            let cpu_start = thread_cpu_ms();
             stream.push_parts(t as i64, &joints, Some(&frame), Some(&plan))?;
-            if t + 1 >= n {
-                let p = stream.forecast()?;
-                std::hint::black_box(p);
-                if t + 1 > n {
-                    per_tick.push(start.elapsed().as_secs_f64() * 1e3);
-                }
+            if t + 1 < n {
+                // As the daemon does while its ring fills.
+                stream.prepare()?;
+                fill.push(start.elapsed().as_secs_f64() * 1e3);
+                continue;
+            }
+            let p = stream.forecast()?;
+            std::hint::black_box(p);
+            let ms = start.elapsed().as_secs_f64() * 1e3;
+            if t + 1 == n {
+                first_forecast_ms = ms;
+            } else {
+                per_tick.push(ms);
+                cpu_per_tick.push(thread_cpu_ms() - cpu_start);
             }
         }
         let joints = noise(n * c, 1);
@@ -163,13 +215,21 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
         let b = AblationBench {
             ablation: ablation.to_string(),
             streaming_per_tick: Latency::from_ms(per_tick),
+            streaming_cpu_per_tick: Latency::from_ms(cpu_per_tick),
+            fill_tick: Latency::from_ms(fill),
+            first_forecast_ms,
             whole_window: Latency::from_ms(whole),
         };
         eprintln!(
-            "{:>3}: per tick median {:.2} ms p99 {:.2} ms | whole window median {:.2} ms",
+            "{:>3}: per tick median {:.2} ms p99 {:.2} ms (thread CPU median {:.2} p99 {:.2}) | \
+             fill tick median {:.2} ms | first forecast {:.2} ms | whole window median {:.2} ms",
             b.ablation,
             b.streaming_per_tick.median_ms,
             b.streaming_per_tick.p99_ms,
+            b.streaming_cpu_per_tick.median_ms,
+            b.streaming_cpu_per_tick.p99_ms,
+            b.fill_tick.median_ms,
+            b.first_forecast_ms,
             b.whole_window.median_ms
         );
         ablations.push(b);
@@ -266,6 +326,7 @@ mod tests {
                 .map(PathBuf::from),
             ticks: 300,
             train_steps: 5,
+            ablations: Vec::new(),
         };
         let report = run_bench(&args).unwrap();
         println!("{}", serde_json::to_string_pretty(&report).unwrap());

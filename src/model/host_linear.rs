@@ -1,0 +1,274 @@
+//! The classifier's input projection for inference, on the host, with its
+//! weights kept at the precision the model file stored them in.
+//!
+//! In: features `[B, F]`. Out: `x · W + b`, `[B, d_model]`, f32.
+//!
+//! This one matrix is most of a network's weights (`F x d_model`, e.g.
+//! 7,400 x 1,024 for EMP lite). Model files are written in f16; holding the
+//! matrix as f16 halves the daemon's memory for it, and the product is
+//! unchanged: every f16 value converts to f32 exactly, and the arithmetic
+//! is f32. A matrix that is not exactly representable in f16 (a network
+//! trained in this process, an f32 file) stays f32. One product per tick
+//! reads the whole matrix once, so it is bound by memory bandwidth: half the
+//! bytes is also less time.
+
+use std::sync::Arc;
+
+use burn::nn::Linear;
+use burn::prelude::*;
+use half::f16;
+use half::slice::HalfFloatSliceExt;
+
+/// Rows converted (f16) and accumulated per step: 8 x `d_model` f32 stay in L1.
+const ROWS_PER_STEP: usize = 8;
+
+#[derive(Debug, Clone)]
+enum Weights {
+    F32(Arc<[f32]>),
+    F16(Arc<[f16]>),
+}
+
+/// `y = x · W + b` with `W` `[in, out]` row-major.
+#[derive(Debug, Clone)]
+pub struct HostLinear {
+    weight: Weights,
+    bias: Arc<[f32]>,
+    d_in: usize,
+    d_out: usize,
+}
+
+impl HostLinear {
+    /// From a burn [`Linear`] (weight `[in, out]`); f16 when that is lossless.
+    pub fn from_linear(linear: &Linear) -> HostLinear {
+        let [d_in, d_out] = linear.weight.dims();
+        let w: Vec<f32> = linear
+            .weight
+            .val()
+            .into_data()
+            .convert::<f32>()
+            .try_into_vec::<f32>()
+            .expect("f32 weights");
+        let bias: Vec<f32> = match &linear.bias {
+            Some(b) => b
+                .val()
+                .into_data()
+                .convert::<f32>()
+                .try_into_vec::<f32>()
+                .expect("f32 bias"),
+            None => vec![0.0; d_out],
+        };
+        HostLinear::new(w, bias, d_in, d_out)
+    }
+
+    /// From row-major `[d_in, d_out]` weights; f16 when that is lossless.
+    pub fn new(w: Vec<f32>, bias: Vec<f32>, d_in: usize, d_out: usize) -> HostLinear {
+        assert_eq!(w.len(), d_in * d_out, "weight shape");
+        assert_eq!(bias.len(), d_out, "bias shape");
+        let lossless = w
+            .iter()
+            .all(|&v| f16::from_f32(v).to_f32().to_bits() == v.to_bits());
+        let weight = if lossless {
+            let mut h = vec![f16::ZERO; w.len()];
+            h.convert_from_f32_slice(&w);
+            Weights::F16(h.into())
+        } else {
+            Weights::F32(w.into())
+        };
+        HostLinear {
+            weight,
+            bias: bias.into(),
+            d_in,
+            d_out,
+        }
+    }
+
+    /// Whether the matrix is held in f16.
+    pub fn is_half(&self) -> bool {
+        matches!(self.weight, Weights::F16(_))
+    }
+
+    /// Bytes the matrix and bias take.
+    pub fn bytes(&self) -> usize {
+        let w = match &self.weight {
+            Weights::F32(w) => 4 * w.len(),
+            Weights::F16(w) => 2 * w.len(),
+        };
+        w + 4 * self.bias.len()
+    }
+
+    /// `[B, in]` -> `[B, out]`.
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        let [b, d_in] = x.dims();
+        assert_eq!(d_in, self.d_in, "HostLinear input width");
+        let device = x.device();
+        let xs: Vec<f32> = x
+            .into_data()
+            .convert::<f32>()
+            .try_into_vec::<f32>()
+            .expect("f32 features");
+        let mut y = vec![0.0f32; b * self.d_out];
+        for (xr, yr) in xs.chunks_exact(d_in).zip(y.chunks_exact_mut(self.d_out)) {
+            self.row(xr, yr);
+        }
+        Tensor::<2>::from_data(TensorData::new(y, [b, self.d_out]), &device)
+    }
+
+    /// One row: `y = x · W + b`.
+    fn row(&self, x: &[f32], y: &mut [f32]) {
+        y.copy_from_slice(&self.bias);
+        let n = self.d_out;
+        match &self.weight {
+            Weights::F32(w) => {
+                for (xc, wc) in x.chunks(ROWS_PER_STEP).zip(w.chunks(ROWS_PER_STEP * n)) {
+                    axpy_rows(xc, wc, y);
+                }
+            }
+            Weights::F16(w) => {
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if std::arch::is_x86_feature_detected!("avx2")
+                        && std::arch::is_x86_feature_detected!("fma")
+                        && std::arch::is_x86_feature_detected!("f16c")
+                    {
+                        // SAFETY: the CPU has AVX2, FMA and F16C (checked just above).
+                        unsafe { axpy_rows_f16_avx2(x, w, y) };
+                        return;
+                    }
+                }
+                let mut buf = vec![0.0f32; ROWS_PER_STEP * n];
+                for (xc, wc) in x.chunks(ROWS_PER_STEP).zip(w.chunks(ROWS_PER_STEP * n)) {
+                    let rows = &mut buf[..wc.len()];
+                    wc.convert_to_f32_slice(rows);
+                    axpy_rows(xc, rows, y);
+                }
+            }
+        }
+    }
+}
+
+/// `y += Σ_r x[r] · w[r, :]` for up to [`ROWS_PER_STEP`] rows.
+fn axpy_rows(x: &[f32], w: &[f32], y: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the CPU has AVX2 and FMA (checked just above).
+            unsafe { axpy_rows_avx2(x, w, y) };
+            return;
+        }
+    }
+    axpy_rows_generic(x, w, y);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn axpy_rows_avx2(x: &[f32], w: &[f32], y: &mut [f32]) {
+    axpy_rows_generic(x, w, y);
+}
+
+/// `y += Σ_r x[r] · w[r, :]` with `w` in f16, converted in registers (F16C):
+/// the same fused multiply-adds as the f32 path, half the bytes read.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+fn axpy_rows_f16_avx2(x: &[f32], w: &[f16], y: &mut [f32]) {
+    use std::arch::x86_64::{
+        __m128i, _mm256_cvtph_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps,
+        _mm256_storeu_ps, _mm_loadu_si128,
+    };
+    let n = y.len();
+    for (r, &xr) in x.iter().enumerate() {
+        let row = &w[r * n..(r + 1) * n];
+        let xv = _mm256_set1_ps(xr);
+        let mut j = 0;
+        while j + 8 <= n {
+            // SAFETY: `j + 8 <= n` = the length of `row` and of `y`; the
+            // loads and the store are unaligned.
+            unsafe {
+                let wv = _mm256_cvtph_ps(_mm_loadu_si128(row.as_ptr().add(j).cast::<__m128i>()));
+                let yv = _mm256_loadu_ps(y.as_ptr().add(j));
+                _mm256_storeu_ps(y.as_mut_ptr().add(j), _mm256_fmadd_ps(xv, wv, yv));
+            }
+            j += 8;
+        }
+        for (yv, wv) in y[j..].iter_mut().zip(&row[j..]) {
+            *yv = xr.mul_add(wv.to_f32(), *yv);
+        }
+    }
+}
+
+#[inline(always)]
+fn axpy_rows_generic(x: &[f32], w: &[f32], y: &mut [f32]) {
+    let n = y.len();
+    for (r, &xr) in x.iter().enumerate() {
+        let row = &w[r * n..(r + 1) * n];
+        for (yv, &wv) in y.iter_mut().zip(row) {
+            *yv = xr.mul_add(wv, *yv);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::nn::LinearConfig;
+
+    fn reference(x: &[f32], w: &[f32], b: &[f32], d_in: usize, d_out: usize) -> Vec<f32> {
+        (0..d_out)
+            .map(|j| {
+                b[j] as f64
+                    + (0..d_in)
+                        .map(|i| x[i] as f64 * w[i * d_out + j] as f64)
+                        .sum::<f64>()
+            })
+            .map(|v| v as f32)
+            .collect()
+    }
+
+    #[test]
+    fn equals_burn_linear_in_f32_and_is_f32_when_f16_would_lose() {
+        let device = crate::model::cpu_device();
+        let lin = LinearConfig::new(37, 21).init(&device);
+        let host = HostLinear::from_linear(&lin);
+        assert!(!host.is_half(), "random f32 weights are not f16 values");
+        let x = Tensor::<2>::random([3, 37], burn::tensor::Distribution::Default, &device);
+        let want: Vec<f32> = lin.forward(x.clone()).into_data().try_into_vec().unwrap();
+        let got: Vec<f32> = host.forward(x).into_data().try_into_vec().unwrap();
+        assert_eq!(want.len(), got.len());
+        for (a, b) in want.iter().zip(&got) {
+            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn f16_weights_are_kept_in_f16_and_give_the_f32_product() {
+        let (d_in, d_out) = (45usize, 19usize); // not a multiple of the row step
+        let w: Vec<f32> = (0..d_in * d_out)
+            .map(|i| f16::from_f32(((i * 37 % 101) as f32 - 50.0) / 64.0).to_f32())
+            .collect();
+        let b: Vec<f32> = (0..d_out).map(|j| j as f32 * 0.25 - 1.0).collect();
+        let x: Vec<f32> = (0..d_in)
+            .map(|i| ((i * 13 % 7) as f32 - 3.0) * 0.3)
+            .collect();
+        let host = HostLinear::new(w.clone(), b.clone(), d_in, d_out);
+        assert!(host.is_half());
+        assert_eq!(host.bytes(), 2 * d_in * d_out + 4 * d_out);
+        let mut y = vec![0.0; d_out];
+        host.row(&x, &mut y);
+        let want = reference(&x, &w, &b, d_in, d_out);
+        for (a, b) in want.iter().zip(&y) {
+            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+        // One weight that f16 cannot hold: the whole matrix stays f32.
+        let mut w2 = w;
+        w2[3] = 0.1;
+        assert!(!HostLinear::new(w2, b, d_in, d_out).is_half());
+    }
+
+    #[test]
+    fn nan_input_gives_nan_output() {
+        let host = HostLinear::new(vec![0.5; 6], vec![0.0; 2], 3, 2);
+        let mut y = vec![0.0; 2];
+        host.row(&[1.0, f32::NAN, 0.0], &mut y);
+        assert!(y.iter().all(|v| v.is_nan()));
+    }
+}
