@@ -7,7 +7,8 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::fit::{bce_with_logits, LabeledWindow};
+use super::device::TrainDevice;
+use super::fit::{bce_with_logits, keep_freed_memory, LabeledWindow};
 use crate::model::file::build_input;
 use crate::model::{
     cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster,
@@ -32,6 +33,12 @@ pub struct BenchArgs {
     /// Training steps measured (batch 4, EMP); 0 skips.
     #[arg(long, default_value_t = 10)]
     pub train_steps: usize,
+    /// Measure training throughput only (skip the inference latencies).
+    #[arg(long)]
+    pub train_only: bool,
+    /// Device of the training part: cpu, cuda, cuda:N or wgpu (see `train --device`).
+    #[arg(long, default_value = "cpu")]
+    pub device: TrainDevice,
 }
 
 /// Latency summary, milliseconds.
@@ -91,6 +98,8 @@ pub struct BenchReport {
     pub ablations: Vec<AblationBench>,
     /// Training samples per second (EMP, batch 4), if measured.
     pub train_samples_per_s: Option<f64>,
+    /// Device of the training measurement.
+    pub train_device: String,
     /// Threads used by inference.
     pub threads: usize,
 }
@@ -129,7 +138,8 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let (n, c, s, l) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len());
     let mut ablations = Vec::new();
-    for ablation in Ablation::ALL {
+    let measured: &[Ablation] = if args.train_only { &[] } else { &Ablation::ALL };
+    for &ablation in measured {
         let meta = ModelMeta::new(cfg.clone(), ablation, 30.0, names.clone());
         let emp = Emp::new(&cfg, ablation, &device);
         let model = LoadedModel::from_parts(meta, &emp, device.clone(), "bench".into());
@@ -175,12 +185,12 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
         ablations.push(b);
     }
     let train_samples_per_s = if args.train_steps > 0 {
-        Some(train_throughput(&cfg, args.train_steps)?)
+        Some(train_throughput(&cfg, args.train_steps, args.device)?)
     } else {
         None
     };
     if let Some(t) = train_samples_per_s {
-        eprintln!("training (EMP, batch 4): {t:.1} samples/s");
+        eprintln!("training (EMP, batch 4, {}): {t:.1} samples/s", args.device);
     }
     let report = BenchReport {
         backend: backend_name().into(),
@@ -190,6 +200,7 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
         frame_size: s,
         ablations,
         train_samples_per_s,
+        train_device: args.device.to_string(),
         threads: 1,
     };
     if let Some(path) = &args.json {
@@ -199,9 +210,10 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
     Ok(report)
 }
 
-fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
+fn train_throughput(cfg: &ModelConfig, steps: usize, on: TrainDevice) -> anyhow::Result<f64> {
     use burn::optim::{AdamConfig, GradientsParams};
-    let device = cpu_device().autodiff();
+    keep_freed_memory();
+    let device = on.device()?.autodiff();
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let meta = ModelMeta::new(cfg.clone(), Ablation::EMP, 30.0, names);
     let mut model = Emp::new(cfg, Ablation::EMP, &device);
@@ -241,6 +253,10 @@ fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
         let loss = bce_with_logits(model.forward(input), labels);
         let grads = GradientsParams::from_grads(loss.backward(), &model);
         model = opt.step(1e-4, model, grads);
+        // A GPU queues its work: wait for it before reading the clock.
+        device
+            .sync()
+            .map_err(|e| anyhow::anyhow!("training step on {on}: {e:?}"))?;
         if step > 0 {
             elapsed += start.elapsed().as_secs_f64();
         }
@@ -266,6 +282,8 @@ mod tests {
                 .map(PathBuf::from),
             ticks: 300,
             train_steps: 5,
+            train_only: false,
+            device: TrainDevice::Cpu,
         };
         let report = run_bench(&args).unwrap();
         println!("{}", serde_json::to_string_pretty(&report).unwrap());
