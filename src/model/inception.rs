@@ -1,15 +1,19 @@
 //! Inception blocks: the mean of parallel "same"-padded convolutions with
 //! kernels `1, 3, 5, ...`, and their exact fusion into one convolution.
 //!
-//! Training uses the branches ([`Inception2d`], [`Inception3d`]); inference
-//! uses [`FusedConv`], whose kernel is the mean of the zero-padded branch
-//! kernels (the same linear map, fewer multiply-adds).
+//! The parameters are the branches' ([`Inception2d`], [`Inception3d`]: the
+//! model file stores them). Both training and inference run one convolution
+//! whose kernel is the mean of the zero-padded branch kernels (the same
+//! linear map, fewer multiply-adds): inference fuses once at load time
+//! ([`FusedConv`], on the host), training builds the same kernel from the
+//! branch parameters with tensor ops every step
+//! ([`Inception2d::fuse_differentiable`]), so gradients reach the branches.
 
 use burn::module::Param;
 use burn::nn::conv::{Conv2d, Conv2dConfig, Conv3d, Conv3dConfig};
 use burn::prelude::*;
 use burn::tensor::module::{conv2d, conv3d};
-use burn::tensor::ops::ConvOptions;
+use burn::tensor::ops::{ConvOptions, PadMode};
 
 /// Mean of `num_kernels` 2-D convolutions, square kernels `1, 3, 5, ...`.
 #[derive(Module, Debug)]
@@ -40,8 +44,26 @@ impl Inception2d {
         Inception2d { branches }
     }
 
-    /// `[B, C_in, H, W]` -> `[B, C_out, H, W]`.
+    /// `[B, C_in, H, W]` -> `[B, C_out, H, W]`: one convolution with the
+    /// fused kernel, built from the branches with differentiable tensor ops.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        self.fuse_differentiable().forward(x)
+    }
+
+    /// The fused convolution built with tensor ops from the branch parameters
+    /// (autodiff tracks it: gradients reach every branch). Build it once per
+    /// step and apply it to many inputs.
+    pub fn fuse_differentiable(&self) -> FusedConv<4> {
+        fuse_differentiable(
+            self.branches
+                .iter()
+                .map(|c| (c.weight.val(), c.bias.as_ref().map(Param::val))),
+        )
+    }
+
+    /// The definition: the mean of the branches, each its own convolution
+    /// (the reference the fused forms are checked against).
+    pub fn forward_branches(&self, x: Tensor<4>) -> Tensor<4> {
         let n = self.branches.len() as f64;
         let mut acc: Option<Tensor<4>> = None;
         for conv in &self.branches {
@@ -60,6 +82,11 @@ impl Inception2d {
         }
         acc.expect("an Inception block has at least one branch")
             .div_scalar(n)
+    }
+
+    /// The branch convolutions (the parameters).
+    pub fn branches(&self) -> &[Conv2d] {
+        &self.branches
     }
 
     /// The single equivalent convolution.
@@ -83,8 +110,26 @@ impl Inception3d {
         Inception3d { branches }
     }
 
-    /// `[B, C_in, T, H, W]` -> `[B, C_out, T, H, W]`, "same" padding everywhere.
+    /// `[B, C_in, T, H, W]` -> `[B, C_out, T, H, W]`, "same" padding
+    /// everywhere: the fused kernel, built from the branches with
+    /// differentiable tensor ops, applied as [`conv3d_by_time_offsets`]
+    /// (training).
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
+        let f = self.fuse_differentiable();
+        conv3d_by_time_offsets(x, f.weight, f.bias)
+    }
+
+    /// As [`Inception2d::fuse_differentiable`].
+    pub fn fuse_differentiable(&self) -> FusedConv<5> {
+        fuse_differentiable(
+            self.branches
+                .iter()
+                .map(|c| (c.weight.val(), c.bias.as_ref().map(Param::val))),
+        )
+    }
+
+    /// The definition: the mean of the branches, each its own convolution.
+    pub fn forward_branches(&self, x: Tensor<5>) -> Tensor<5> {
         let n = self.branches.len() as f64;
         let mut acc: Option<Tensor<5>> = None;
         for conv in &self.branches {
@@ -102,6 +147,11 @@ impl Inception3d {
         }
         acc.expect("an Inception block has at least one branch")
             .div_scalar(n)
+    }
+
+    /// The branch convolutions (the parameters).
+    pub fn branches(&self) -> &[Conv3d] {
+        &self.branches
     }
 
     /// The single equivalent convolution.
@@ -125,6 +175,98 @@ pub struct FusedConv<const D: usize> {
     pub bias: Tensor<1>,
     /// Kernel side `k` (odd).
     pub kernel: usize,
+}
+
+/// A "same"-padded 3-D convolution with an odd cubic kernel `k`, computed as
+/// one 2-D convolution over every time slice (`[B·T, C_in, H, W]`) with the
+/// `k` time slices of the kernel stacked as output channels, then the `k`
+/// partial outputs summed with their time shifts (zero beyond the ends).
+/// The same linear map as `conv3d`, differentiable, and on the CPU backend
+/// cheaper to train: its im2col buffers (forward and the weight gradient)
+/// are `k` times smaller than a 3-D convolution's.
+/// `x` `[B, C_in, T, H, W]`, `weight` `[C_out, C_in, k, k, k]` -> `[B, C_out, T, H, W]`.
+pub fn conv3d_by_time_offsets(x: Tensor<5>, weight: Tensor<5>, bias: Tensor<1>) -> Tensor<5> {
+    let [b, c_in, t, h, w] = x.dims();
+    let [c_out, _, k, kh, kw] = weight.dims();
+    let p = k / 2;
+    // [C_out, C_in, k, kh, kw] -> [k·C_out, C_in, kh, kw], time offset major.
+    let w2 = weight
+        .permute([2, 0, 1, 3, 4])
+        .reshape([k * c_out, c_in, kh, kw]);
+    let slices = x.permute([0, 2, 1, 3, 4]).reshape([b * t, c_in, h, w]);
+    let z = conv2d(
+        slices,
+        w2,
+        None,
+        ConvOptions::new([1, 1], [kh / 2, kw / 2], [1, 1], 1),
+    )
+    .reshape([b, t, k, c_out, h, w]);
+    // Output time s reads input time s + j - p through kernel slice j.
+    let z = if p > 0 {
+        z.pad(
+            vec![(p, p), (0, 0), (0, 0), (0, 0), (0, 0)],
+            PadMode::Constant(0.0),
+        )
+    } else {
+        z
+    };
+    let mut y: Option<Tensor<6>> = None;
+    for j in 0..k {
+        // z index (s + j - p) + p = s + j.
+        let part = z
+            .clone()
+            .slice([0..b, j..j + t, j..j + 1, 0..c_out, 0..h, 0..w]);
+        y = Some(match y {
+            None => part,
+            Some(acc) => acc + part,
+        });
+    }
+    let y = y
+        .expect("an odd kernel has at least one time slice")
+        .reshape([b, t, c_out, h, w])
+        + bias.reshape([1, 1, c_out, 1, 1]);
+    y.permute([0, 2, 1, 3, 4])
+}
+
+/// [`fuse_branches`] with tensor ops on the device (differentiable): each
+/// branch kernel zero-padded to the largest, their mean; the biases' mean.
+fn fuse_differentiable<const D: usize>(
+    branches: impl ExactSizeIterator<Item = (Tensor<D>, Option<Tensor<1>>)>,
+) -> FusedConv<D> {
+    let n = branches.len();
+    let branches: Vec<_> = branches.collect();
+    let kmax = branches.iter().map(|(w, _)| w.dims()[2]).max().unwrap_or(1);
+    let c_out = branches[0].0.dims()[0];
+    let device = branches[0].0.device();
+    let mut weight: Option<Tensor<D>> = None;
+    let mut bias: Option<Tensor<1>> = None;
+    for (w, b) in branches {
+        let off = (kmax - w.dims()[2]) / 2;
+        let w = if off > 0 {
+            w.pad(vec![(off, off); D - 2], PadMode::Constant(0.0))
+        } else {
+            w
+        };
+        weight = Some(match weight {
+            None => w,
+            Some(acc) => acc + w,
+        });
+        if let Some(b) = b {
+            bias = Some(match bias {
+                None => b,
+                Some(acc) => acc + b,
+            });
+        }
+    }
+    FusedConv {
+        weight: weight
+            .expect("an Inception block has at least one branch")
+            .div_scalar(n as f64),
+        bias: bias
+            .map(|b| b.div_scalar(n as f64))
+            .unwrap_or_else(|| Tensor::zeros([c_out], &device)),
+        kernel: kmax,
+    }
 }
 
 fn fuse_branches<const D: usize>(branches: &[(Tensor<D>, Option<Tensor<1>>)]) -> FusedConv<D> {

@@ -14,7 +14,7 @@ use burn::tensor::activation::{gelu, softmax};
 
 use super::config::ModelConfig;
 use super::grid_conv::GridConv;
-use super::inception::Inception2d;
+use super::inception::{FusedConv, Inception2d};
 use super::spectral::dft_matrices;
 
 /// One TimesNet block.
@@ -104,6 +104,20 @@ impl PlanEncoder {
         }
     }
 
+    /// The fused convolutions built with tensor ops from the branch
+    /// parameters (training: gradients reach the branches).
+    pub fn fuse_differentiable(&self) -> Vec<[FusedConv<4>; 2]> {
+        self.blocks
+            .iter()
+            .map(|b| {
+                [
+                    b.conv_in.fuse_differentiable(),
+                    b.conv_out.fuse_differentiable(),
+                ]
+            })
+            .collect()
+    }
+
     /// `[B, L, C]` -> `[B, L·d_t]`; `fused` selects the fused convolutions.
     pub fn forward(&self, plan: Tensor<3>, fused: Option<&PlanFused>) -> Tensor<2> {
         let [b, l, _] = plan.dims();
@@ -128,6 +142,12 @@ impl PlanEncoder {
         let (cos_t, sin_t) = (&dft.cos_t, &dft.sin_t);
         let mut x = self.embed.forward(plan); // [B, L, d]
         let d = x.dims()[2];
+        // Training: the fused kernels built from the branch parameters with
+        // tensor ops (differentiable), once per forward, not once per grid.
+        let train_fused = match fused {
+            Some(_) => Vec::new(),
+            None => self.fuse_differentiable(),
+        };
         for (bi, block) in self.blocks.iter().enumerate() {
             // Amplitude per frequency, averaged over channels: [B, F].
             let xt = x.clone().swap_dims(1, 2); // [B, d, L]
@@ -159,40 +179,7 @@ impl PlanEncoder {
             let weights = softmax(amp.unsqueeze_dim::<3>(1).matmul(onehot), 2); // [B, 1, k]
             let res = match fused {
                 Some(f) => fused_periods(&f.blocks[bi], x.clone(), &periods, weights),
-                None => {
-                    let mut outs = Vec::with_capacity(b);
-                    for (s, sample_periods) in periods.iter().enumerate() {
-                        let xs = x.clone().slice([s..s + 1, 0..l, 0..d]); // [1, L, d]
-                        let mut acc: Option<Tensor<3>> = None;
-                        for (i, &p) in sample_periods.iter().enumerate() {
-                            let rows = l.div_ceil(p);
-                            let lp = rows * p;
-                            let padded = if lp > l {
-                                Tensor::cat(
-                                    vec![xs.clone(), Tensor::zeros([1, lp - l, d], &device)],
-                                    1,
-                                )
-                            } else {
-                                xs.clone()
-                            };
-                            let grid = padded.reshape([1, rows, p, d]).permute([0, 3, 1, 2]); // [1, d, rows, p]
-                            let y = block.conv_out.forward(gelu(block.conv_in.forward(grid)));
-                            let y = y.permute([0, 2, 3, 1]).reshape([1, lp, d]).slice([
-                                0..1,
-                                0..l,
-                                0..d,
-                            ]);
-                            let w = weights.clone().slice([s..s + 1, 0..1, i..i + 1]); // [1,1,1]
-                            let y = y * w;
-                            acc = Some(match acc {
-                                None => y,
-                                Some(a) => a + y,
-                            });
-                        }
-                        outs.push(acc.expect("top_k >= 1"));
-                    }
-                    Tensor::cat(outs, 0)
-                }
+                None => grouped_periods(&x, &periods, weights, &train_fused[bi]),
             };
             x = block.norm.forward(res + x);
         }
@@ -250,6 +237,78 @@ fn fused_periods(
         }
     }
     Tensor::<3>::from_data(TensorData::new(res, [b, l, d]), &device)
+}
+
+/// Training: the `(sample, period)` pairs of the whole batch through one
+/// block's convolutions, one batch per distinct period (pairs sharing a
+/// period share a grid shape), instead of one convolution per pair. The same
+/// function as the per-sample loop of [`PlanEncoder::forward`]: each grid is
+/// still its own batch element, and each sample sums its periods' outputs in
+/// the same order. `x` `[B, L, d]`, `weights` `[B, 1, k]` -> `[B, L, d]`.
+fn grouped_periods(
+    x: &Tensor<3>,
+    periods: &[Vec<usize>],
+    weights: Tensor<3>,
+    convs: &[FusedConv<4>; 2],
+) -> Tensor<3> {
+    let [b, l, d] = x.dims();
+    let k = weights.dims()[2];
+    let device = x.device();
+    let weights = weights.reshape([b * k]);
+    let index = |v: Vec<i64>| {
+        let n = v.len();
+        Tensor::<1, Int>::from_data(TensorData::new(v, [n]), &device)
+    };
+    // Pairs by period, in increasing period (a deterministic order).
+    let mut by_period: std::collections::BTreeMap<usize, Vec<(usize, usize)>> =
+        std::collections::BTreeMap::new();
+    for (s, sample_periods) in periods.iter().enumerate() {
+        for (i, &p) in sample_periods.iter().enumerate() {
+            by_period.entry(p).or_default().push((s, i));
+        }
+    }
+    let mut pieces: Vec<Vec<Option<Tensor<3>>>> = vec![vec![None; k]; b];
+    for (p, pairs) in by_period {
+        let g = pairs.len();
+        let rows = l.div_ceil(p);
+        let lp = rows * p;
+        let xs = x
+            .clone()
+            .select(0, index(pairs.iter().map(|&(s, _)| s as i64).collect())); // [g, L, d]
+        let padded = if lp > l {
+            Tensor::cat(vec![xs, Tensor::zeros([g, lp - l, d], &device)], 1)
+        } else {
+            xs
+        };
+        let grid = padded.reshape([g, rows, p, d]).permute([0, 3, 1, 2]); // [g, d, rows, p]
+        let y = convs[1].forward(gelu(convs[0].forward(grid)));
+        let w = weights
+            .clone()
+            .select(
+                0,
+                index(pairs.iter().map(|&(s, i)| (s * k + i) as i64).collect()),
+            )
+            .reshape([g, 1, 1]);
+        let y = y
+            .permute([0, 2, 3, 1])
+            .reshape([g, lp, d])
+            .slice([0..g, 0..l, 0..d])
+            * w;
+        for (j, &(s, i)) in pairs.iter().enumerate() {
+            pieces[s][i] = Some(y.clone().slice([j..j + 1, 0..l, 0..d]));
+        }
+    }
+    let outs = pieces
+        .into_iter()
+        .map(|sample| {
+            sample
+                .into_iter()
+                .map(|y| y.expect("every period of every sample"))
+                .reduce(|a, y| a + y)
+                .expect("top_k >= 1")
+        })
+        .collect();
+    Tensor::cat(outs, 0)
 }
 
 /// Indices (>= 1, DC dropped) of the `k` largest amplitudes, largest first;

@@ -141,7 +141,7 @@ fn fused_inception_equals_branches() {
         &device,
     );
     let a: Vec<f32> = inc
-        .forward(x.clone())
+        .forward_branches(x.clone())
         .into_data()
         .try_to_vec::<f32>()
         .unwrap();
@@ -158,7 +158,7 @@ fn fused_inception_equals_branches() {
         &device,
     );
     let a: Vec<f32> = inc3
-        .forward(x.clone())
+        .forward_branches(x.clone())
         .into_data()
         .try_to_vec::<f32>()
         .unwrap();
@@ -169,6 +169,111 @@ fn fused_inception_equals_branches() {
         .try_to_vec::<f32>()
         .unwrap();
     assert!(a.iter().zip(&b).all(|(p, q)| (p - q).abs() < 1e-5));
+}
+
+/// Training runs the fused kernel built from the branch parameters with
+/// tensor ops: the same outputs as the branches, and the same gradients
+/// reach every branch's weight and bias (2-D and 3-D blocks).
+#[test]
+fn training_fusion_has_the_branches_outputs_and_gradients() {
+    fn close(a: &[f32], b: &[f32]) {
+        assert_eq!(a.len(), b.len());
+        let scale = b.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+        assert!(
+            a.iter().zip(b).all(|(p, q)| (p - q).abs() <= 1e-5 * scale),
+            "{a:?} vs {b:?}"
+        );
+    }
+    fn vec_of<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_to_vec::<f32>().unwrap()
+    }
+    let device = cpu_device().autodiff();
+    let inc = inception::Inception2d::new(3, 4, 3, &device);
+    let x = Tensor::<4>::from_data(
+        TensorData::new(noise(2 * 3 * 5 * 6, 7), [2, 3, 5, 6]),
+        &device,
+    );
+    let target = Tensor::<4>::from_data(
+        TensorData::new(noise(2 * 4 * 5 * 6, 8), [2, 4, 5, 6]),
+        &device,
+    );
+    let grads = |y: Tensor<4>| -> Vec<Vec<f32>> {
+        let g = (y * target.clone()).sum().backward();
+        let mut out = Vec::new();
+        for c in inc.branches() {
+            out.push(vec_of(c.weight.val().grad(&g).expect("weight gradient")));
+            let b = c.bias.as_ref().expect("bias").val();
+            out.push(vec_of(b.grad(&g).expect("bias gradient")));
+        }
+        out
+    };
+    let (fused, branches) = (inc.forward(x.clone()), inc.forward_branches(x));
+    close(&vec_of(fused.clone()), &vec_of(branches.clone()));
+    let (ga, gb) = (grads(fused), grads(branches));
+    assert_eq!(ga.len(), 6);
+    for (a, b) in ga.iter().zip(&gb) {
+        close(a, b);
+    }
+
+    let inc3 = inception::Inception3d::new(2, 3, &device);
+    let x = Tensor::<5>::from_data(
+        TensorData::new(noise(2 * 4 * 5 * 5, 9), [1, 2, 4, 5, 5]),
+        &device,
+    );
+    let target = Tensor::<5>::from_data(
+        TensorData::new(noise(3 * 4 * 5 * 5, 10), [1, 3, 4, 5, 5]),
+        &device,
+    );
+    let grads = |y: Tensor<5>| -> Vec<Vec<f32>> {
+        let g = (y * target.clone()).sum().backward();
+        let mut out = Vec::new();
+        for c in inc3.branches() {
+            out.push(vec_of(c.weight.val().grad(&g).expect("weight gradient")));
+            let b = c.bias.as_ref().expect("bias").val();
+            out.push(vec_of(b.grad(&g).expect("bias gradient")));
+        }
+        out
+    };
+    let (fused, branches) = (inc3.forward(x.clone()), inc3.forward_branches(x));
+    close(&vec_of(fused.clone()), &vec_of(branches.clone()));
+    let (ga, gb) = (grads(fused), grads(branches));
+    assert_eq!(ga.len(), 4);
+    for (a, b) in ga.iter().zip(&gb) {
+        close(a, b);
+    }
+}
+
+#[test]
+fn conv3d_by_time_offsets_is_a_3d_convolution() {
+    let device = cpu_device();
+    for (k, t) in [(3, 5), (1, 4), (5, 7), (3, 1)] {
+        let x = Tensor::<5>::from_data(
+            TensorData::new(noise(2 * 3 * t * 6 * 5, 11), [2, 3, t, 6, 5]),
+            &device,
+        );
+        let w = Tensor::<5>::from_data(
+            TensorData::new(noise(4 * 3 * k * k * k, 12), [4, 3, k, k, k]),
+            &device,
+        )
+        .sub_scalar(0.5);
+        let bias = Tensor::<1>::from_data(TensorData::new(noise(4, 13), [4]), &device);
+        let want: Vec<f32> = burn::tensor::module::conv3d(
+            x.clone(),
+            w.clone(),
+            Some(bias.clone()),
+            burn::tensor::ops::ConvOptions::new([1, 1, 1], [k / 2; 3], [1, 1, 1], 1),
+        )
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+        let got = inception::conv3d_by_time_offsets(x, w, bias);
+        assert_eq!(got.dims(), [2, 4, t, 6, 5]);
+        let got: Vec<f32> = got.into_data().try_to_vec::<f32>().unwrap();
+        assert!(
+            got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-4),
+            "k {k}, t {t}"
+        );
+    }
 }
 
 #[test]

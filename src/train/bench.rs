@@ -7,7 +7,8 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::fit::{bce_with_logits, LabeledWindow};
+use super::device::TrainDevice;
+use super::fit::{bce_with_logits, keep_freed_memory, LabeledWindow};
 use crate::model::file::build_input;
 use crate::model::{
     cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster,
@@ -37,6 +38,12 @@ pub struct BenchArgs {
     /// Measure only these ablations (repeatable); all four when absent.
     #[arg(long = "ablation")]
     pub ablations: Vec<Ablation>,
+    /// Measure training throughput only (skip the inference latencies).
+    #[arg(long)]
+    pub train_only: bool,
+    /// Device of the training part: cpu, cuda, cuda:N or wgpu (see `train --device`).
+    #[arg(long, default_value = "cpu")]
+    pub device: TrainDevice,
 }
 
 /// Latency summary, milliseconds.
@@ -103,6 +110,8 @@ pub struct BenchReport {
     pub ablations: Vec<AblationBench>,
     /// Training samples per second (EMP, batch 4), if measured.
     pub train_samples_per_s: Option<f64>,
+    /// Device of the training measurement.
+    pub train_device: String,
     /// Threads used by inference.
     pub threads: usize,
 }
@@ -160,7 +169,7 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
     let (n, c, s, l) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len());
     let mut ablations = Vec::new();
     for ablation in Ablation::ALL {
-        if !args.ablations.is_empty() && !args.ablations.contains(&ablation) {
+        if args.train_only || !args.ablations.is_empty() && !args.ablations.contains(&ablation) {
             continue;
         }
         // The file's own network (its weights, at its precision) for its
@@ -235,12 +244,12 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
         ablations.push(b);
     }
     let train_samples_per_s = if args.train_steps > 0 {
-        Some(train_throughput(&cfg, args.train_steps)?)
+        Some(train_throughput(&cfg, args.train_steps, args.device)?)
     } else {
         None
     };
     if let Some(t) = train_samples_per_s {
-        eprintln!("training (EMP, batch 4): {t:.1} samples/s");
+        eprintln!("training (EMP, batch 4, {}): {t:.1} samples/s", args.device);
     }
     let report = BenchReport {
         backend: backend_name().into(),
@@ -250,6 +259,7 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
         frame_size: s,
         ablations,
         train_samples_per_s,
+        train_device: args.device.to_string(),
         threads: 1,
     };
     if let Some(path) = &args.json {
@@ -259,9 +269,10 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
     Ok(report)
 }
 
-fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
+fn train_throughput(cfg: &ModelConfig, steps: usize, on: TrainDevice) -> anyhow::Result<f64> {
     use burn::optim::{AdamConfig, GradientsParams};
-    let device = cpu_device().autodiff();
+    keep_freed_memory();
+    let device = on.device()?.autodiff();
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let meta = ModelMeta::new(cfg.clone(), Ablation::EMP, 30.0, names);
     let mut model = Emp::new(cfg, Ablation::EMP, &device);
@@ -301,6 +312,10 @@ fn train_throughput(cfg: &ModelConfig, steps: usize) -> anyhow::Result<f64> {
         let loss = bce_with_logits(model.forward(input), labels);
         let grads = GradientsParams::from_grads(loss.backward(), &model);
         model = opt.step(1e-4, model, grads);
+        // A GPU queues its work: wait for it before reading the clock.
+        device
+            .sync()
+            .map_err(|e| anyhow::anyhow!("training step on {on}: {e:?}"))?;
         if step > 0 {
             elapsed += start.elapsed().as_secs_f64();
         }
@@ -327,6 +342,8 @@ mod tests {
             ticks: 300,
             train_steps: 5,
             ablations: Vec::new(),
+            train_only: false,
+            device: TrainDevice::Cpu,
         };
         let report = run_bench(&args).unwrap();
         println!("{}", serde_json::to_string_pretty(&report).unwrap());

@@ -10,6 +10,7 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 
+use super::device::TrainDevice;
 use super::eval::{predict, report, EvalReport, Predictions};
 use super::fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
 use super::logreg::LogRegModel;
@@ -83,6 +84,10 @@ pub struct TrainArgs {
     /// joints). Stored in the model file.
     #[arg(long, value_enum, default_value_t = TrajectoryInput::Planned)]
     pub trajectory: TrajectoryInput,
+    /// Where the network trains: cpu, cuda, cuda:N (feature `cuda`) or wgpu
+    /// (feature `wgpu`). The model file is the same whichever trains it.
+    #[arg(long, default_value = "cpu")]
+    pub device: TrainDevice,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -314,6 +319,14 @@ pub fn per_horizon_path(out: &Path, horizon_ticks: usize) -> PathBuf {
 /// Runs `fall-guard train`: one model for all horizons, or with
 /// `--per-horizon` one per horizon.
 pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
+    if args.device != TrainDevice::Cpu && args.ablation.eq_ignore_ascii_case("logreg") {
+        bail!(
+            "--device {}: the logistic baseline trains on the CPU only",
+            args.device
+        );
+    }
+    // Refuse a device not compiled in before reading any data.
+    args.device.device()?;
     let dataset = Dataset::open(&args.data)
         .with_context(|| format!("opening data set {}", args.data.display()))?;
     let joint_names = args.joint_names.clone().unwrap_or_else(default_joint_names);
@@ -436,6 +449,7 @@ fn train_one(
                 batch_size: args.batch,
                 rates,
                 progress: !args.quiet,
+                device: args.device,
             };
             let mut source = DatasetSource { train, validation };
             let (meta, model) = fit(meta, &mut source, &opts)?;

@@ -11,6 +11,7 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::prelude::*;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use super::device::{DeviceError, TrainDevice};
 use crate::model::file::build_input;
 use crate::model::{cpu_device, Ablation, Emp, EpochRecord, ModelConfig, ModelError, ModelMeta};
 
@@ -50,6 +51,9 @@ pub enum TrainError {
     /// The data could not be read or sampled.
     #[error("training data: {0}")]
     Data(String),
+    /// The training device is unknown or not compiled in.
+    #[error(transparent)]
+    Device(#[from] DeviceError),
 }
 
 /// Where the windows come from.
@@ -143,6 +147,8 @@ pub struct FitOptions {
     pub rates: EncoderRates,
     /// Show a progress bar on stderr.
     pub progress: bool,
+    /// Where the steps run (CPU unless a GPU backend is compiled in and asked for).
+    pub device: TrainDevice,
 }
 
 impl Default for FitOptions {
@@ -154,7 +160,31 @@ impl Default for FitOptions {
             batch_size: 4,
             rates: EncoderRates::sim(),
             progress: true,
+            device: TrainDevice::Cpu,
         }
+    }
+}
+
+/// Keeps freed memory in the process heap for the rest of the process.
+///
+/// A training step allocates and frees buffers of tens of MB (im2col,
+/// activations, gradients). glibc serves the large ones with `mmap` and
+/// gives them back at `free`, or trims the heap, so every step page-faults
+/// them in again (zeroed by the kernel): 10-15% of a step's time here.
+/// Training processes set this once; the daemon does not (it returns its
+/// load-time heap with `malloc_trim`).
+pub fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        static ONCE: std::sync::Once = std::sync::Once::new();
+        ONCE.call_once(|| {
+            // SAFETY: mallopt only changes glibc's allocation thresholds; it
+            // is called once, before the buffers it concerns are allocated.
+            unsafe {
+                libc::mallopt(libc::M_MMAP_MAX, 0);
+                libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+            }
+        });
     }
 }
 
@@ -264,14 +294,16 @@ fn input_for(
     Ok(build_input(meta, &joints, &plan, &frames, device)?)
 }
 
-/// Validation loss and mean accuracy of `model` (evaluated without autodiff).
+/// Validation loss and mean accuracy of `model` (evaluated without autodiff,
+/// on `device`, where the model's weights are).
 pub fn evaluate_loss(
     model: &Emp,
     meta: &ModelMeta,
     windows: &[LabeledWindow],
     batch_size: usize,
+    device: &Device,
 ) -> Result<(f64, f64), TrainError> {
-    let device = cpu_device();
+    let device = device.clone().without_autodiff();
     let model = model.valid();
     let k = meta.config.k();
     let (mut loss_sum, mut correct, mut count) = (0.0f64, 0usize, 0usize);
@@ -311,7 +343,9 @@ pub fn fit(
     let _rng = RNG_OWNER
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner);
-    let device = cpu_device().autodiff();
+    keep_freed_memory();
+    let base = opts.device.device()?;
+    let device = base.clone().autodiff();
     device.seed(opts.seed);
     let cfg: ModelConfig = meta.config.clone();
     let ablation: Ablation = meta.ablation;
@@ -402,7 +436,7 @@ pub fn fit(
             ));
         }
         let train_loss = loss_sum / windows.len().max(1) as f64;
-        let (val_loss, val_accuracy) = evaluate_loss(&model, &meta, &validation, 16)?;
+        let (val_loss, val_accuracy) = evaluate_loss(&model, &meta, &validation, 16, &base)?;
         meta.history.push(EpochRecord {
             epoch,
             train_loss,
@@ -431,5 +465,11 @@ pub fn fit(
     bar.finish_and_clear();
     let (_, best_model) =
         best.ok_or_else(|| TrainError::Data("no epoch ran (max_epochs = 0)".into()))?;
+    // Callers evaluate and save on the CPU.
+    let best_model = if opts.device == TrainDevice::Cpu {
+        best_model
+    } else {
+        best_model.to_device(&cpu_device())
+    };
     Ok((meta, best_model))
 }

@@ -9,6 +9,7 @@ pub mod bench;
 pub mod calibrate;
 pub mod cli;
 pub mod dataset;
+pub mod device;
 pub mod eval;
 pub mod fit;
 pub mod logreg;
@@ -18,6 +19,7 @@ pub mod sampler;
 pub mod synthetic;
 pub mod warning;
 
+pub use device::TrainDevice;
 pub use fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
 
 #[cfg(test)]

@@ -116,6 +116,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         joint_names: Some(names.clone()),
         trained_on: "synthetic".into(),
         quiet: true,
+        device: super::device::TrainDevice::Cpu,
         protocol: super::sampler::Protocol::Deployment,
         per_horizon: false,
         trajectory: crate::model::TrajectoryInput::Planned,
@@ -231,6 +232,7 @@ fn per_horizon_paper_training_on_the_fixtures() {
         joint_names: None,
         trained_on: "fixtures".into(),
         quiet: true,
+        device: super::device::TrainDevice::Cpu,
         protocol: Protocol::Paper,
         per_horizon: true,
         trajectory: TrajectoryInput::Planned,
@@ -278,6 +280,73 @@ fn per_horizon_paper_training_on_the_fixtures() {
         assert!(
             md.contains("## Protocol: paper") && md.contains("## Protocol: deployment"),
             "{md}"
+        );
+    }
+}
+
+#[test]
+fn train_and_bench_take_a_device_flag() {
+    use super::bench::BenchArgs;
+    use super::cli::TrainArgs;
+    use super::device::TrainDevice;
+    use clap::Parser;
+    #[derive(Parser)]
+    struct Train {
+        #[command(flatten)]
+        args: TrainArgs,
+    }
+    #[derive(Parser)]
+    struct Bench {
+        #[command(flatten)]
+        args: BenchArgs,
+    }
+    let base = ["train", "--data", "d", "--out", "o.bpk"];
+    let t = Train::try_parse_from(base).unwrap();
+    assert_eq!(t.args.device, TrainDevice::Cpu, "the CPU by default");
+    let t = Train::try_parse_from(base.iter().copied().chain(["--device", "cuda:1"])).unwrap();
+    assert_eq!(t.args.device, TrainDevice::Cuda(1));
+    let e = Train::try_parse_from(base.iter().copied().chain(["--device", "tpu"]))
+        .err()
+        .expect("unknown device refused")
+        .to_string();
+    assert!(e.contains("cuda:N"), "{e}");
+    let b = Bench::try_parse_from(["bench", "--train-only", "--device", "wgpu"]).unwrap();
+    assert!(b.args.train_only);
+    assert_eq!(b.args.device, TrainDevice::Wgpu);
+}
+
+#[test]
+fn training_on_a_backend_not_compiled_in_fails_before_reading_data() {
+    use super::cli::{run_train, TrainArgs};
+    use super::device::TrainDevice;
+    use clap::Parser;
+    #[derive(Parser)]
+    struct Train {
+        #[command(flatten)]
+        args: TrainArgs,
+    }
+    for (device, built) in [
+        ("cuda", cfg!(feature = "cuda")),
+        ("wgpu", cfg!(feature = "wgpu")),
+    ] {
+        if built {
+            continue;
+        }
+        let t = Train::try_parse_from([
+            "train",
+            "--data",
+            "/nonexistent/data",
+            "--out",
+            "/nonexistent/o.bpk",
+            "--device",
+            device,
+        ])
+        .unwrap();
+        assert_ne!(t.args.device, TrainDevice::Cpu);
+        let e = format!("{:#}", run_train(&t.args).expect_err("not compiled in"));
+        assert!(
+            e.contains(&format!("--features {device}")) && !e.contains("/nonexistent"),
+            "{e}"
         );
     }
 }
