@@ -792,6 +792,7 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
         buses.lower.port_path().to_owned(),
         buses.upper.port_path().to_owned(),
     );
+    let upper_port = upper.display().to_string();
     let config = replay_config(dir.path(), domain, move |t| {
         t.replace("joints = \"ros\"", "joints = \"dynamixel\"")
             .replace("plan = \"ros\"", "plan = \"none\"")
@@ -849,7 +850,7 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
         kv(&upper_bus, "adapter_mode").as_deref(),
         Some("read_data_fallback")
     );
-    assert_eq!(upper_bus["hardware_id"], upper.display().to_string());
+    assert_eq!(upper_bus["hardware_id"], upper_port);
     assert_eq!(
         kv(&status(&ok, ": servo bus lower"), "adapter_mode").as_deref(),
         Some("usb2ax_sync_read")
