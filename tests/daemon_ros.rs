@@ -750,6 +750,21 @@ fn level(status: &Value) -> u64 {
         .unwrap_or_else(|| panic!("level of {status}"))
 }
 
+/// Name, level and message of every status of the last `/diagnostics`
+/// message in `events`, for failure messages.
+fn last_statuses(events: &[Value]) -> String {
+    msgs(events, "/diagnostics")
+        .last()
+        .and_then(|d| d["msg"]["status"].as_array())
+        .map(|st| {
+            st.iter()
+                .map(|s| format!("{} [{}] {}", s["name"], level(s), s["message"]))
+                .collect::<Vec<_>>()
+                .join("\n")
+        })
+        .unwrap_or_else(|| "no diagnostics".into())
+}
+
 /// Waits for a `/diagnostics` message that `want` accepts; returns it with
 /// every event seen meanwhile.
 async fn wait_diagnostics(
@@ -815,12 +830,15 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
             "--sub",
             "/fall_guard/fall_imminent:std_msgs/msg/Bool:latched",
             "--timeout",
-            "150",
+            "300",
         ],
     )
     .await;
     let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
     let long = Duration::from_secs(30);
+    // Every level OK needs 10 s without a single error on either bus: on a
+    // loaded 2-core machine a per-motor read can time out now and then.
+    let ok_wait = Duration::from_secs(75);
     let stop = |daemon: Daemon| daemon.stop().2;
     let status = |d: &Value, suffix: &str| -> Value {
         status_named(d, suffix)
@@ -840,10 +858,10 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
 
     // Healthy, with the plain adapter: every status OK (the model runs P,
     // which is what plan = "none" and camera = "none" ask for).
-    let (ok, seen) = wait_diagnostics(&mut listener, long, all_ok).await;
+    let (ok, seen) = wait_diagnostics(&mut listener, ok_wait, all_ok).await;
     let Some(ok) = ok else {
         let stderr = stop(daemon);
-        panic!("never all OK: {:?}\ndaemon: {stderr}", seen.last());
+        panic!("never all OK: {}\ndaemon: {stderr}", last_statuses(&seen));
     };
     let upper_bus = status(&ok, ": servo bus upper");
     assert_eq!(
@@ -934,10 +952,13 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
     // It answers again: valid after a refilled window, then every level
     // back to OK once the missing reads left the 10 s error window.
     buses.upper.set_present(36, true).expect("motor 36");
-    let (back, seen) = wait_diagnostics(&mut listener, long, all_ok).await;
+    let (back, seen) = wait_diagnostics(&mut listener, ok_wait, all_ok).await;
     if back.is_none() {
         let stderr = stop(daemon);
-        panic!("no recovery to OK: {:?}\ndaemon: {stderr}", seen.last());
+        panic!(
+            "no recovery to OK: {}\ndaemon: {stderr}",
+            last_statuses(&seen)
+        );
     }
     let names: Vec<&Value> = msgs(&seen, "/joint_states").collect();
     let last = names.last().expect("joint states");
@@ -962,7 +983,7 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
         let stderr = stop(daemon);
         panic!("garbage not reported: {:?}\ndaemon: {stderr}", seen.last());
     }
-    let (clean, seen) = wait_diagnostics(&mut listener, long, all_ok).await;
+    let (clean, seen) = wait_diagnostics(&mut listener, ok_wait, all_ok).await;
     let (success, _, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
         .await
         .expect("join");
