@@ -261,6 +261,15 @@ pub struct ModelChoice {
 /// Preference order: the most informed network first.
 const PREFERENCE: [Ablation; 4] = [Ablation::EMP, Ablation::MP, Ablation::EP, Ablation::P];
 
+/// The most informed of `available` that needs only the streams the
+/// config provides (`camera = "none"`: no vision network): what the model
+/// choice runs when nothing is lost, so running it is not a degradation.
+pub fn best_configured(available: &[Ablation], camera: bool, plan: bool) -> Option<Ablation> {
+    PREFERENCE
+        .into_iter()
+        .find(|a| available.contains(a) && (camera || !a.uses_vision()) && (plan || !a.uses_plan()))
+}
+
 impl ModelChoice {
     pub fn new(available: Vec<Ablation>, window_ticks: usize) -> ModelChoice {
         ModelChoice {
@@ -812,6 +821,19 @@ mod tests {
             None
         );
         assert_eq!(only.active(), Ablation::EMP);
+    }
+
+    #[test]
+    fn the_best_configured_network_follows_the_configured_streams() {
+        assert_eq!(best_configured(&all(), true, true), Some(Ablation::EMP));
+        assert_eq!(best_configured(&all(), false, true), Some(Ablation::MP));
+        assert_eq!(best_configured(&all(), true, false), Some(Ablation::EP));
+        assert_eq!(best_configured(&all(), false, false), Some(Ablation::P));
+        assert_eq!(
+            best_configured(&[Ablation::EMP, Ablation::P], false, true),
+            Some(Ablation::P)
+        );
+        assert_eq!(best_configured(&[Ablation::EMP], false, true), None);
     }
 
     #[test]

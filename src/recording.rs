@@ -397,6 +397,10 @@ struct RawMcap {
     profile: String,
 }
 
+/// The largest uncompressed chunk accepted (the writer's chunks are well
+/// under 1 MiB; 256 MiB leaves room for any sane writer).
+const MAX_CHUNK_BYTES: u64 = 256 << 20;
+
 impl RawMcap {
     fn read(path: &Path) -> Result<RawMcap, RecordingError> {
         let bytes = std::fs::read(path).map_err(|source| RecordingError::Io {
@@ -459,6 +463,24 @@ impl RawMcap {
                 .map_err(|e| corrupt(offset, format!("record (opcode {opcode:#04x}): {e}")))?;
             match record {
                 Record::Chunk { header, data } => {
+                    // The chunk reader allocates the declared size up front:
+                    // a corrupted size would abort the process, not fail.
+                    let declared = header.uncompressed_size;
+                    let plausible = if header.compression.is_empty() {
+                        declared == data.len() as u64
+                    } else {
+                        declared <= MAX_CHUNK_BYTES
+                    };
+                    if !plausible {
+                        return Err(corrupt(
+                            offset,
+                            format!(
+                                "chunk declares {declared} uncompressed bytes ({} compression, {} stored)",
+                                if header.compression.is_empty() { "no" } else { header.compression.as_str() },
+                                data.len()
+                            ),
+                        ));
+                    }
                     let reader = mcap::read::ChunkReader::new(header, &data)
                         .map_err(|e| corrupt(offset, format!("chunk: {e}")))?;
                     for inner in reader {

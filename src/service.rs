@@ -326,7 +326,6 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
             &setup.bus,
             trigger.subscribe(),
             setup.config.ros.node_name.clone(),
-            setup.config.robot.name.clone(),
         )
     });
     tracing::info!(recording = %recording.display(), ?pacing, "replay started");
@@ -642,7 +641,12 @@ pub async fn record(
         let sample = tokio::select! {
             () = shutdown.recv() => break Ok(()),
             () = async { match deadline { Some(d) => tokio::time::sleep_until(d).await, None => std::future::pending().await } } => break Ok(()),
-            Some(s) = changed(&mut joints) => Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() },
+            // A servo read that lacks a motor (NaN) is not recorded: a
+            // recording holds whole readings, which a replay can use.
+            Some(s) = changed(&mut joints) => {
+                if s.value.iter().any(|v| !v.is_finite()) { continue; }
+                Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() }
+            }
             Some(s) = changed(&mut camera) => Sample::Frame { stamp_ns: s.stamp_ns, frame: Arc::clone(&s.value) },
             Some(s) = changed(&mut plan) => Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) },
         };

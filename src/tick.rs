@@ -13,16 +13,19 @@
 //! time a [`DiagnosticsSnapshot`] leaves on the [`OutputBus`]. Each tick
 //! also pets the systemd watchdog.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use crate::forecast::{
-    ablation_name, percentiles_ms, Freshness, Inference, InferenceJob, ModelChoice, ModelSet,
+    ablation_name, best_configured, percentiles_ms, Freshness, Inference, InferenceJob,
+    ModelChoice, ModelSet,
 };
 use crate::frame::Frame;
 use crate::model::Ablation;
 use crate::outputs::{
     DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, OutputBus, StreamDiagnostics,
+    ERROR_WINDOW_S,
 };
 use crate::shutdown::Shutdown;
 use crate::sources::{StreamKind, StreamStats, StreamTap};
@@ -124,8 +127,31 @@ pub struct TickLoop {
     /// Sample counts and stamp at the last diagnostics snapshot.
     diag_samples: [u64; 3],
     diag_stamp_ns: Option<i64>,
+    /// Per stream, (tick stamp, error total) at each snapshot of the last
+    /// [`ERROR_WINDOW_S`] seconds: levels look at errors in that window.
+    error_history: [VecDeque<(i64, u64)>; 3],
+    /// Model-order joint names, to name the joints a reading lacks.
+    joint_names: Vec<String>,
     last_valid: bool,
     last_reason: String,
+}
+
+/// Names of the joints a tick has no (finite) angle for.
+fn unread_joints(tick: &TickInput, names: &[String]) -> Vec<String> {
+    tick.joints_rad.as_ref().map_or_else(Vec::new, |j| {
+        j.iter()
+            .zip(names)
+            .filter(|(v, _)| !v.is_finite())
+            .map(|(_, n)| n.clone())
+            .collect()
+    })
+}
+
+/// Whether a tick has every joint angle, finite.
+fn joints_complete(tick: &TickInput) -> bool {
+    tick.joints_rad
+        .as_ref()
+        .is_some_and(|j| j.iter().all(|v| v.is_finite()))
 }
 
 /// Why a tick's forecast is not valid (`None`: valid). Valid means: the
@@ -133,11 +159,19 @@ pub struct TickLoop {
 /// in each of them. A stream back after a gap therefore keeps the forecast
 /// invalid until N fresh ticks have refilled the window, as a lost camera or
 /// plan must before the model choice takes it back.
+///
+/// A joints tick counts as fresh only when it has every joint: a motor
+/// that does not answer (NaN from the servo source) makes the forecast not
+/// valid, naming the joints, and once it answers again N complete ticks
+/// must refill the window. No angle is substituted (the planned one, say):
+/// the networks were never trained on a window with a substituted joint,
+/// so a forecast from one would be a number nobody measured the worth of.
 fn invalid_reason(
     ring: &Ring,
     tick: &TickInput,
     choice: &ModelChoice,
     slots: &[StreamSlot; 3],
+    joint_names: &[String],
 ) -> Option<String> {
     if !ring.is_full() {
         return Some(format!(
@@ -163,6 +197,10 @@ fn invalid_reason(
                 Some(age) if age > slots[i].stale_ns => {
                     format!("{kind} stale ({} ms old)", age / 1_000_000)
                 }
+                Some(_) if i == 0 && !joints_complete(tick) => format!(
+                    "joints not read: {}",
+                    unread_joints(tick, joint_names).join(", ")
+                ),
                 Some(_) => format!(
                     "{kind} back, window refilling ({}/{window} fresh ticks)",
                     choice.fresh_ticks(kind)
@@ -194,6 +232,8 @@ impl TickLoop {
             counters: TickCounters::default(),
             diag_samples: [0; 3],
             diag_stamp_ns: None,
+            error_history: Default::default(),
+            joint_names: spec.joint_names.clone(),
             last_valid: false,
             last_reason: String::new(),
         })
@@ -262,8 +302,10 @@ impl TickLoop {
             tick.age_ns.plan_ns,
         ];
         let slots = &self.settings.streams;
-        let fresh: [bool; 3] =
-            std::array::from_fn(|i| ages[i].is_some_and(|age| age <= slots[i].stale_ns));
+        let complete = joints_complete(&tick);
+        let fresh: [bool; 3] = std::array::from_fn(|i| {
+            ages[i].is_some_and(|age| age <= slots[i].stale_ns) && (i != 0 || complete)
+        });
         self.choice.update(Freshness {
             joints: fresh[0],
             camera: fresh[1],
@@ -275,14 +317,22 @@ impl TickLoop {
         let latest = self.ring.latest().cloned();
         let reason = latest
             .as_ref()
-            .and_then(|t| invalid_reason(&self.ring, t, &self.choice, slots));
+            .and_then(|t| invalid_reason(&self.ring, t, &self.choice, slots, &self.joint_names));
         self.last_valid = reason.is_none();
         self.last_reason = reason.clone().unwrap_or_default();
         if dispatch {
             if lockstep {
                 self.inference.wait_idle().await;
             }
-            let ticks = self.ring.iter().cloned().collect();
+            // A window with a joint not read is not run (the network would
+            // refuse it anyway): the forecast is not valid and says why.
+            // While the ring fills, the ticks so far go to the network
+            // (vision slices prepared ahead of the first forecast).
+            let ticks = if self.ring.iter().all(joints_complete) {
+                self.ring.iter().cloned().collect()
+            } else {
+                Vec::new()
+            };
             let job = InferenceJob {
                 tick: tick_index,
                 stamp_ns,
@@ -337,11 +387,29 @@ impl TickLoop {
         });
         let period_s = (period_ns as f64 / 1e9).max(1e-9);
         let mut streams = Vec::with_capacity(3);
+        let mut devices = Vec::new();
         for (i, slot) in self.settings.streams.iter().enumerate() {
             let stats = slot.stats.snapshot();
             let rate_hz =
                 (stats.samples - self.diag_samples[i].min(stats.samples)) as f64 / period_s;
             self.diag_samples[i] = stats.samples;
+            let history = &mut self.error_history[i];
+            history.push_back((stamp_ns, stats.errors));
+            let window_ns = ERROR_WINDOW_S as i64 * 1_000_000_000;
+            while history.len() > 1 && history[1].0 <= stamp_ns - window_ns {
+                history.pop_front();
+            }
+            // Errors since the newest snapshot at or before the window's
+            // start (all of them while the run is younger than the window).
+            let recent_errors = match history.front() {
+                Some(&(t, n)) if t <= stamp_ns - window_ns => stats.errors.saturating_sub(n),
+                _ => stats.errors,
+            };
+            let unread = if i == 0 {
+                latest.map_or_else(Vec::new, |t| unread_joints(t, &self.joint_names))
+            } else {
+                Vec::new()
+            };
             let (level, message) = if !slot.configured {
                 (DiagnosticLevel::Ok, "not configured".to_string())
             } else {
@@ -355,9 +423,18 @@ impl TickLoop {
                             slot.stale_ns / 1_000_000
                         ),
                     ),
-                    Some(_) if stats.errors > 0 => (
+                    Some(_) if !unread.is_empty() => (
                         DiagnosticLevel::Warn,
-                        format!("ok, {} errors so far", stats.errors),
+                        format!(
+                            "{} of {} joints not read: {}",
+                            unread.len(),
+                            self.joint_names.len(),
+                            unread.join(", ")
+                        ),
+                    ),
+                    Some(_) if recent_errors > 0 => (
+                        DiagnosticLevel::Warn,
+                        format!("{recent_errors} errors in the last {ERROR_WINDOW_S} s"),
                     ),
                     Some(_) => (DiagnosticLevel::Ok, "ok".to_string()),
                 }
@@ -371,6 +448,10 @@ impl TickLoop {
             if !stats.state.is_empty() {
                 details.push(("state".to_string(), stats.state.clone()));
             }
+            if i == 0 {
+                details.push(("joints_not_read".to_string(), unread.join(",")));
+            }
+            devices.extend(stats.devices.iter().cloned());
             streams.push(StreamDiagnostics {
                 stream: slot.kind.as_str(),
                 source: slot.source.clone(),
@@ -379,6 +460,7 @@ impl TickLoop {
                 rate_hz,
                 last_sample_age_ms: ages[i].map(|a| a as f64 / 1e6),
                 errors: stats.errors,
+                recent_errors,
                 details,
             });
         }
@@ -396,6 +478,9 @@ impl TickLoop {
             )
         };
         let percentiles = percentiles_ms(&mut latencies);
+        let [_, camera, plan] = &self.settings.streams;
+        let expected =
+            best_configured(&self.models.available(), camera.configured, plan.configured);
         let (level, message) = if errors > 0 && !self.last_valid {
             (
                 DiagnosticLevel::Error,
@@ -406,10 +491,24 @@ impl TickLoop {
                 DiagnosticLevel::Warn,
                 format!("forecast not valid: {}", self.last_reason),
             )
-        } else if active != Ablation::EMP {
+        } else if Some(active) != expected {
             (
                 DiagnosticLevel::Warn,
-                format!("degraded: running {}", ablation_name(active)),
+                format!(
+                    "degraded: running {} ({} needs a stream that is lost)",
+                    ablation_name(active),
+                    expected.map_or("?", ablation_name)
+                ),
+            )
+        } else if active != Ablation::EMP {
+            // What the config asked for (camera = "none", plan = "none").
+            (
+                DiagnosticLevel::Ok,
+                format!(
+                    "ok: running {} (the configured streams: {})",
+                    ablation_name(active),
+                    configured_streams(&self.settings.streams)
+                ),
             )
         } else {
             (DiagnosticLevel::Ok, "ok".to_string())
@@ -418,6 +517,7 @@ impl TickLoop {
             stamp_ns,
             hardware_id: self.settings.hardware_id.clone(),
             streams,
+            devices,
             model: ModelDiagnostics {
                 level,
                 message,
@@ -450,6 +550,16 @@ impl TickLoop {
         self.inference.finish();
         counters
     }
+}
+
+/// The configured streams, for a message (`joints, plan`).
+fn configured_streams(slots: &[StreamSlot; 3]) -> String {
+    slots
+        .iter()
+        .filter(|s| s.configured)
+        .map(|s| s.kind.as_str())
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 /// The live streams, in model form.

@@ -220,3 +220,78 @@ fn joints_gap_invalidates_forecasts_until_the_window_refills() {
     }
     assert!(lines.last().expect("lines").tick > first_valid + 5);
 }
+
+/// Latch chatter around a network switch (issue 13: four flips in 0.5 s
+/// around P -> MP). The shipped networks on the bundled generator-2
+/// episodes with the camera gone (so MP, as `camera = "none"` runs) and
+/// the plan lost from 1.5 s to 3.2 s: MP -> P when the plan goes stale,
+/// P -> MP once it has been fresh for a whole window again. Around every
+/// switch the safety signal changes at most once per 0.5 s (15 ticks).
+#[test]
+fn network_switches_do_not_make_the_latch_chatter() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = std::fs::read_to_string(root.join("config/replay.toml")).expect("config");
+    let text = text
+        .replace(
+            "dir = \"models\"",
+            &format!("dir = \"{}\"", root.join("models").display()),
+        )
+        .replace("[ros]\nenabled = true", "[ros]\nenabled = false");
+    assert!(
+        text.contains("enabled = false"),
+        "config/replay.toml changed shape"
+    );
+    let config = dir.path().join("replay.toml");
+    std::fs::write(&config, text).expect("config");
+    for episode in ["episode_00000", "episode_00003", "episode_00007"] {
+        let src = root.join(format!("tests/fixtures/{episode}.mcap"));
+        let t0 = Recording::open(&src).expect("fixture").joint_states[0].log_time_ns;
+        let no_camera = dir.path().join(format!("{episode}_no_camera.mcap"));
+        copy_without(&src, &no_camera, topics::HEAD_CAMERA, i64::MIN, i64::MAX);
+        let cut = dir.path().join(format!("{episode}_plan_gap.mcap"));
+        copy_without(
+            &no_camera,
+            &cut,
+            topics::PLANNED_TRAJECTORY,
+            t0 + 1_500_000_000,
+            t0 + 3_200_000_000,
+        );
+        let out = fall_guard(&[
+            "replay",
+            "--config",
+            config.to_str().expect("utf8"),
+            "--recording",
+            cut.to_str().expect("utf8"),
+            "--max-speed",
+        ]);
+        assert!(out.status.success(), "{episode}: {}", stderr(&out));
+        let lines = parse_lines(&out.stdout);
+        let switches: Vec<(i64, &str)> = lines
+            .windows(2)
+            .filter(|w| w[0].ablation != w[1].ablation)
+            .map(|w| (w[1].tick, w[1].ablation.as_str()))
+            .collect();
+        let names: Vec<&str> = switches.iter().map(|s| s.1).collect();
+        assert!(
+            names.ends_with(&["P", "MP"]),
+            "{episode}: switches {switches:?}"
+        );
+        let flips: Vec<i64> = lines
+            .windows(2)
+            .filter(|w| w[0].imminent != w[1].imminent)
+            .map(|w| w[1].tick)
+            .collect();
+        for (tick, _) in &switches {
+            let near: Vec<i64> = flips
+                .iter()
+                .copied()
+                .filter(|f| (f - tick).abs() <= 30)
+                .collect();
+            assert!(
+                near.windows(2).all(|w| w[1] - w[0] >= 15),
+                "{episode}: fall_imminent flips at ticks {near:?} around the switch at {tick} ({switches:?})"
+            );
+        }
+    }
+}

@@ -17,7 +17,12 @@
 //! - run on the Dynamixel servo buses (both emulated on pseudo-terminals):
 //!   faults (no reply, bad checksums, garbage, an error bit, an unplugged
 //!   adapter) make the forecast not valid on `/diagnostics`, the daemon
-//!   keeps running and recovers.
+//!   keeps running and recovers;
+//! - one servo that does not answer (and a plain, non-USB2AX adapter on the
+//!   other bus): `/joint_states` goes on with the other 24 joints, the
+//!   forecast is NaN and `fall_imminent` asserted, `/diagnostics` names the
+//!   motor on the joints and the bus status; when it answers again, and
+//!   after garbage on the bus, every level returns to OK.
 
 #[path = "ros/support.rs"]
 mod support;
@@ -730,6 +735,265 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
             .any(|l| !l.valid && l.reason.contains("joints")),
         "no invalid line naming the joints"
     );
+}
+
+/// The `level` byte of a `DiagnosticStatus` (rclpy gives a `byte` as bytes).
+fn level(status: &Value) -> u64 {
+    status["level"]
+        .as_u64()
+        .or_else(|| {
+            status["level"]
+                .as_array()
+                .and_then(|b| b.first())
+                .and_then(Value::as_u64)
+        })
+        .unwrap_or_else(|| panic!("level of {status}"))
+}
+
+/// Name, level and message of every status of the last `/diagnostics`
+/// message in `events`, for failure messages.
+fn last_statuses(events: &[Value]) -> String {
+    msgs(events, "/diagnostics")
+        .last()
+        .and_then(|d| d["msg"]["status"].as_array())
+        .map(|st| {
+            st.iter()
+                .map(|s| format!("{} [{}] {}", s["name"], level(s), s["message"]))
+                .collect::<Vec<_>>()
+                .join("\n")
+        })
+        .unwrap_or_else(|| "no diagnostics".into())
+}
+
+/// Waits for a `/diagnostics` message that `want` accepts; returns it with
+/// every event seen meanwhile.
+async fn wait_diagnostics(
+    listener: &mut Peer,
+    timeout: Duration,
+    want: impl Fn(&Value) -> bool,
+) -> (Option<Value>, Vec<Value>) {
+    let deadline = std::time::Instant::now() + timeout;
+    let mut seen = Vec::new();
+    while let Some(e) = listener
+        .next_event(deadline.saturating_duration_since(std::time::Instant::now()))
+        .await
+    {
+        if e["event"] == "msg" && e["topic"] == "/diagnostics" && want(&e) {
+            return (Some(e), seen);
+        }
+        seen.push(e);
+    }
+    (None, seen)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
+    use fall_guard::robot::JointTable;
+    use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
+
+    let test = "one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok";
+    let Some(python) = rclpy_python(test) else {
+        return;
+    };
+    let domain = domain_id(5);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let table = JointTable::poppy_humanoid();
+    let buses = PoppyBuses::start(&table, dir.path()).expect("emulated buses");
+    // The upper bus is a plain USB-serial adapter: the USB2AX sync read is
+    // configured (the default) but never answered, so the reader falls back
+    // to one READ_DATA per motor. A mode, not a fault.
+    buses.upper.set_sync_read_supported(false);
+    let (lower, upper) = (
+        buses.lower.port_path().to_owned(),
+        buses.upper.port_path().to_owned(),
+    );
+    let upper_port = upper.display().to_string();
+    let config = replay_config(dir.path(), domain, move |t| {
+        t.replace("joints = \"ros\"", "joints = \"dynamixel\"")
+            .replace("plan = \"ros\"", "plan = \"none\"")
+            + &format!(
+                "\n[dynamixel]\nrate_hz = 50.0\n\n[dynamixel.buses.lower]\nport = \"{}\"\n\n[dynamixel.buses.upper]\nport = \"{}\"\n",
+                lower.display(),
+                upper.display()
+            )
+    });
+    let mut listener = listen(
+        &python,
+        domain,
+        &[
+            "--sub",
+            "/diagnostics:diagnostic_msgs/msg/DiagnosticArray:diagnostics",
+            "--sub",
+            "/joint_states:sensor_msgs/msg/JointState:sensor_data",
+            "--sub",
+            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast",
+            "--sub",
+            "/fall_guard/fall_imminent:std_msgs/msg/Bool:latched",
+            "--timeout",
+            "300",
+        ],
+    )
+    .await;
+    let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
+    let long = Duration::from_secs(30);
+    // Every level OK needs 10 s without a single error on either bus: on a
+    // loaded 2-core machine a per-motor read can time out now and then.
+    let ok_wait = Duration::from_secs(75);
+    let stop = |daemon: Daemon| daemon.stop().2;
+    let status = |d: &Value, suffix: &str| -> Value {
+        status_named(d, suffix)
+            .unwrap_or_else(|| panic!("no '{suffix}' status in {d}"))
+            .clone()
+    };
+    let all_ok = |d: &Value| {
+        [
+            ": joints",
+            ": servo bus lower",
+            ": servo bus upper",
+            ": model",
+        ]
+        .iter()
+        .all(|s| status_named(d, s).is_some_and(|st| level(st) == 0))
+    };
+
+    // Healthy, with the plain adapter: every status OK (the model runs P,
+    // which is what plan = "none" and camera = "none" ask for).
+    let (ok, seen) = wait_diagnostics(&mut listener, ok_wait, all_ok).await;
+    let Some(ok) = ok else {
+        let stderr = stop(daemon);
+        panic!("never all OK: {}\ndaemon: {stderr}", last_statuses(&seen));
+    };
+    let upper_bus = status(&ok, ": servo bus upper");
+    assert_eq!(
+        kv(&upper_bus, "adapter_mode").as_deref(),
+        Some("read_data_fallback")
+    );
+    assert_eq!(upper_bus["hardware_id"], upper_port);
+    assert_eq!(
+        kv(&status(&ok, ": servo bus lower"), "adapter_mode").as_deref(),
+        Some("usb2ax_sync_read")
+    );
+    assert_eq!(
+        kv(&status(&ok, ": model"), "active_model").as_deref(),
+        Some("P")
+    );
+
+    // Motor 36 (head_z) stops answering.
+    buses.upper.set_present(36, false).expect("motor 36");
+    let (missing, seen) = wait_diagnostics(&mut listener, long, |d| {
+        status_named(d, ": model")
+            .and_then(|m| kv(m, "invalid_reason"))
+            .is_some_and(|r| r.contains("head_z"))
+    })
+    .await;
+    let Some(missing) = missing else {
+        let stderr = stop(daemon);
+        panic!(
+            "missing motor not named: {:?}\ndaemon: {stderr}",
+            seen.last()
+        );
+    };
+    let joints = status(&missing, ": joints");
+    assert_eq!(level(&joints), 1, "{joints}");
+    assert_eq!(kv(&joints, "joints_not_read").as_deref(), Some("head_z"));
+    assert!(
+        joints["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("head_z")),
+        "{joints}"
+    );
+    let upper_bus = status(&missing, ": servo bus upper");
+    assert_eq!(level(&upper_bus), 1, "{upper_bus}");
+    assert_eq!(kv(&upper_bus, "missing_ids").as_deref(), Some("[36]"));
+    assert_eq!(kv(&upper_bus, "missing_joints").as_deref(), Some("head_z"));
+    assert_eq!(level(&status(&missing, ": servo bus lower")), 0);
+    // Meanwhile: /joint_states goes on with the other 24 joints, the
+    // forecast is NaN and fall_imminent asserted.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let during = listener.drain();
+    let partial: Vec<Vec<String>> = msgs(&during, "/joint_states")
+        .map(|m| {
+            m["msg"]["name"]
+                .as_array()
+                .expect("names")
+                .iter()
+                .map(|n| n.as_str().expect("name").to_owned())
+                .collect()
+        })
+        .collect();
+    assert!(
+        partial.len() >= 5,
+        "{} joint states in 0.5 s",
+        partial.len()
+    );
+    let expected: Vec<String> = robot_joints()
+        .into_iter()
+        .filter(|n| n != "head_z")
+        .collect();
+    assert!(
+        partial.iter().all(|names| *names == expected),
+        "{:?}",
+        partial.last()
+    );
+    let forecasts: Vec<Vec<f32>> = msgs(&during, "/fall_guard/forecast")
+        .map(forecast_values)
+        .collect();
+    assert!(!forecasts.is_empty());
+    assert!(
+        forecasts.iter().all(|p| p.iter().all(|v| v.is_nan())),
+        "{forecasts:?}"
+    );
+    let imminent: Vec<bool> = msgs(&seen, "/fall_guard/fall_imminent")
+        .chain(msgs(&during, "/fall_guard/fall_imminent"))
+        .map(|m| m["msg"]["data"].as_bool().expect("Bool"))
+        .collect();
+    assert_eq!(imminent.last(), Some(&true), "{imminent:?}");
+
+    // It answers again: valid after a refilled window, then every level
+    // back to OK once the missing reads left the 10 s error window.
+    buses.upper.set_present(36, true).expect("motor 36");
+    let (back, seen) = wait_diagnostics(&mut listener, ok_wait, all_ok).await;
+    if back.is_none() {
+        let stderr = stop(daemon);
+        panic!(
+            "no recovery to OK: {}\ndaemon: {stderr}",
+            last_statuses(&seen)
+        );
+    }
+    let names: Vec<&Value> = msgs(&seen, "/joint_states").collect();
+    let last = names.last().expect("joint states");
+    assert_eq!(
+        last["msg"]["name"].as_array().map(Vec::len),
+        Some(25),
+        "{last}"
+    );
+
+    // Garbage on the lower bus: counted, WARN while within the window, OK after.
+    buses
+        .lower
+        .set_fault(Some(Fault::Garbage(vec![0x13, 0x00, 0x42])));
+    let (garbage, seen) = wait_diagnostics(&mut listener, long, |d| {
+        status_named(d, ": servo bus lower").is_some_and(|b| {
+            level(b) == 1 && kv(b, "garbage_bytes_per_s").is_some_and(|g| g != "0.00")
+        })
+    })
+    .await;
+    buses.lower.set_fault(None);
+    if garbage.is_none() {
+        let stderr = stop(daemon);
+        panic!("garbage not reported: {:?}\ndaemon: {stderr}", seen.last());
+    }
+    let (clean, seen) = wait_diagnostics(&mut listener, ok_wait, all_ok).await;
+    let (success, _, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
+        .await
+        .expect("join");
+    assert!(
+        clean.is_some(),
+        "no recovery after garbage: {:?}\ndaemon: {stderr}",
+        seen.last()
+    );
+    assert!(success, "daemon exit: {stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
 /// Lengths of the runs of NaN (`true`) and number (`false`) forecasts.

@@ -11,8 +11,9 @@ mod support;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use fall_guard::outputs::ros::{
-    DiagnosticLevel, Health, ModelHealth, OutputTopics, RosOutputs, StreamHealth,
+use fall_guard::outputs::ros::{OutputTopics, RosOutputs};
+use fall_guard::outputs::{
+    DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, StreamDiagnostics,
 };
 use fall_guard::ros::RosNode;
 use serde_json::Value;
@@ -27,9 +28,10 @@ fn probabilities(tick: u32) -> Vec<f32> {
     vec![p / 2.0, p, p.max(0.5)]
 }
 
-fn health(tick: u32) -> Health {
-    let stream = |name: &str, level, age_ms, errors| StreamHealth {
-        name: name.into(),
+fn health(tick: u32) -> DiagnosticsSnapshot {
+    let stream = |name: &'static str, level, age_ms, errors| StreamDiagnostics {
+        stream: name,
+        source: "test".into(),
         level,
         message: if level == DiagnosticLevel::Ok {
             "ok".into()
@@ -37,24 +39,43 @@ fn health(tick: u32) -> Health {
             "stale".into()
         },
         rate_hz: 30.0,
-        age_ms,
+        last_sample_age_ms: age_ms,
         errors,
+        recent_errors: errors / 2,
+        details: Vec::new(),
     };
-    Health {
+    DiagnosticsSnapshot {
         stamp_ns: 1_000_000_000 + i64::from(tick) * 33_333_333,
+        hardware_id: "poppy_humanoid".into(),
         streams: vec![
             stream("joints", DiagnosticLevel::Ok, Some(4.0), 0),
             stream("camera", DiagnosticLevel::Stale, Some(1500.0), 7),
             stream("plan", DiagnosticLevel::Ok, None, 0),
         ],
-        model: ModelHealth {
+        devices: vec![DeviceDiagnostics {
+            name: "servo bus lower".into(),
+            hardware_id: "/dev/ttyACM0".into(),
+            level: DiagnosticLevel::Error,
+            message: "port /dev/ttyACM0 not open".into(),
+            values: vec![("missing_ids".into(), "[11, 12]".into())],
+        }],
+        model: ModelDiagnostics {
             level: DiagnosticLevel::Warn,
             message: "camera lost: running MP".into(),
-            inference_p50_ms: 2.5,
-            inference_p99_ms: 6.25,
+            active_ablation: "MP",
+            model_file: "models/mp.bpk".into(),
+            inference_p50_ms: Some(2.5),
+            inference_p99_ms: Some(6.25),
             overruns: 1,
-            active_model: "MP".into(),
+            ticks: 100,
+            forecasts: 90,
             valid: false,
+            invalid_reason: "camera stale (1500 ms old)".into(),
+            switches: 1,
+            ring_ticks: 60,
+            ring_capacity: 60,
+            imminent: true,
+            latch_horizon_ms: 1000,
         },
     }
 }
@@ -78,13 +99,8 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
     };
     let domain = domain_id(0);
     let mut node = RosNode::start(&localhost_settings(domain, "/", "fall_guard")).expect("node");
-    let outputs = RosOutputs::new(
-        &mut node,
-        &OutputTopics::default(),
-        &HORIZONS_MS,
-        "poppy_humanoid",
-    )
-    .expect("publishers");
+    let outputs =
+        RosOutputs::new(&mut node, &OutputTopics::default(), &HORIZONS_MS).expect("publishers");
 
     let mut listener = Peer::spawn(
         &python,
@@ -217,6 +233,7 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
             "fall_guard: joints",
             "fall_guard: camera",
             "fall_guard: plan",
+            "fall_guard: servo bus lower",
             "fall_guard: model"
         ]
     );
@@ -232,18 +249,29 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
             })
             .unwrap_or_else(|| panic!("level of {s}"))
     };
-    assert_eq!(status.iter().map(level).collect::<Vec<_>>(), [0, 3, 0, 1]);
+    assert_eq!(
+        status.iter().map(level).collect::<Vec<_>>(),
+        [0, 3, 0, 2, 1]
+    );
     assert_eq!(status[1]["hardware_id"], "poppy_humanoid");
-    assert_eq!(status[3]["message"], "camera lost: running MP");
+    assert_eq!(status[1]["message"], "stale (test)");
+    assert_eq!(status[3]["hardware_id"], "/dev/ttyACM0");
+    assert_eq!(kv(&status[3], "missing_ids"), "[11, 12]");
+    assert_eq!(status[4]["message"], "camera lost: running MP");
     assert_eq!(kv(&status[0], "rate_hz"), "30.0");
     assert_eq!(kv(&status[1], "age_ms"), "1500.0");
     assert_eq!(kv(&status[1], "errors"), "7");
+    assert_eq!(kv(&status[1], "errors_in_window"), "3");
     assert_eq!(kv(&status[2], "age_ms"), "never");
-    assert_eq!(kv(&status[3], "inference_p50_ms"), "2.500");
-    assert_eq!(kv(&status[3], "inference_p99_ms"), "6.250");
-    assert_eq!(kv(&status[3], "overruns"), "1");
-    assert_eq!(kv(&status[3], "active_model"), "MP");
-    assert_eq!(kv(&status[3], "valid"), "false");
+    assert_eq!(kv(&status[4], "inference_p50_ms"), "2.500");
+    assert_eq!(kv(&status[4], "inference_p99_ms"), "6.250");
+    assert_eq!(kv(&status[4], "overruns"), "1");
+    assert_eq!(kv(&status[4], "active_model"), "MP");
+    assert_eq!(kv(&status[4], "valid"), "false");
+    assert_eq!(
+        kv(&status[4], "invalid_reason"),
+        "camera stale (1500 ms old)"
+    );
     let stamp = &d["header"]["stamp"];
     let stamp_ns = stamp["sec"].as_i64().expect("sec") * 1_000_000_000
         + stamp["nanosec"].as_i64().expect("ns");
@@ -273,13 +301,8 @@ async fn late_rclpy_subscriber_gets_latched_fall_imminent() {
     let domain = domain_id(1);
     let mut node =
         RosNode::start(&localhost_settings(domain, "/poppy", "fall_guard")).expect("node");
-    let outputs = RosOutputs::new(
-        &mut node,
-        &OutputTopics::default(),
-        &HORIZONS_MS,
-        "poppy_humanoid",
-    )
-    .expect("publishers");
+    let outputs =
+        RosOutputs::new(&mut node, &OutputTopics::default(), &HORIZONS_MS).expect("publishers");
     // Published with nobody listening; only the last one must survive.
     outputs.publish_fall_imminent(false).expect("publish");
     outputs.publish_fall_imminent(true).expect("publish");
@@ -351,8 +374,7 @@ async fn rclpy_receives_republished_joint_states() {
         joint_states: Some("joint_states".into()),
         ..OutputTopics::default()
     };
-    let outputs =
-        RosOutputs::new(&mut node, &topics, &HORIZONS_MS, "poppy_humanoid").expect("publishers");
+    let outputs = RosOutputs::new(&mut node, &topics, &HORIZONS_MS).expect("publishers");
     let mut listener = Peer::spawn(
         &python,
         domain,

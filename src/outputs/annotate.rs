@@ -19,7 +19,7 @@ use super::ros::{diagnostic_array, forecast_message, OutputTopics};
 use super::{DiagnosticsSnapshot, ForecastOutput, OutputBus};
 use crate::msgs::{Bool, DiagnosticArray, Float32MultiArray};
 use crate::recording::{copy_with, RecordingError, RecordingWriter};
-use crate::service::ros_bridge::{health, published_probabilities};
+use crate::service::ros_bridge::published_probabilities;
 use crate::shutdown::Shutdown;
 
 /// One output message, in publish order.
@@ -65,13 +65,11 @@ impl Default for AnnotateTopics {
 
 /// Subscribes to `bus` now and collects every forecast and diagnostics
 /// snapshot until `shutdown` fires (then drains what is queued).
-/// `status_prefix` and `hardware_id` name the diagnostic statuses as the
-/// ROS 2 publisher does.
+/// `status_prefix` names the diagnostic statuses as the ROS 2 publisher does.
 pub fn collect(
     bus: &OutputBus,
     mut shutdown: Shutdown,
     status_prefix: String,
-    hardware_id: String,
 ) -> JoinHandle<Collected> {
     let mut sub = bus.subscribe();
     tokio::spawn(async move {
@@ -92,7 +90,7 @@ pub fn collect(
             }
         };
         let take_diagnostics = |out: &mut Collected, d: &DiagnosticsSnapshot| {
-            let msg = diagnostic_array(&status_prefix, &hardware_id, &health(d));
+            let msg = diagnostic_array(&status_prefix, d);
             out.messages.push((d.stamp_ns, Output::Diagnostics(msg)));
         };
         loop {

@@ -17,7 +17,9 @@
 //! - `/fall_guard/fall_imminent` (`Bool`): `imminent` (already latched with
 //!   hysteresis by [`latch::SafetyLatch`]).
 //! - `/diagnostics` (`DiagnosticArray`): [`DiagnosticsSnapshot::statuses`],
-//!   one [`StatusEntry`] per input stream and one for the model.
+//!   one [`StatusEntry`] per input stream, one per device a source reports
+//!   (each servo bus), and one for the model. This is the one diagnostics
+//!   model: `outputs/ros.rs` copies these entries into the message as they are.
 
 pub mod annotate;
 pub mod latch;
@@ -103,8 +105,28 @@ pub struct StreamDiagnostics {
     pub last_sample_age_ms: Option<f64>,
     /// Total errors since start.
     pub errors: u64,
+    /// Errors in the last [`ERROR_WINDOW_S`] seconds of tick time: the
+    /// level looks at these, so it returns to OK once a fault is gone.
+    pub recent_errors: u64,
     /// Source-specific counters and state, e.g. ("timeout", "3").
     pub details: Vec<(String, String)>,
+}
+
+/// Seconds over which error counts are judged (levels, `errors_in_window`).
+pub const ERROR_WINDOW_S: u64 = 10;
+
+/// Health of one device behind a stream (a servo bus), reported by its
+/// source: published as a status of its own, `<node>: <name>`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeviceDiagnostics {
+    /// Status name after the node prefix, e.g. `servo bus lower`.
+    pub name: String,
+    /// The device, e.g. the serial port path.
+    pub hardware_id: String,
+    pub level: DiagnosticLevel,
+    /// One line for a human that names the fault.
+    pub message: String,
+    pub values: Vec<(String, String)>,
 }
 
 /// Health of the inference.
@@ -145,6 +167,8 @@ pub struct DiagnosticsSnapshot {
     /// `hardware_id` of every status (the robot's name from the config).
     pub hardware_id: String,
     pub streams: Vec<StreamDiagnostics>,
+    /// Devices the sources report (servo buses), after the streams.
+    pub devices: Vec<DeviceDiagnostics>,
     pub model: ModelDiagnostics,
 }
 
@@ -163,40 +187,58 @@ fn ms(value: Option<f64>) -> String {
 }
 
 impl DiagnosticsSnapshot {
-    /// One status per stream ("fall_guard: joints", ...) and one for the model
-    /// ("fall_guard: model"), with their key-values.
-    pub fn statuses(&self) -> Vec<StatusEntry> {
-        let mut out = Vec::with_capacity(self.streams.len() + 1);
+    /// The statuses of one `/diagnostics` message, names prefixed with the
+    /// node name (`fall_guard: joints`): one per stream (keys `source`,
+    /// `rate_hz`, `age_ms`, `errors`, `errors_in_window`, `error_window_s`,
+    /// then the source's own), one per device (`fall_guard: servo bus
+    /// lower`, `hardware_id` the port), then `fall_guard: model`.
+    pub fn statuses(&self, prefix: &str) -> Vec<StatusEntry> {
+        let mut out = Vec::with_capacity(self.streams.len() + self.devices.len() + 1);
         for s in &self.streams {
             let mut values = vec![
                 ("source".to_string(), s.source.clone()),
-                ("rate_hz".to_string(), format!("{:.2}", s.rate_hz)),
-                ("last_sample_age_ms".to_string(), ms(s.last_sample_age_ms)),
+                ("rate_hz".to_string(), format!("{:.1}", s.rate_hz)),
+                (
+                    "age_ms".to_string(),
+                    s.last_sample_age_ms
+                        .map_or_else(|| "never".to_string(), |a| format!("{a:.1}")),
+                ),
                 ("errors".to_string(), s.errors.to_string()),
+                ("errors_in_window".to_string(), s.recent_errors.to_string()),
+                ("error_window_s".to_string(), ERROR_WINDOW_S.to_string()),
             ];
             values.extend(s.details.iter().cloned());
             out.push(StatusEntry {
                 level: s.level,
-                name: format!("fall_guard: {}", s.stream),
-                message: s.message.clone(),
+                name: format!("{prefix}: {}", s.stream),
+                message: format!("{} ({})", s.message, s.source),
                 hardware_id: self.hardware_id.clone(),
                 values,
+            });
+        }
+        for d in &self.devices {
+            out.push(StatusEntry {
+                level: d.level,
+                name: format!("{prefix}: {}", d.name),
+                message: d.message.clone(),
+                hardware_id: d.hardware_id.clone(),
+                values: d.values.clone(),
             });
         }
         let m = &self.model;
         out.push(StatusEntry {
             level: m.level,
-            name: "fall_guard: model".to_string(),
+            name: format!("{prefix}: model"),
             message: m.message.clone(),
             hardware_id: self.hardware_id.clone(),
             values: vec![
-                ("active_model".to_string(), m.active_ablation.to_string()),
-                ("model_file".to_string(), m.model_file.clone()),
-                ("valid".to_string(), m.valid.to_string()),
-                ("invalid_reason".to_string(), m.invalid_reason.clone()),
                 ("inference_p50_ms".to_string(), ms(m.inference_p50_ms)),
                 ("inference_p99_ms".to_string(), ms(m.inference_p99_ms)),
                 ("overruns".to_string(), m.overruns.to_string()),
+                ("active_model".to_string(), m.active_ablation.to_string()),
+                ("valid".to_string(), m.valid.to_string()),
+                ("invalid_reason".to_string(), m.invalid_reason.clone()),
+                ("model_file".to_string(), m.model_file.clone()),
                 ("ticks".to_string(), m.ticks.to_string()),
                 ("forecasts".to_string(), m.forecasts.to_string()),
                 ("model_switches".to_string(), m.switches.to_string()),
@@ -367,7 +409,15 @@ mod tests {
                 rate_hz: 0.0,
                 last_sample_age_ms: None,
                 errors: 2,
+                recent_errors: 1,
                 details: vec![("timeout".into(), "2".into())],
+            }],
+            devices: vec![DeviceDiagnostics {
+                name: "servo bus lower".into(),
+                hardware_id: "/dev/ttyACM0".into(),
+                level: DiagnosticLevel::Warn,
+                message: "motor 36 (head_z) not answering".into(),
+                values: vec![("missing_ids".into(), "[36]".into())],
             }],
             model: ModelDiagnostics {
                 level: DiagnosticLevel::Warn,
@@ -388,20 +438,26 @@ mod tests {
                 latch_horizon_ms: 1000,
             },
         };
-        let statuses = snap.statuses();
-        assert_eq!(statuses.len(), 2);
+        let statuses = snap.statuses("fall_guard");
+        assert_eq!(statuses.len(), 3);
         assert_eq!(statuses[0].name, "fall_guard: joints");
+        assert_eq!(statuses[0].message, "stale (replay)");
         assert_eq!(statuses[0].level.as_byte(), 3);
-        assert!(statuses[0]
-            .values
-            .contains(&("last_sample_age_ms".into(), "none".into())));
-        assert!(statuses[0].values.contains(&("timeout".into(), "2".into())));
-        assert_eq!(statuses[1].name, "fall_guard: model");
-        assert!(statuses[1]
-            .values
-            .contains(&("active_model".into(), "P".into())));
-        assert!(statuses[1]
-            .values
-            .contains(&("ring".into(), "10/60".into())));
+        let has = |i: usize, k: &str, v: &str| {
+            statuses[i].values.contains(&(k.to_string(), v.to_string()))
+        };
+        assert!(has(0, "age_ms", "never"));
+        assert!(has(0, "errors", "2"));
+        assert!(has(0, "errors_in_window", "1"));
+        assert!(has(0, "timeout", "2"));
+        assert_eq!(statuses[1].name, "fall_guard: servo bus lower");
+        assert_eq!(statuses[1].hardware_id, "/dev/ttyACM0");
+        assert_eq!(statuses[1].level, DiagnosticLevel::Warn);
+        assert!(has(1, "missing_ids", "[36]"));
+        assert_eq!(statuses[2].name, "fall_guard: model");
+        assert_eq!(statuses[2].hardware_id, "poppy");
+        assert!(has(2, "active_model", "P"));
+        assert!(has(2, "ring", "10/60"));
+        assert!(has(2, "invalid_reason", "joints stale"));
     }
 }

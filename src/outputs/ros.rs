@@ -3,7 +3,7 @@
 //! `/joint_states`.
 //!
 //! Values enter as plain Rust from the service (probabilities per horizon, a
-//! bool, a [`Health`] report, a `JointState`; the service's bridge reads them
+//! bool, a [`DiagnosticsSnapshot`], a `JointState`; the service's bridge reads them
 //! off its output bus); they leave as the standard messages of
 //! `interfaces.md` with the QoS of [`crate::ros::qos`]. Publishing never
 //! blocks: a reliable send window that is full fails at once and is counted,
@@ -25,6 +25,7 @@ use crate::msgs::{
     Bool, DiagnosticArray, DiagnosticStatus, Float32MultiArray, Header, JointState, KeyValue,
     MultiArrayDimension, MultiArrayLayout, Time,
 };
+use crate::outputs::DiagnosticsSnapshot;
 use crate::ros::{qos, RosError, RosNode};
 
 /// `layout.dim[0].label` of the forecast and of the horizons topic.
@@ -60,55 +61,6 @@ impl Default for OutputTopics {
     }
 }
 
-/// `diagnostic_msgs/DiagnosticStatus` levels.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum DiagnosticLevel {
-    Ok = 0,
-    Warn = 1,
-    Error = 2,
-    Stale = 3,
-}
-
-/// Health of one input stream (servos or `/joint_states`, camera, plan).
-#[derive(Debug, Clone, PartialEq)]
-pub struct StreamHealth {
-    /// Short stream name, e.g. `joints`, `camera`, `plan`.
-    pub name: String,
-    pub level: DiagnosticLevel,
-    /// One line for humans, e.g. `ok` or `no sample for 1200 ms`.
-    pub message: String,
-    /// Samples per second over the last report period.
-    pub rate_hz: f64,
-    /// Time since the last sample; `None` when no sample ever arrived.
-    pub age_ms: Option<f64>,
-    /// Errors counted since start (timeouts, bad checksums, undecodable messages).
-    pub errors: u64,
-}
-
-/// Health of the inference side.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ModelHealth {
-    pub level: DiagnosticLevel,
-    pub message: String,
-    /// Inference latency percentiles; NaN when no inference ran yet (published as `none`).
-    pub inference_p50_ms: f64,
-    pub inference_p99_ms: f64,
-    /// Ticks skipped because an inference was still running.
-    pub overruns: u64,
-    /// Ablation in use: `EMP`, `MP`, `EP` or `P`.
-    pub active_model: String,
-    /// Whether the forecasts now published can be trusted (ring full, no stale stream).
-    pub valid: bool,
-}
-
-/// One `/diagnostics` report: a status per input stream and one for the model.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Health {
-    pub stamp_ns: i64,
-    pub streams: Vec<StreamHealth>,
-    pub model: ModelHealth,
-}
-
 /// Counters of what could not be sent (a full reliable window, a closed participant).
 #[derive(Debug, Default)]
 pub struct PublishFailures {
@@ -129,7 +81,6 @@ pub struct RosOutputs {
     _horizons: Publisher<Float32MultiArray>,
     horizons_ms: Vec<f32>,
     topics: ResolvedTopics,
-    hardware_id: String,
     /// Name prefix of every DiagnosticStatus, ROS style `node: stream`.
     status_prefix: String,
     pub failures: PublishFailures,
@@ -147,12 +98,10 @@ impl RosOutputs {
     /// Creates the publishers and publishes the latched horizons.
     /// `horizons_ms` are the model's horizons in milliseconds, in the order
     /// of the probabilities passed to [`RosOutputs::publish_forecast`].
-    /// `hardware_id` goes into every DiagnosticStatus (e.g. `poppy_humanoid`).
     pub fn new(
         node: &mut RosNode,
         topics: &OutputTopics,
         horizons_ms: &[f32],
-        hardware_id: &str,
     ) -> Result<RosOutputs, RosError> {
         let forecast = publisher(node, &topics.forecast, FLOAT32_MULTI_ARRAY, qos::forecast())?;
         let horizons = publisher(
@@ -203,7 +152,6 @@ impl RosOutputs {
             _horizons: horizons,
             horizons_ms: horizons_ms.to_vec(),
             topics: resolved,
-            hardware_id: hardware_id.to_owned(),
             status_prefix: node.settings().node_name.clone(),
             failures: PublishFailures::default(),
         })
@@ -240,9 +188,10 @@ impl RosOutputs {
         )
     }
 
-    /// Publishes one `/diagnostics` report.
-    pub fn publish_diagnostics(&self, health: &Health) -> Result<(), RosError> {
-        let msg = diagnostic_array(&self.status_prefix, &self.hardware_id, health);
+    /// Publishes one `/diagnostics` report: the snapshot's statuses, names
+    /// prefixed with the node name.
+    pub fn publish_diagnostics(&self, snapshot: &DiagnosticsSnapshot) -> Result<(), RosError> {
+        let msg = diagnostic_array(&self.status_prefix, snapshot);
         let result = self.diagnostics.publish(msg);
         count(result, &self.failures.diagnostics, &self.topics.diagnostics)
     }
@@ -320,60 +269,28 @@ pub fn ros_time(stamp_ns: i64) -> Time {
     }
 }
 
-fn ms(value: f64) -> String {
-    if value.is_finite() {
-        format!("{value:.3}")
-    } else {
-        "none".to_owned()
-    }
-}
-
-/// Builds the `/diagnostics` message: one status per stream, named
-/// `<prefix>: <stream>`, then `<prefix>: model`. Keys: `rate_hz`, `age_ms`
-/// (`never` before the first sample), `errors`; `inference_p50_ms`,
-/// `inference_p99_ms` (`none` before the first inference), `overruns`,
-/// `active_model`, `valid`.
-pub fn diagnostic_array(prefix: &str, hardware_id: &str, health: &Health) -> DiagnosticArray {
-    let kv = |key: &str, value: String| KeyValue {
-        key: key.to_owned(),
-        value,
-    };
-    let mut status: Vec<DiagnosticStatus> = health
-        .streams
-        .iter()
+/// Builds the `/diagnostics` message from a snapshot: its
+/// [`DiagnosticsSnapshot::statuses`], named `<prefix>: <stream>`, stamped
+/// with the snapshot's tick time.
+pub fn diagnostic_array(prefix: &str, snapshot: &DiagnosticsSnapshot) -> DiagnosticArray {
+    let status = snapshot
+        .statuses(prefix)
+        .into_iter()
         .map(|s| DiagnosticStatus {
-            level: s.level as u8,
-            name: format!("{prefix}: {}", s.name),
-            message: s.message.clone(),
-            hardware_id: hardware_id.to_owned(),
-            values: vec![
-                kv("rate_hz", format!("{:.1}", s.rate_hz)),
-                kv(
-                    "age_ms",
-                    s.age_ms
-                        .map_or_else(|| "never".to_owned(), |a| format!("{a:.1}")),
-                ),
-                kv("errors", s.errors.to_string()),
-            ],
+            level: s.level.as_byte(),
+            name: s.name,
+            message: s.message,
+            hardware_id: s.hardware_id,
+            values: s
+                .values
+                .into_iter()
+                .map(|(key, value)| KeyValue { key, value })
+                .collect(),
         })
         .collect();
-    let m = &health.model;
-    status.push(DiagnosticStatus {
-        level: m.level as u8,
-        name: format!("{prefix}: model"),
-        message: m.message.clone(),
-        hardware_id: hardware_id.to_owned(),
-        values: vec![
-            kv("inference_p50_ms", ms(m.inference_p50_ms)),
-            kv("inference_p99_ms", ms(m.inference_p99_ms)),
-            kv("overruns", m.overruns.to_string()),
-            kv("active_model", m.active_model.clone()),
-            kv("valid", m.valid.to_string()),
-        ],
-    });
     DiagnosticArray {
         header: Header {
-            stamp: ros_time(health.stamp_ns),
+            stamp: ros_time(snapshot.stamp_ns),
             frame_id: String::new(),
         },
         status,
@@ -412,65 +329,5 @@ mod tests {
                 nanosec: 999_999_999
             }
         );
-    }
-
-    #[test]
-    fn diagnostics_have_one_status_per_stream_and_one_for_the_model() {
-        let health = Health {
-            stamp_ns: 2_000_000_000,
-            streams: vec![
-                StreamHealth {
-                    name: "joints".into(),
-                    level: DiagnosticLevel::Ok,
-                    message: "ok".into(),
-                    rate_hz: 30.0,
-                    age_ms: Some(12.5),
-                    errors: 0,
-                },
-                StreamHealth {
-                    name: "camera".into(),
-                    level: DiagnosticLevel::Stale,
-                    message: "no frame yet".into(),
-                    rate_hz: 0.0,
-                    age_ms: None,
-                    errors: 3,
-                },
-            ],
-            model: ModelHealth {
-                level: DiagnosticLevel::Warn,
-                message: "camera lost: MP".into(),
-                inference_p50_ms: 3.25,
-                inference_p99_ms: f64::NAN,
-                overruns: 2,
-                active_model: "MP".into(),
-                valid: false,
-            },
-        };
-        let a = diagnostic_array("fall_guard", "poppy_humanoid", &health);
-        assert_eq!(a.header.stamp, Time { sec: 2, nanosec: 0 });
-        assert_eq!(a.status.len(), 3);
-        assert_eq!(a.status[0].name, "fall_guard: joints");
-        assert_eq!(a.status[1].level, 3);
-        assert_eq!(a.status[2].level, 1);
-        let value = |s: &DiagnosticStatus, k: &str| {
-            s.values
-                .iter()
-                .find(|kv| kv.key == k)
-                .map(|kv| kv.value.clone())
-        };
-        assert_eq!(value(&a.status[0], "age_ms").as_deref(), Some("12.5"));
-        assert_eq!(value(&a.status[1], "age_ms").as_deref(), Some("never"));
-        assert_eq!(value(&a.status[1], "errors").as_deref(), Some("3"));
-        assert_eq!(value(&a.status[2], "active_model").as_deref(), Some("MP"));
-        assert_eq!(value(&a.status[2], "valid").as_deref(), Some("false"));
-        assert_eq!(
-            value(&a.status[2], "inference_p50_ms").as_deref(),
-            Some("3.250")
-        );
-        assert_eq!(
-            value(&a.status[2], "inference_p99_ms").as_deref(),
-            Some("none")
-        );
-        assert_eq!(value(&a.status[2], "overruns").as_deref(), Some("2"));
     }
 }

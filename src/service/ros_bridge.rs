@@ -18,8 +18,8 @@ use crate::config::Config;
 use crate::forecast::ModelSet;
 use crate::frame::Frame;
 use crate::msgs::{Header, JointState};
-use crate::outputs::ros::{ros_time, Health, ModelHealth, OutputTopics, RosOutputs, StreamHealth};
-use crate::outputs::{DiagnosticLevel, DiagnosticsSnapshot, ForecastOutput, OutputBus};
+use crate::outputs::ros::{ros_time, OutputTopics, RosOutputs};
+use crate::outputs::{ForecastOutput, OutputBus};
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
@@ -72,45 +72,6 @@ impl InputsWanted {
     }
 }
 
-fn level(level: DiagnosticLevel) -> crate::outputs::ros::DiagnosticLevel {
-    use crate::outputs::ros::DiagnosticLevel as L;
-    match level {
-        DiagnosticLevel::Ok => L::Ok,
-        DiagnosticLevel::Warn => L::Warn,
-        DiagnosticLevel::Error => L::Error,
-        DiagnosticLevel::Stale => L::Stale,
-    }
-}
-
-/// The ROS layer's health report from a diagnostics snapshot.
-pub fn health(snapshot: &DiagnosticsSnapshot) -> Health {
-    let m = &snapshot.model;
-    Health {
-        stamp_ns: snapshot.stamp_ns,
-        streams: snapshot
-            .streams
-            .iter()
-            .map(|s| StreamHealth {
-                name: s.stream.to_string(),
-                level: level(s.level),
-                message: format!("{} ({})", s.message, s.source),
-                rate_hz: s.rate_hz,
-                age_ms: s.last_sample_age_ms,
-                errors: s.errors,
-            })
-            .collect(),
-        model: ModelHealth {
-            level: level(m.level),
-            message: m.message.clone(),
-            inference_p50_ms: m.inference_p50_ms.unwrap_or(f64::NAN),
-            inference_p99_ms: m.inference_p99_ms.unwrap_or(f64::NAN),
-            overruns: m.overruns,
-            active_model: m.active_ablation.to_string(),
-            valid: m.valid,
-        },
-    }
-}
-
 impl RosBridge {
     /// Start the node (DDS participant, spinner).
     pub fn start(config: &Config) -> Result<RosBridge, ServiceError> {
@@ -150,7 +111,7 @@ impl RosBridge {
         };
         let names = models.spec().joint_names.clone();
         let horizons: Vec<f32> = models.horizons_ms().iter().map(|&h| h as f32).collect();
-        let outputs = RosOutputs::new(&mut self.node, &topics, &horizons, &config.robot.name)?;
+        let outputs = RosOutputs::new(&mut self.node, &topics, &horizons)?;
         let mut sub = bus.subscribe();
         Ok(tokio::spawn(async move {
             let mut imminent: Option<bool> = None;
@@ -165,7 +126,7 @@ impl RosBridge {
                         Err(RecvError::Closed) => break,
                     },
                     d = sub.diagnostics.recv() => match d {
-                        Ok(d) => { let _ = outputs.publish_diagnostics(&health(&d)); }
+                        Ok(d) => { let _ = outputs.publish_diagnostics(&d); }
                         Err(RecvError::Lagged(_)) => {}
                         Err(RecvError::Closed) => break,
                     },
@@ -175,7 +136,11 @@ impl RosBridge {
                             None => std::future::pending().await,
                         }
                     } => match j {
-                        Some(s) => { let _ = outputs.publish_joint_states(joint_state(&names, s.stamp_ns, &s.value)); }
+                        Some(s) => {
+                            if let Some(msg) = joint_state(&names, s.stamp_ns, &s.value) {
+                                let _ = outputs.publish_joint_states(msg);
+                            }
+                        }
                         None => joints_out = None,
                     },
                     () = shutdown.recv() => break,
@@ -233,18 +198,28 @@ impl RosBridge {
     }
 }
 
-/// A servo read as `sensor_msgs/JointState` (positions only, radians).
-fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> JointState {
-    JointState {
+/// A servo read as `sensor_msgs/JointState` (positions only, radians),
+/// with only the joints that were read: a motor that did not answer (NaN)
+/// is left out of `name` and `position`, as `sensor_msgs/JointState`
+/// allows, so one absent servo does not hide the others. `None` when no
+/// joint was read.
+pub fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> Option<JointState> {
+    let (name, position): (Vec<String>, Vec<f64>) = names
+        .iter()
+        .zip(positions)
+        .filter(|(_, p)| p.is_finite())
+        .map(|(n, &p)| (n.clone(), f64::from(p)))
+        .unzip();
+    (!name.is_empty()).then(|| JointState {
         header: Header {
             stamp: ros_time(stamp_ns),
             frame_id: String::new(),
         },
-        name: names.to_vec(),
-        position: positions.iter().map(|&p| f64::from(p)).collect(),
+        name,
+        position,
         velocity: Vec::new(),
         effort: Vec::new(),
-    }
+    })
 }
 
 /// One tick's outputs: the forecast, and the safety signal when it changed
@@ -326,6 +301,16 @@ mod tests {
             invalid_reason: String::new(),
             sensed_at: std::time::Instant::now(),
         }
+    }
+
+    #[test]
+    fn joint_states_leave_out_the_joints_not_read() {
+        let names: Vec<String> = ["a", "b", "c"].iter().map(|s| s.to_string()).collect();
+        let msg = joint_state(&names, 1_500_000_000, &[0.5, f32::NAN, -1.0]).expect("msg");
+        assert_eq!(msg.name, ["a", "c"]);
+        assert_eq!(msg.position, [0.5, -1.0]);
+        assert_eq!(msg.header.stamp.sec, 1);
+        assert!(joint_state(&names, 0, &[f32::NAN; 3]).is_none());
     }
 
     #[test]

@@ -1,19 +1,32 @@
 //! The servo buses as the daemon's joint stream: starts the servo
 //! engineer's [`DynamixelSource`] (its blocking reader thread) with the
-//! `[dynamixel]` section, and forwards each complete reading to the joints
-//! [`StreamFeed`]; its bus counters (timeouts, bad checksums, garbage bytes,
-//! servo error bits, reopens) are copied into the stream's diagnostics.
+//! `[dynamixel]` section, and forwards each reading to the joints
+//! [`StreamFeed`], one status per bus to `/diagnostics`.
+//!
+//! A reading in which some motors did not answer is forwarded too, with NaN
+//! for those joints: `/joint_states` then carries the joints that were read,
+//! and the tick marks the forecast not valid, naming the joints, until a
+//! whole window of complete readings has come back (see `tick.rs`).
+//!
+//! Every 500 ms the bus counters become a [`DeviceDiagnostics`] per bus
+//! ([`ServoHealth`]): port, adapter mode, read rate, missing ids and joints,
+//! error rates over the last [`ERROR_WINDOW_S`] seconds, reopens, the last
+//! error. Its level is judged on the window, so it returns to OK once the
+//! fault is gone; a plain (non-USB2AX) adapter is a mode, not a fault.
 
-use std::time::Duration;
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
 
 use crate::config::Config;
+use crate::outputs::{DeviceDiagnostics, DiagnosticLevel, ERROR_WINDOW_S};
 use crate::robot::JointTable;
 use crate::service::{ServiceError, SourceHandle};
 use crate::shutdown::Shutdown;
-use crate::sources::dynamixel::{DynamixelSource, ServoStatsSnapshot};
+use crate::sources::dynamixel::{BusStatsSnapshot, DynamixelSource, ServoStatsSnapshot};
 use crate::sources::StreamFeed;
 
-/// Bus counters as diagnostic key-values, and their error total.
+/// Bus counters as the joints stream's key-values, and their error total
+/// (faults only: the probe that finds a plain adapter is not one).
 pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String)>) {
     let mut details = vec![
         ("cycles".to_string(), snapshot.cycles.to_string()),
@@ -26,13 +39,7 @@ pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String
     for bus in &snapshot.buses {
         let servo_errors: u64 = bus.servo_errors.iter().map(|(_, n)| n).sum();
         // Every skipped garbage byte counts as one error.
-        let bus_errors = bus.timeouts
-            + bus.bad_checksums
-            + bus.bad_packets
-            + bus.io_errors
-            + bus.garbage_bytes
-            + servo_errors;
-        errors += bus_errors;
+        errors += bus.fault_errors() + bus.garbage_bytes;
         let b = &bus.name;
         details.extend([
             (format!("{b}.port"), bus.port.clone()),
@@ -50,6 +57,193 @@ pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String
     (errors, details)
 }
 
+/// The status of one bus from its counters now and at the start of the
+/// window (`base`, `None`: the reader's start, all zeros), `window_s`
+/// seconds apart.
+pub fn bus_status(
+    now: &BusStatsSnapshot,
+    base: Option<&BusStatsSnapshot>,
+    window_s: f64,
+) -> DeviceDiagnostics {
+    let delta = |f: fn(&BusStatsSnapshot) -> u64| f(now).saturating_sub(base.map_or(0, f));
+    let per_s = |n: u64| {
+        if window_s > 0.0 {
+            format!("{:.2}", n as f64 / window_s)
+        } else {
+            "none".to_string()
+        }
+    };
+    let timeouts = delta(|b| b.timeouts.saturating_sub(b.sync_probe_timeouts));
+    let checksums = delta(|b| b.bad_checksums);
+    let packets = delta(|b| b.bad_packets);
+    let garbage = delta(|b| b.garbage_bytes);
+    let servo = delta(|b| b.servo_errors.iter().map(|(_, n)| n).sum());
+    let io = delta(|b| b.io_errors);
+    let reopens = delta(|b| b.reopens);
+    let open_failures = delta(|b| b.open_failures);
+    let cycles = delta(|b| b.cycles);
+    let ok_cycles = delta(|b| b.ok_cycles);
+    let read_rate = if window_s > 0.0 {
+        cycles as f64 / window_s
+    } else {
+        0.0
+    };
+    let missing_joints = now.missing_joints();
+    let missing_named: Vec<String> = now
+        .missing_ids
+        .iter()
+        .zip(&missing_joints)
+        .map(|(id, name)| format!("{id} ({name})"))
+        .collect();
+    let last_error = now.last_error.clone().unwrap_or_default();
+    let window = ERROR_WINDOW_S;
+    let mut faults: Vec<String> = [
+        (timeouts, "timeouts"),
+        (checksums, "bad checksums"),
+        (packets, "bad packets"),
+        (garbage, "garbage bytes"),
+        (servo, "servo error bits"),
+        (io, "port errors"),
+        (reopens, "reopens"),
+    ]
+    .iter()
+    .filter(|(n, _)| *n > 0)
+    .map(|(n, what)| format!("{n} {what}"))
+    .collect();
+    if open_failures > 0 && now.connected {
+        faults.push(format!("{open_failures} failed opens"));
+    }
+    let (level, message) = if !now.connected {
+        let why = if last_error.is_empty() {
+            "not opened yet".to_string()
+        } else {
+            last_error.clone()
+        };
+        (
+            DiagnosticLevel::Error,
+            format!("port {} not open: {why}", now.port),
+        )
+    } else if !now.motors.is_empty() && now.missing_ids.len() == now.motors.len() {
+        (
+            DiagnosticLevel::Error,
+            format!("no motor answers ({} configured)", now.motors.len()),
+        )
+    } else if !missing_named.is_empty() {
+        (
+            DiagnosticLevel::Warn,
+            format!(
+                "{} of {} motors not answering: {}",
+                missing_named.len(),
+                now.motors.len(),
+                missing_named.join(", ")
+            ),
+        )
+    } else if !faults.is_empty() {
+        (
+            DiagnosticLevel::Warn,
+            format!("in the last {window} s: {}", faults.join(", ")),
+        )
+    } else {
+        (
+            DiagnosticLevel::Ok,
+            format!(
+                "ok: {} motors at {read_rate:.1} Hz ({})",
+                now.motors.len(),
+                now.adapter_mode()
+            ),
+        )
+    };
+    let servo_total: u64 = now.servo_errors.iter().map(|(_, n)| n).sum();
+    let values = vec![
+        ("port", now.port.clone()),
+        ("adapter_mode", now.adapter_mode().to_string()),
+        ("connected", now.connected.to_string()),
+        (
+            "ids",
+            format!("{:?}", now.motors.iter().map(|m| m.0).collect::<Vec<_>>()),
+        ),
+        ("read_rate_hz", format!("{read_rate:.1}")),
+        (
+            "complete_rate_hz",
+            if window_s > 0.0 {
+                format!("{:.1}", ok_cycles as f64 / window_s)
+            } else {
+                "none".to_string()
+            },
+        ),
+        ("missing_ids", format!("{:?}", now.missing_ids)),
+        ("missing_joints", missing_joints.join(",")),
+        ("error_window_s", window.to_string()),
+        ("timeouts_per_s", per_s(timeouts)),
+        ("checksum_errors_per_s", per_s(checksums)),
+        ("bad_packets_per_s", per_s(packets)),
+        ("garbage_bytes_per_s", per_s(garbage)),
+        ("servo_errors_per_s", per_s(servo)),
+        ("reopens_in_window", reopens.to_string()),
+        ("timeouts", now.timeouts.to_string()),
+        ("bad_checksums", now.bad_checksums.to_string()),
+        ("bad_packets", now.bad_packets.to_string()),
+        ("garbage_bytes", now.garbage_bytes.to_string()),
+        ("servo_errors", servo_total.to_string()),
+        ("reopens", now.reopens.to_string()),
+        ("open_failures", now.open_failures.to_string()),
+        ("last_error", last_error),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    DeviceDiagnostics {
+        name: format!("servo bus {}", now.name),
+        hardware_id: now.port.clone(),
+        level,
+        message,
+        values,
+    }
+}
+
+/// Bus statuses judged over a sliding window of counter snapshots.
+#[derive(Debug, Default)]
+pub struct ServoHealth {
+    /// (seconds since the reader started, counters), oldest first; the
+    /// first entry is the newest one at or before the window's start.
+    history: VecDeque<(f64, ServoStatsSnapshot)>,
+}
+
+impl ServoHealth {
+    pub fn new() -> ServoHealth {
+        ServoHealth::default()
+    }
+
+    /// Add the counters at `t_s` seconds after the reader started (non-
+    /// decreasing) and return one status per bus.
+    pub fn update(&mut self, t_s: f64, snapshot: ServoStatsSnapshot) -> Vec<DeviceDiagnostics> {
+        let window = ERROR_WINDOW_S as f64;
+        self.history.push_back((t_s, snapshot));
+        while self.history.len() > 1 && self.history[1].0 <= t_s - window {
+            self.history.pop_front();
+        }
+        let (base_t, base) = if self.history.len() > 1 && self.history[0].0 <= t_s - window {
+            let (t, s) = &self.history[0];
+            (*t, Some(s))
+        } else {
+            // Less than a window since the start: count from the start.
+            (0.0, None)
+        };
+        let now = &self.history[self.history.len() - 1].1;
+        now.buses
+            .iter()
+            .enumerate()
+            .map(|(i, bus)| {
+                bus_status(
+                    bus,
+                    base.and_then(|b| b.buses.get(i)),
+                    (t_s - base_t).max(0.0),
+                )
+            })
+            .collect()
+    }
+}
+
 /// Start the servo reader; its readings feed `feed` until `shutdown`.
 pub fn start(
     config: &Config,
@@ -62,26 +256,30 @@ pub fn start(
         .ok_or_else(|| ServiceError::Usage(format!("{}: [dynamixel] missing", config.origin)))?;
     let source = DynamixelSource::spawn(section, &JointTable::poppy_humanoid(), shutdown.watch())
         .map_err(|e| ServiceError::Usage(format!("{}: [dynamixel].{e}", config.origin)))?;
+    let started = Instant::now();
     let task = tokio::spawn(async move {
         let mut readings = source.readings.clone();
         let mut refresh = tokio::time::interval(Duration::from_millis(500));
+        let mut health = ServoHealth::new();
         loop {
             tokio::select! {
                 changed = readings.changed() => {
                     if changed.is_err() { break; }
                     let reading = readings.borrow_and_update().clone();
                     let Some(reading) = reading else { continue };
-                    if reading.is_complete() {
-                        let positions: Vec<f32> = reading.positions_rad.iter().map(|p| p.unwrap_or(f32::NAN)).collect();
-                        feed.send(reading.stamp_ns, positions);
-                    } else {
+                    if !reading.is_complete() {
                         let missing = reading.positions_rad.iter().filter(|p| p.is_none()).count();
                         feed.error("incomplete read", &format_args!("{missing} joints not read this cycle"));
                     }
+                    let positions: Vec<f32> = reading.positions_rad.iter().map(|p| p.unwrap_or(f32::NAN)).collect();
+                    feed.send(reading.stamp_ns, positions);
                 }
                 _ = refresh.tick() => {
-                    let (errors, details) = servo_details(&source.stats.snapshot());
+                    let snapshot = source.stats.snapshot();
+                    let (errors, details) = servo_details(&snapshot);
                     feed.stats().set_external(errors, details);
+                    let buses = health.update(started.elapsed().as_secs_f64(), snapshot);
+                    feed.stats().set_devices(buses);
                 }
                 () = shutdown.recv() => break,
             }
@@ -89,4 +287,140 @@ pub fn start(
         let _ = tokio::task::spawn_blocking(move || source.join()).await;
     });
     Ok(SourceHandle::Task(task))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bus(connected: bool) -> BusStatsSnapshot {
+        BusStatsSnapshot {
+            name: "upper".into(),
+            port: "/dev/ttyACM1".into(),
+            connected,
+            sync_read_active: true,
+            cycles: 0,
+            ok_cycles: 0,
+            timeouts: 0,
+            bad_checksums: 0,
+            bad_packets: 0,
+            garbage_bytes: 0,
+            servo_errors: Vec::new(),
+            missing_motor_reads: 0,
+            missing_ids: Vec::new(),
+            io_errors: 0,
+            reopens: 0,
+            open_failures: 0,
+            sync_probe_timeouts: 0,
+            last_ok_ns: None,
+            motors: vec![(36, "head_z".into()), (37, "head_y".into())],
+            sync_read_configured: true,
+            last_error: None,
+        }
+    }
+
+    fn value<'a>(d: &'a DeviceDiagnostics, key: &str) -> &'a str {
+        d.values
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+            .unwrap_or_else(|| panic!("no {key} in {:?}", d.values))
+    }
+
+    fn snapshot(b: BusStatsSnapshot) -> ServoStatsSnapshot {
+        ServoStatsSnapshot {
+            running: true,
+            cycles: b.cycles,
+            complete_cycles: b.ok_cycles,
+            last_complete_ns: None,
+            buses: vec![b],
+        }
+    }
+
+    #[test]
+    fn a_healthy_bus_is_ok_with_its_rate_and_mode() {
+        let mut b = bus(true);
+        b.cycles = 500;
+        b.ok_cycles = 500;
+        let d = bus_status(&b, None, 10.0);
+        assert_eq!(d.level, DiagnosticLevel::Ok, "{}", d.message);
+        assert_eq!(d.name, "servo bus upper");
+        assert_eq!(d.hardware_id, "/dev/ttyACM1");
+        assert_eq!(value(&d, "read_rate_hz"), "50.0");
+        assert_eq!(value(&d, "adapter_mode"), "usb2ax_sync_read");
+        assert_eq!(value(&d, "missing_ids"), "[]");
+    }
+
+    #[test]
+    fn a_missing_motor_is_named() {
+        let mut b = bus(true);
+        b.cycles = 500;
+        b.missing_ids = vec![36];
+        b.last_error = Some("motor 36 (head_z) gave no position".into());
+        let d = bus_status(&b, None, 10.0);
+        assert_eq!(d.level, DiagnosticLevel::Warn);
+        assert!(d.message.contains("36 (head_z)"), "{}", d.message);
+        assert_eq!(value(&d, "missing_joints"), "head_z");
+        assert_eq!(
+            value(&d, "last_error"),
+            "motor 36 (head_z) gave no position"
+        );
+        b.missing_ids = vec![36, 37];
+        assert_eq!(bus_status(&b, None, 10.0).level, DiagnosticLevel::Error);
+    }
+
+    #[test]
+    fn a_closed_port_is_an_error_that_says_why() {
+        let mut b = bus(false);
+        b.last_error = Some("cannot open /dev/ttyACM1: No such file".into());
+        let d = bus_status(&b, None, 10.0);
+        assert_eq!(d.level, DiagnosticLevel::Error);
+        assert!(d.message.contains("No such file"), "{}", d.message);
+    }
+
+    #[test]
+    fn a_plain_adapter_is_a_mode_not_a_warning() {
+        let mut b = bus(true);
+        b.sync_read_active = false;
+        b.timeouts = 3;
+        b.sync_probe_timeouts = 3;
+        b.cycles = 500;
+        b.ok_cycles = 497;
+        let d = bus_status(&b, None, 10.0);
+        assert_eq!(d.level, DiagnosticLevel::Ok, "{}", d.message);
+        assert_eq!(value(&d, "adapter_mode"), "read_data_fallback");
+        assert_eq!(value(&d, "timeouts_per_s"), "0.00");
+        b.sync_read_configured = false;
+        assert_eq!(
+            bus_status(&b, None, 10.0).message,
+            "ok: 2 motors at 50.0 Hz (read_data)"
+        );
+    }
+
+    #[test]
+    fn errors_warn_while_in_the_window_and_the_level_returns_to_ok() {
+        let mut health = ServoHealth::new();
+        let mut b = bus(true);
+        let mut levels = Vec::new();
+        // 1 Hz snapshots, 50 cycles a second; bad checksums during seconds 3..5.
+        for t in 0..=20 {
+            b.cycles = 50 * t;
+            b.ok_cycles = b.cycles;
+            if (3..5).contains(&t) {
+                b.bad_checksums += 5;
+            }
+            let d = health.update(t as f64, snapshot(b.clone())).remove(0);
+            if t == 4 {
+                assert!(d.message.contains("10 bad checksums"), "{}", d.message);
+                assert_eq!(value(&d, "checksum_errors_per_s"), "2.50");
+            }
+            levels.push(d.level);
+        }
+        let warn: Vec<usize> = (0..levels.len())
+            .filter(|&t| levels[t] == DiagnosticLevel::Warn)
+            .collect();
+        // WARN from the first bad checksum until it left the 10 s window.
+        assert_eq!(warn, (3..=13).collect::<Vec<_>>(), "{levels:?}");
+        assert_eq!(levels[20], DiagnosticLevel::Ok);
+    }
 }

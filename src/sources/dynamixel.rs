@@ -311,7 +311,11 @@ impl ServoReader {
                 let joint = table.joints()[index].clone();
                 motors.push(BusMotor { index, joint });
             }
-            bus_stats.push(BusStats::new(name, &bus.port, bus.sync_read));
+            let names = motors
+                .iter()
+                .map(|m| (m.joint.id, m.joint.name.clone()))
+                .collect();
+            bus_stats.push(BusStats::new(name, &bus.port, bus.sync_read, names));
             buses.push(BusReader::new(name, bus.clone(), motors));
         }
         let unread: Vec<String> = table

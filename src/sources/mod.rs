@@ -23,6 +23,8 @@ use std::time::Instant;
 
 use tokio::sync::watch;
 
+use crate::outputs::DeviceDiagnostics;
+
 pub mod camera;
 pub mod dynamixel;
 pub mod replay;
@@ -80,6 +82,8 @@ pub struct StreamStats {
     /// Errors and key-values kept by the source itself (servo bus counters).
     external_errors: AtomicU64,
     external_details: Mutex<Vec<(String, String)>>,
+    /// Statuses of the devices behind the stream (one per servo bus).
+    devices: Mutex<Vec<DeviceDiagnostics>>,
 }
 
 /// A copy of [`StreamStats`] at one instant.
@@ -91,6 +95,8 @@ pub struct StreamStatsSnapshot {
     pub state: String,
     /// Source-kept counters, as diagnostic key-values.
     pub details: Vec<(String, String)>,
+    /// The devices' own statuses (servo buses), published beside the stream's.
+    pub devices: Vec<DeviceDiagnostics>,
 }
 
 impl StreamStats {
@@ -129,8 +135,18 @@ impl StreamStats {
             .unwrap_or_else(|e| e.into_inner()) = details;
     }
 
+    /// Replace the statuses of the devices behind this stream.
+    pub fn set_devices(&self, devices: Vec<DeviceDiagnostics>) {
+        *self.devices.lock().unwrap_or_else(|e| e.into_inner()) = devices;
+    }
+
     pub fn snapshot(&self) -> StreamStatsSnapshot {
         StreamStatsSnapshot {
+            devices: self
+                .devices
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
             samples: self.samples.load(Ordering::Relaxed),
             errors: self.errors.load(Ordering::Relaxed)
                 + self.external_errors.load(Ordering::Relaxed),

@@ -176,7 +176,7 @@ impl BusReader {
                     .find(|m| m.joint.id == id)
                     .map_or("?", |m| m.joint.name.as_str());
                 let message = format!("motor {id} ({name}) gave no position");
-                self.note(FaultKind::Missing(id), &message);
+                self.note(stats, FaultKind::Missing(id), &message);
             }
         }
         stats.end_cycle(missing, stamp_ns);
@@ -215,6 +215,7 @@ impl BusReader {
             }
             Err(err) => {
                 BusStats::add(&stats.open_failures, 1);
+                stats.set_last_error(&format!("cannot open {}: {err}", self.config.port));
                 if !self.open_failing {
                     warn!(bus = %self.name, port = %self.config.port, error = %err,
                           "cannot open servo bus; retrying with backoff from {} ms to {} ms",
@@ -233,6 +234,7 @@ impl BusReader {
 
     fn lose_port(&mut self, stats: &BusStats, reason: &str) {
         BusStats::add(&stats.io_errors, 1);
+        stats.set_last_error(&format!("port lost: {reason}"));
         stats.set_connected(false);
         self.port = None;
         self.backoff = self.config.reopen_backoff();
@@ -242,7 +244,8 @@ impl BusReader {
         self.backoff = (self.backoff * 2).min(self.config.reopen_backoff_max());
     }
 
-    fn note(&mut self, kind: FaultKind, message: &str) {
+    fn note(&mut self, stats: &BusStats, kind: FaultKind, message: &str) {
+        stats.set_last_error(message);
         if self.warned.insert(kind) {
             warn!(bus = %self.name, "{message} (logged once; counted in diagnostics)");
         } else {
@@ -254,6 +257,7 @@ impl BusReader {
         if bytes > 0 {
             BusStats::add(&stats.garbage_bytes, bytes as u64);
             self.note(
+                stats,
                 FaultKind::Garbage,
                 &format!("skipped {bytes} garbage byte(s)"),
             );
@@ -268,11 +272,12 @@ impl BusReader {
                     "{what}: no whole answer within {} ms ({received} byte(s) received)",
                     self.config.timeout_ms
                 );
-                self.note(FaultKind::Timeout, &message);
+                self.note(stats, FaultKind::Timeout, &message);
             }
             Failure::BadChecksum => {
                 BusStats::add(&stats.bad_checksums, 1);
                 self.note(
+                    stats,
                     FaultKind::BadChecksum,
                     &format!("{what}: answer with a bad checksum"),
                 );
@@ -280,6 +285,7 @@ impl BusReader {
             Failure::BadPacket(reason) => {
                 BusStats::add(&stats.bad_packets, 1);
                 self.note(
+                    stats,
                     FaultKind::BadPacket,
                     &format!("{what}: bad answer: {reason}"),
                 );
@@ -302,7 +308,7 @@ impl BusReader {
             joint.model.name()
         );
         BusStats::add(&stats.bad_packets, 1);
-        self.note(FaultKind::BadPacket, &message);
+        self.note(stats, FaultKind::BadPacket, &message);
         None
     }
 
@@ -342,6 +348,7 @@ impl BusReader {
                 let silent = matches!(failure, Failure::Timeout { received: 0 });
                 self.fail(stats, failure, "sync read");
                 if silent && !self.sync_ok_since_open {
+                    BusStats::add(&stats.sync_probe_timeouts, 1);
                     self.silent_sync_reads += 1;
                     if self.silent_sync_reads >= SILENT_SYNC_READS_BEFORE_FALLBACK {
                         warn!(bus = %self.name, port = %self.config.port,
@@ -397,6 +404,7 @@ impl BusReader {
                         stats.count_servo_errors(status.byte());
                         for kind in ServoErrorKind::from_byte(status.byte()) {
                             self.note(
+                                stats,
                                 FaultKind::ServoError(kind),
                                 &format!("motor {id} reports servo error '{}'", kind.name()),
                             );

@@ -87,14 +87,24 @@ pub struct BusStats {
     pub(crate) io_errors: AtomicU64,
     pub(crate) reopens: AtomicU64,
     pub(crate) open_failures: AtomicU64,
+    pub(crate) sync_probe_timeouts: AtomicU64,
     last_ok_ns: AtomicI64,
     missing_ids: Mutex<Vec<u8>>,
+    /// (id, joint name) of every motor of the bus, in read order.
+    motors: Vec<(u8, String)>,
+    sync_read_configured: bool,
+    last_error: Mutex<Option<String>>,
 }
 
 const NEVER: i64 = i64::MIN;
 
 impl BusStats {
-    pub(crate) fn new(name: &str, port: &str, sync_read: bool) -> BusStats {
+    pub(crate) fn new(
+        name: &str,
+        port: &str,
+        sync_read: bool,
+        motors: Vec<(u8, String)>,
+    ) -> BusStats {
         BusStats {
             name: name.to_string(),
             port: port.to_string(),
@@ -111,8 +121,21 @@ impl BusStats {
             io_errors: AtomicU64::new(0),
             reopens: AtomicU64::new(0),
             open_failures: AtomicU64::new(0),
+            sync_probe_timeouts: AtomicU64::new(0),
             last_ok_ns: AtomicI64::new(NEVER),
             missing_ids: Mutex::new(Vec::new()),
+            motors,
+            sync_read_configured: sync_read,
+            last_error: Mutex::new(None),
+        }
+    }
+
+    /// Remember the latest fault (one line, for `/diagnostics`).
+    pub(crate) fn set_last_error(&self, message: &str) {
+        if let Ok(mut last) = self.last_error.lock() {
+            if last.as_deref() != Some(message) {
+                *last = Some(message.to_string());
+            }
         }
     }
 
@@ -178,7 +201,11 @@ impl BusStats {
             io_errors: load(&self.io_errors),
             reopens: load(&self.reopens),
             open_failures: load(&self.open_failures),
+            sync_probe_timeouts: load(&self.sync_probe_timeouts),
             last_ok_ns: (last_ok != NEVER).then_some(last_ok),
+            motors: self.motors.clone(),
+            sync_read_configured: self.sync_read_configured,
+            last_error: self.last_error.lock().ok().and_then(|l| l.clone()),
         }
     }
 }
@@ -222,8 +249,56 @@ pub struct BusStatsSnapshot {
     pub reopens: u64,
     /// Failed attempts to open the port.
     pub open_failures: u64,
+    /// Silent USB2AX sync reads on a freshly opened port (the probe that
+    /// finds a plain adapter, also counted in `timeouts`).
+    pub sync_probe_timeouts: u64,
     /// Stamp of the latest cycle in which every motor answered.
     pub last_ok_ns: Option<i64>,
+    /// (id, joint name) of every motor of the bus.
+    pub motors: Vec<(u8, String)>,
+    /// Whether the config asked for the USB2AX sync read.
+    pub sync_read_configured: bool,
+    /// The latest fault seen on this bus, one line (None: none yet).
+    pub last_error: Option<String>,
+}
+
+impl BusStatsSnapshot {
+    /// Joint names of `missing_ids`, same order.
+    pub fn missing_joints(&self) -> Vec<String> {
+        self.missing_ids
+            .iter()
+            .map(|id| {
+                self.motors
+                    .iter()
+                    .find(|(m, _)| m == id)
+                    .map_or_else(|| format!("id {id}"), |(_, n)| n.clone())
+            })
+            .collect()
+    }
+
+    /// How the bus is read: `usb2ax_sync_read`, `read_data` (configured),
+    /// or `read_data_fallback` (the adapter never answered the sync read:
+    /// a plain USB-serial adapter, which is a mode, not a fault).
+    pub fn adapter_mode(&self) -> &'static str {
+        if self.sync_read_active {
+            "usb2ax_sync_read"
+        } else if self.sync_read_configured {
+            "read_data_fallback"
+        } else {
+            "read_data"
+        }
+    }
+
+    /// Transaction errors that are faults (the plain-adapter probe left
+    /// out): timeouts, bad checksums, bad packets, I/O errors, servo error
+    /// bits.
+    pub fn fault_errors(&self) -> u64 {
+        self.timeouts.saturating_sub(self.sync_probe_timeouts)
+            + self.bad_checksums
+            + self.bad_packets
+            + self.io_errors
+            + self.servo_errors.iter().map(|(_, n)| n).sum::<u64>()
+    }
 }
 
 /// Counters of the whole servo source, one [`BusStats`] per bus, shared
