@@ -373,6 +373,28 @@ fn decode<T: RosMessage>(
     })
 }
 
+/// Decompresses one chunk's records (`zstd` or `lz4`, as MCAP writers
+/// use), refusing more than the `declared` uncompressed size.
+fn decompress_chunk(codec: &str, data: &[u8], declared: u64) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let limit = usize::try_from(declared).map_err(|e| e.to_string())?;
+    let mut out = Vec::with_capacity(limit);
+    let read = match codec {
+        "zstd" => zstd::stream::read::Decoder::new(data)
+            .and_then(|d| d.take(declared + 1).read_to_end(&mut out)),
+        "lz4" => lz4::Decoder::new(data).and_then(|d| d.take(declared + 1).read_to_end(&mut out)),
+        other => return Err(format!("unknown compression {other:?}")),
+    };
+    read.map_err(|e| e.to_string())?;
+    if out.len() != limit {
+        return Err(format!(
+            "{} uncompressed bytes, {declared} declared",
+            out.len()
+        ));
+    }
+    Ok(out)
+}
+
 /// A message record, undecoded, with the byte offset of the record that
 /// holds it (the chunk's offset for a message inside a chunk).
 #[derive(Debug, Clone)]
@@ -481,11 +503,56 @@ impl RawMcap {
                             ),
                         ));
                     }
-                    let reader = mcap::read::ChunkReader::new(header, &data)
-                        .map_err(|e| corrupt(offset, format!("chunk: {e}")))?;
-                    for inner in reader {
-                        let inner =
-                            inner.map_err(|e| corrupt(offset, format!("inside chunk: {e}")))?;
+                    let decompressed;
+                    let records: &[u8] = match header.compression.as_str() {
+                        "" => &data,
+                        codec => {
+                            decompressed = decompress_chunk(codec, &data, declared)
+                                .map_err(|e| corrupt(offset, format!("{codec} chunk: {e}")))?;
+                            &decompressed
+                        }
+                    };
+                    if header.uncompressed_crc != 0
+                        && crc32fast::hash(records) != header.uncompressed_crc
+                    {
+                        return Err(corrupt(
+                            offset,
+                            "chunk CRC mismatch: its records are damaged".into(),
+                        ));
+                    }
+                    // Walked here, every record length checked against the
+                    // chunk (mcap's chunk reader reserves a corrupted
+                    // length before checking it).
+                    let mut p = 0usize;
+                    while p < records.len() {
+                        if records.len() - p < 9 {
+                            return Err(corrupt(
+                                offset,
+                                "chunk ends inside a record header".into(),
+                            ));
+                        }
+                        let op = records[p];
+                        let mut lb = [0u8; 8];
+                        lb.copy_from_slice(&records[p + 1..p + 9]);
+                        let n = u64::from_le_bytes(lb);
+                        let start = p + 9;
+                        if n > (records.len() - start) as u64 {
+                            return Err(corrupt(
+                                offset,
+                                format!("record (opcode {op:#04x}) of {n} bytes runs past the end of its chunk"),
+                            ));
+                        }
+                        if op == 0x06 {
+                            return Err(corrupt(offset, "chunk inside a chunk".into()));
+                        }
+                        let body = &records[start..start + n as usize];
+                        p = start + n as usize;
+                        let inner = mcap::read::parse_record(op, body).map_err(|e| {
+                            corrupt(
+                                offset,
+                                format!("inside chunk: record (opcode {op:#04x}): {e}"),
+                            )
+                        })?;
                         raw.take(path, offset, inner)?;
                     }
                 }
