@@ -579,6 +579,28 @@ fn joints_status(diag: &Value) -> &Value {
     status_named(diag, ": joints").unwrap_or_else(|| panic!("no joints status in {diag}"))
 }
 
+/// The real robot's config shape: joints from the two emulated buses, no
+/// camera, no plan (the P network); `lower_keys` and `upper_keys` are added
+/// to each bus's table.
+fn servo_config(
+    dir: &Path,
+    domain: u16,
+    buses: &fall_guard::sources::dynamixel::emulator::PoppyBuses,
+    lower_keys: &str,
+    upper_keys: &str,
+) -> PathBuf {
+    let tables = format!(
+        "\n[dynamixel]\nrate_hz = 50.0\n\n[dynamixel.buses.lower]\nport = \"{}\"\n{lower_keys}\n[dynamixel.buses.upper]\nport = \"{}\"\n{upper_keys}",
+        buses.lower.port_path().display(),
+        buses.upper.port_path().display()
+    );
+    replay_config(dir, domain, move |t| {
+        t.replace("joints = \"ros\"", "joints = \"dynamixel\"")
+            .replace("plan = \"ros\"", "plan = \"none\"")
+            + &tables
+    })
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
     use fall_guard::robot::JointTable;
@@ -592,22 +614,15 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
     let dir = tempfile::tempdir().expect("tempdir");
     let table = JointTable::poppy_humanoid();
     let buses = PoppyBuses::start(&table, dir.path()).expect("emulated buses");
-    let (lower, upper) = (
-        buses.lower.port_path().to_owned(),
-        buses.upper.port_path().to_owned(),
+    // The lower bus uses the USB2AX sync read, the upper one per-motor reads
+    // (the only ones that carry each motor's error bits).
+    let config = servo_config(
+        dir.path(),
+        domain,
+        &buses,
+        "timeout_ms = 20\n",
+        "timeout_ms = 20\nsync_read = false\n",
     );
-    // The real robot's config shape: joints from the servos, no camera, no
-    // plan: the P network. The lower bus uses the USB2AX sync read, the upper
-    // one per-motor reads (the only ones that carry each motor's error bits).
-    let config = replay_config(dir.path(), domain, move |t| {
-        t.replace("joints = \"ros\"", "joints = \"dynamixel\"")
-            .replace("plan = \"ros\"", "plan = \"none\"")
-            + &format!(
-                "\n[dynamixel]\nrate_hz = 50.0\n\n[dynamixel.buses.lower]\nport = \"{}\"\ntimeout_ms = 20\n\n[dynamixel.buses.upper]\nport = \"{}\"\ntimeout_ms = 20\nsync_read = false\n",
-                lower.display(),
-                upper.display()
-            )
-    });
     let mut listener = listen(
         &python,
         domain,
@@ -803,20 +818,8 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
     // configured (the default) but never answered, so the reader falls back
     // to one READ_DATA per motor. A mode, not a fault.
     buses.upper.set_sync_read_supported(false);
-    let (lower, upper) = (
-        buses.lower.port_path().to_owned(),
-        buses.upper.port_path().to_owned(),
-    );
-    let upper_port = upper.display().to_string();
-    let config = replay_config(dir.path(), domain, move |t| {
-        t.replace("joints = \"ros\"", "joints = \"dynamixel\"")
-            .replace("plan = \"ros\"", "plan = \"none\"")
-            + &format!(
-                "\n[dynamixel]\nrate_hz = 50.0\n\n[dynamixel.buses.lower]\nport = \"{}\"\n\n[dynamixel.buses.upper]\nport = \"{}\"\n",
-                lower.display(),
-                upper.display()
-            )
-    });
+    let upper_port = buses.upper.port_path().display().to_string();
+    let config = servo_config(dir.path(), domain, &buses, "", "");
     let mut listener = listen(
         &python,
         domain,
