@@ -353,7 +353,7 @@ pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
         let collected = collector
             .await
             .map_err(|e| ServiceError::Source(format!("{}: {e}", out.display())))?;
-        let forecasts = collected.forecasts;
+        let forecasts = collected.forecasts();
         crate::outputs::annotate::write(&recording, out, collected)
             .map_err(|e| ServiceError::Source(e.to_string()))?;
         tracing::info!(out = %out.display(), forecasts, "replay with outputs written");

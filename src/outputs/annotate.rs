@@ -19,7 +19,7 @@ use super::ros::{diagnostic_array, forecast_message, OutputTopics};
 use super::{DiagnosticsSnapshot, ForecastOutput, OutputBus};
 use crate::msgs::{Bool, DiagnosticArray, Float32MultiArray};
 use crate::recording::{copy_with, RecordingError, RecordingWriter};
-use crate::service::ros_bridge::published_probabilities;
+use crate::service::ros_bridge::{imminent_changed, published_probabilities};
 use crate::shutdown::Shutdown;
 
 /// One output message, in publish order.
@@ -35,7 +35,16 @@ pub struct Collected {
     messages: Vec<(i64, Output)>,
     /// Forecasts or snapshots the collector fell behind on and lost.
     pub lost: u64,
-    pub forecasts: u64,
+}
+
+impl Collected {
+    /// Forecasts collected (one per tick).
+    pub fn forecasts(&self) -> usize {
+        self.messages
+            .iter()
+            .filter(|(_, m)| matches!(m, Output::Forecast(_)))
+            .count()
+    }
 }
 
 /// Topics in the output file (the daemon's default names, no namespace).
@@ -76,15 +85,12 @@ pub fn collect(
         let mut out = Collected {
             messages: Vec::new(),
             lost: 0,
-            forecasts: 0,
         };
         let mut imminent: Option<bool> = None;
         let mut take_forecast = |out: &mut Collected, f: &ForecastOutput| {
-            out.forecasts += 1;
             let msg = forecast_message(&published_probabilities(f));
             out.messages.push((f.stamp_ns, Output::Forecast(msg)));
-            if imminent != Some(f.imminent) {
-                imminent = Some(f.imminent);
+            if imminent_changed(&mut imminent, f.imminent) {
                 out.messages
                     .push((f.stamp_ns, Output::FallImminent(f.imminent)));
             }

@@ -227,10 +227,17 @@ pub fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> Option
 /// `RosOutputs`.
 fn publish_tick(outputs: &RosOutputs, imminent: &mut Option<bool>, f: &ForecastOutput) {
     let _ = outputs.publish_forecast(&published_probabilities(f));
-    if *imminent != Some(f.imminent) {
-        *imminent = Some(f.imminent);
+    if imminent_changed(imminent, f.imminent) {
         let _ = outputs.publish_fall_imminent(f.imminent);
     }
+}
+
+/// Whether `fall_imminent` is published this tick: on its first value and
+/// on every change (`last`: the value published last, updated here).
+pub fn imminent_changed(last: &mut Option<bool>, now: bool) -> bool {
+    let changed = *last != Some(now);
+    *last = Some(now);
+    changed
 }
 
 /// What goes on `/fall_guard/forecast` for one tick: the probabilities of a
