@@ -115,6 +115,7 @@ def listen(args):
     node = rclpy.create_node("fall_guard_test_listener")
     want = {}
     counts = {}
+    finite = {}
     subs = []
     for spec in args.sub:
         try:
@@ -123,23 +124,37 @@ def listen(args):
             raise SystemExit(f"bad --sub {spec!r}: expected TOPIC:TYPE:QOS")
         cls = message_class(type_name)
         counts[topic] = 0
+        finite[topic] = 0
 
         def callback(msg, topic=topic):
             counts[topic] += 1
+            data = getattr(msg, "data", None)
+            if data is not None and not isinstance(data, (bool, str)):
+                try:
+                    if all(math.isfinite(v) for v in data):
+                        finite[topic] += 1
+                except TypeError:
+                    pass
             emit({"event": "msg", "topic": topic, "t": time.monotonic(), "msg": to_plain(msg)})
 
         subs.append(node.create_subscription(cls, topic, callback, QOS[qos]))
     for spec in args.count:
         topic, n = spec.rsplit("=", 1)
         want[topic] = int(n)
+    want_finite = {}
+    for spec in args.count_finite:
+        topic, n = spec.rsplit("=", 1)
+        want_finite[topic] = int(n)
     emit({"event": "ready", "t": time.monotonic()})
     deadline = time.monotonic() + args.timeout
     while time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
-        if want and all(counts.get(t, 0) >= n for t, n in want.items()):
-            emit({"event": "done", "counts": counts})
+        if (want or want_finite) and all(counts.get(t, 0) >= n for t, n in want.items()) and all(
+            finite.get(t, 0) >= n for t, n in want_finite.items()
+        ):
+            emit({"event": "done", "counts": counts, "finite": finite})
             return 0
-    emit({"event": "timeout", "counts": counts})
+    emit({"event": "timeout", "counts": counts, "finite": finite})
     return 3
 
 
@@ -259,6 +274,12 @@ def main():
     lp = sub.add_parser("listen")
     lp.add_argument("--sub", action="append", default=[], help="TOPIC:TYPE:QOS")
     lp.add_argument("--count", action="append", default=[], help="TOPIC=N to wait for")
+    lp.add_argument(
+        "--count-finite",
+        action="append",
+        default=[],
+        help="TOPIC=N: wait for N messages whose array `data` is all finite numbers",
+    )
     lp.add_argument("--timeout", type=float, default=30.0)
     pp = sub.add_parser("publish")
     pp.add_argument("--joint-states", default="/joint_states")
