@@ -31,8 +31,10 @@ mkdir -p "$out"
 # qemu runner are in .cargo/config.toml.
 xcargo() { RUSTC=/usr/bin/rustc CARGO_TARGET_DIR="$aarch64_dir" cargo "$@"; }
 
-echo "== aarch64 build: binary and test harnesses"
-xcargo build --target "$target" --bin fall-guard
+echo "== aarch64 build: test harnesses and the binary"
+# The integration test makes cargo build the binary too, with the same
+# (test-unified) dependency features: the dependencies compile once. A
+# separate `cargo build --bin` would compile burn again with other features.
 xcargo test --target "$target" --no-run --lib --test data_window
 
 echo "== aarch64 tests under qemu-user"
@@ -40,7 +42,8 @@ xcargo test --target "$target" --lib -- model:: frame::
 xcargo test --target "$target" --test data_window
 
 arm_bin="$aarch64_dir/$target/debug/fall-guard"
-run_arm() { qemu-aarch64 -L /usr/aarch64-linux-gnu "$arm_bin" "$@"; }
+# -L /: Debian's libc6:arm64 loader and libc, one glibc build (.cargo/config.toml).
+run_arm() { qemu-aarch64 -L / "$arm_bin" "$@"; }
 file_machine() { readelf -h "$1" | sed -n 's/^ *Machine: *//p'; }
 echo "fall-guard binary: $(file_machine "$arm_bin")"
 
