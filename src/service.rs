@@ -18,6 +18,7 @@ use tokio::task::JoinHandle;
 use crate::config::{CameraSource, Config, ConfigError, JointsSource, PlanSource};
 use crate::forecast::{ablation_name, ForecastError, Inference, ModelSet};
 use crate::frame::Frame;
+use crate::msgs::CompressedImage;
 use crate::outputs::latch::{LatchError, SafetyLatch};
 use crate::outputs::recorder::Recorder;
 use crate::outputs::OutputBus;
@@ -27,7 +28,7 @@ use crate::shutdown::{Shutdown, ShutdownTrigger};
 use crate::sources::replay::{replay_samples, Pacing, ReplayError, ReplayRecording};
 use crate::sources::{stream, StreamFeed, StreamKind, StreamStats, StreamTap};
 use crate::tick::{LiveTaps, StreamSlot, TickCounters, TickLoop, TickSettings};
-use crate::window::{Plan, Sample, WindowError};
+use crate::window::{Plan, Sample, WindowError, WindowSpec};
 
 #[derive(Debug, Error)]
 pub enum ServiceError {
@@ -476,6 +477,7 @@ fn start_sources(
         joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
         camera: (config.streams.camera == CameraSource::Ros).then(|| streams.camera.clone()),
         plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
+        camera_raw: None,
     };
     if wanted.any() {
         let bridge = ros.ok_or_else(|| {
@@ -532,6 +534,11 @@ fn start_camera(
     _feed: StreamFeed<Arc<Frame>>,
     _shutdown: Shutdown,
 ) -> Result<SourceHandle, ServiceError> {
+    start_camera_unavailable(config)
+}
+
+#[cfg(not(feature = "camera-v4l"))]
+fn start_camera_unavailable(config: &Config) -> Result<SourceHandle, ServiceError> {
     Err(ServiceError::Usage(format!(
         "{}: [streams].camera = \"v4l2\" needs a build with cargo feature `camera-v4l`",
         config.origin
@@ -606,27 +613,37 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     Ok(counters)
 }
 
-/// `fall-guard record`.
+/// `fall-guard record`: the live streams into an MCAP recording, loading
+/// no network. What it needs comes from the config (`[robot].tick_rate_hz`
+/// as the recording's `rate_hz`, the robot's joint names, the sources and
+/// topics); the camera is kept as the camera gave it ([`Recorder::record_image`]).
 pub async fn record(
     args: RecordArgs,
 ) -> Result<crate::outputs::recorder::RecordSummary, ServiceError> {
     let config = Config::load(&args.config)?;
     let joints = robot_joints(&config);
-    let models = ModelSet::load(&config, &joints)?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let signals = shutdown_on_signals(Arc::clone(&trigger));
     let streams = LiveStreams::new();
+    let (camera_feed, mut camera) = stream::<Arc<CompressedImage>>(StreamKind::Camera);
     let mut ros = if config.ros.enabled {
         Some(RosBridge::start(&config)?)
     } else {
         None
     };
-    let sources = start_sources(&config, &models, &streams, ros.as_mut(), &trigger)?;
+    let sources = start_record_sources(
+        &config,
+        &joints,
+        &streams,
+        camera_feed,
+        ros.as_mut(),
+        &trigger,
+    )?;
     let mut recorder = Recorder::create(
         &args.out,
         joints,
         &config.robot.joints,
-        models.spec().rate_hz,
+        config.robot.tick_rate_hz,
     )?;
     let mut shutdown = trigger.subscribe();
     let deadline = args
@@ -634,23 +651,23 @@ pub async fn record(
         .map(|s| tokio::time::Instant::now() + std::time::Duration::from_secs_f64(s.max(0.0)));
     let LiveTaps {
         mut joints,
-        mut camera,
+        camera: _,
         mut plan,
     } = streams.taps.clone();
     let result: Result<(), ServiceError> = loop {
-        let sample = tokio::select! {
+        let written = tokio::select! {
             () = shutdown.recv() => break Ok(()),
             () = async { match deadline { Some(d) => tokio::time::sleep_until(d).await, None => std::future::pending().await } } => break Ok(()),
             // A servo read that lacks a motor (NaN) is not recorded: a
             // recording holds whole readings, which a replay can use.
             Some(s) = changed(&mut joints) => {
                 if s.value.iter().any(|v| !v.is_finite()) { continue; }
-                Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() }
+                recorder.record(&Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() })
             }
-            Some(s) = changed(&mut camera) => Sample::Frame { stamp_ns: s.stamp_ns, frame: Arc::clone(&s.value) },
-            Some(s) = changed(&mut plan) => Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) },
+            Some(s) = changed(&mut camera) => recorder.record_image(s.stamp_ns, &s.value),
+            Some(s) = changed(&mut plan) => recorder.record(&Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) }),
         };
-        if let Err(e) = recorder.record(&sample) {
+        if let Err(e) = written {
             break Err(e.into());
         }
     };
@@ -665,6 +682,83 @@ pub async fn record(
     signals.abort();
     result?;
     Ok(summary?)
+}
+
+/// The sources of `record`: joints and plan as `run` has them, the camera
+/// not decoded (`camera`: the ROS message as received, or the V4L2 buffer).
+fn start_record_sources(
+    config: &Config,
+    joints: &[String],
+    streams: &LiveStreams,
+    camera: StreamFeed<Arc<CompressedImage>>,
+    ros: Option<&mut RosBridge>,
+    shutdown: &ShutdownTrigger,
+) -> Result<Vec<SourceHandle>, ServiceError> {
+    let mut handles = Vec::new();
+    if config.streams.joints == JointsSource::Dynamixel {
+        handles.push(servo_bridge::start(
+            config,
+            streams.joints.clone(),
+            shutdown.subscribe(),
+        )?);
+    }
+    if config.streams.camera == CameraSource::V4l2 {
+        handles.push(start_camera_compressed(
+            config,
+            camera.clone(),
+            shutdown.subscribe(),
+        )?);
+    }
+    let wanted = InputsWanted {
+        joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
+        camera: None,
+        plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
+        camera_raw: (config.streams.camera == CameraSource::Ros).then_some(camera),
+    };
+    if wanted.any() {
+        let bridge = ros.ok_or_else(|| {
+            ServiceError::Usage(format!(
+                "{}: [streams] reads from ROS 2 but [ros].enabled = false",
+                config.origin
+            ))
+        })?;
+        // Only the joint names and the tick rate matter to the inputs
+        // without a decoded camera: no network, no window.
+        let spec = WindowSpec {
+            n_ticks: 1,
+            max_horizon_ticks: 0,
+            rate_hz: config.robot.tick_rate_hz,
+            joint_names: joints.to_vec(),
+            frame_size: 0,
+        };
+        let tasks = bridge.start_inputs(config, &spec, wanted, shutdown.subscribe())?;
+        handles.extend(tasks.into_iter().map(SourceHandle::Task));
+    }
+    Ok(handles)
+}
+
+#[cfg(feature = "camera-v4l")]
+fn start_camera_compressed(
+    config: &Config,
+    feed: StreamFeed<Arc<CompressedImage>>,
+    shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
+    let camera = config
+        .camera
+        .clone()
+        .ok_or_else(|| ServiceError::Usage(format!("{}: [camera] missing", config.origin)))?;
+    crate::sources::camera::spawn_camera_compressed(camera, feed, shutdown)
+        .map(SourceHandle::Thread)
+        .map_err(|e| ServiceError::Source(format!("cannot start the camera thread: {e}")))
+}
+
+#[cfg(not(feature = "camera-v4l"))]
+fn start_camera_compressed(
+    config: &Config,
+    _feed: StreamFeed<Arc<CompressedImage>>,
+    _shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
+    start_camera_unavailable(config)
 }
 
 async fn changed<T>(tap: &mut StreamTap<T>) -> Option<Arc<crate::sources::Stamped<T>>> {
