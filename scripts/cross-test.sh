@@ -33,11 +33,11 @@ xcargo() { RUSTC=/usr/bin/rustc CARGO_TARGET_DIR="$aarch64_dir" cargo "$@"; }
 
 echo "== aarch64 build: binary and test harnesses"
 xcargo build --target "$target" --bin fall-guard
-xcargo test --target "$target" --no-run --lib --test data_window
+xcargo test --target "$target" --features test-kits --no-run --lib --test data_window
 
 echo "== aarch64 tests under qemu-user"
-xcargo test --target "$target" --lib -- model:: frame::
-xcargo test --target "$target" --test data_window
+xcargo test --target "$target" --features test-kits --lib -- model:: frame::
+xcargo test --target "$target" --features test-kits --test data_window
 
 arm_bin="$aarch64_dir/$target/debug/fall-guard"
 run_arm() { qemu-aarch64 -L /usr/aarch64-linux-gnu "$arm_bin" "$@"; }
