@@ -2,8 +2,9 @@
 //! thread -> outputs, for the subcommands `run`, `replay`, `record` and
 //! `label`.
 //!
-//! Each subcommand has a clap `Args` struct and an async `execute` here;
-//! `main.rs` only parses and dispatches. Shutdown is a value
+//! Each subcommand has a plain options struct and an async function here;
+//! the binary (`src/cli.rs`) parses the command line into them and
+//! dispatches. Shutdown is a value
 //! ([`Shutdown`]) handed to every task; SIGINT/SIGTERM, the end of a replay,
 //! or a failed task fire it. sd-notify READY/WATCHDOG come from the tick
 //! loop (`tick.rs`), so a hung tick gets the service restarted by systemd.
@@ -11,7 +12,6 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use clap::Args;
 use thiserror::Error;
 use tokio::task::JoinHandle;
 
@@ -55,65 +55,52 @@ pub enum ServiceError {
 }
 
 /// `fall-guard run`: the onboard daemon.
-#[derive(Debug, Clone, Args)]
-pub struct RunArgs {
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
     /// The config file (see config/poppy_humanoid.toml).
-    #[arg(long, default_value = "/etc/fall-guard/poppy_humanoid.toml")]
     pub config: PathBuf,
     /// ROS namespace for every relative topic (overrides `[ros].namespace`).
-    #[arg(long)]
     pub namespace: Option<String>,
 }
 
 /// `fall-guard replay`: the daemon on a recording, with recorded time.
-#[derive(Debug, Clone, Args)]
-pub struct ReplayArgs {
+#[derive(Debug, Clone, Default)]
+pub struct ReplayOptions {
     /// Config file; without it, the embedded config/replay.toml.
-    #[arg(long)]
     pub config: Option<PathBuf>,
     /// MCAP recording; without it, `[replay].recording` of the config.
-    #[arg(long)]
     pub recording: Option<PathBuf>,
     /// Recorded time runs this many times faster than real time.
-    #[arg(long, conflicts_with = "max_speed")]
     pub speed: Option<f64>,
     /// As fast as inference allows (every tick forecast, none skipped).
-    #[arg(long)]
     pub max_speed: bool,
     /// Do not print one line per forecast on stdout.
-    #[arg(long)]
     pub quiet: bool,
     /// Also write the recording with the daemon's outputs merged in
     /// (`/fall_guard/forecast`, `/fall_guard/fall_imminent`, `/diagnostics`
     /// at recorded time), e.g. to open in Foxglove with
     /// `docs/foxglove/fall-guard.json`.
-    #[arg(long)]
     pub out: Option<PathBuf>,
 }
 
 /// `fall-guard record`: record the live streams as an MCAP recording.
-#[derive(Debug, Clone, Args)]
-pub struct RecordArgs {
-    #[arg(long)]
+#[derive(Debug, Clone, Default)]
+pub struct RecordOptions {
     pub config: PathBuf,
     /// Output file (.mcap).
-    #[arg(long)]
     pub out: PathBuf,
     /// Stop after this many seconds (default: until Ctrl-C / SIGTERM).
-    #[arg(long)]
     pub duration_s: Option<f64>,
 }
 
 /// `fall-guard label`: mark the fall onset of a recording, in place.
-#[derive(Debug, Clone, Args)]
-pub struct LabelArgs {
+#[derive(Debug, Clone, Default)]
+pub struct LabelOptions {
     /// The recording to label.
     pub recording: PathBuf,
     /// Seconds after the recording's first message when the fall starts.
-    #[arg(long, required_unless_present = "no_fall", conflicts_with = "no_fall")]
     pub fall_at: Option<f64>,
     /// The episode does not fall.
-    #[arg(long)]
     pub no_fall: bool,
 }
 
@@ -274,7 +261,7 @@ impl ReplaySetup {
 }
 
 /// `fall-guard replay`.
-pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
+pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
     let config = load_config(args.config.as_deref())?;
     let replay_defaults = config.replay.clone();
     let recording = match (&args.recording, &replay_defaults) {
@@ -546,7 +533,7 @@ fn start_camera_unavailable(config: &Config) -> Result<SourceHandle, ServiceErro
 }
 
 /// `fall-guard run`.
-pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
+pub async fn run(args: RunOptions) -> Result<TickCounters, ServiceError> {
     let mut config = Config::load(&args.config)?;
     if let Some(ns) = &args.namespace {
         config.set_namespace(ns, "--namespace")?;
@@ -618,7 +605,7 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
 /// as the recording's `rate_hz`, the robot's joint names, the sources and
 /// topics); the camera is kept as the camera gave it ([`Recorder::record_image`]).
 pub async fn record(
-    args: RecordArgs,
+    args: RecordOptions,
 ) -> Result<crate::outputs::recorder::RecordSummary, ServiceError> {
     let config = Config::load(&args.config)?;
     let joints = robot_joints(&config);
@@ -766,7 +753,7 @@ async fn changed<T>(tap: &mut StreamTap<T>) -> Option<Arc<crate::sources::Stampe
 }
 
 /// `fall-guard label`.
-pub fn label(args: &LabelArgs) -> Result<Option<i64>, ServiceError> {
+pub fn label(args: &LabelOptions) -> Result<Option<i64>, ServiceError> {
     let fall_at = if args.no_fall { None } else { args.fall_at };
     if !args.no_fall && fall_at.is_none() {
         return Err(ServiceError::Usage(
