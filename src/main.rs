@@ -43,11 +43,11 @@ fn main() -> Result<()> {
         .enable_all()
         .build()?;
     match cli.command {
-        Command::Train(args) => fall_guard::train::cli::run_train(&args)?,
-        Command::Eval(args) => fall_guard::train::cli::run_eval(&args)?,
-        Command::Warnings(args) => fall_guard::train::warning::run_warnings(&args)?,
-        Command::Half(args) => fall_guard::train::cli::run_half(&args)?,
-        Command::Calibrate(args) => fall_guard::train::calibrate::run_calibrate(&args)?,
+        Command::Train(args) => fall_guard::train::cli::run_train(&args.into())?,
+        Command::Eval(args) => fall_guard::train::cli::run_eval(&args.into())?,
+        Command::Warnings(args) => fall_guard::train::warning::run_warnings(&args.into())?,
+        Command::Half(args) => fall_guard::train::cli::run_half(&args.into())?,
+        Command::Calibrate(args) => fall_guard::train::calibrate::run_calibrate(&args.into())?,
         Command::Run(args) => {
             runtime.block_on(service::run(args.into()))?;
         }
@@ -78,7 +78,7 @@ fn main() -> Result<()> {
             runtime.block_on(fall_guard::daemon_bench::run(args.into()))?;
         }
         Command::Bench(args) => {
-            fall_guard::train::bench::run_bench(&args)?;
+            fall_guard::train::bench::run_bench(&args.into())?;
         }
     }
     Ok(())
