@@ -35,11 +35,11 @@ echo "== aarch64 build: test harnesses and the binary"
 # The integration test makes cargo build the binary too, with the same
 # (test-unified) dependency features: the dependencies compile once. A
 # separate `cargo build --bin` would compile burn again with other features.
-xcargo test --target "$target" --no-run --lib --test data_window
+xcargo test --target "$target" --features test-kits --no-run --lib --test data_window
 
 echo "== aarch64 tests under qemu-user"
-xcargo test --target "$target" --lib -- model:: frame::
-xcargo test --target "$target" --test data_window
+xcargo test --target "$target" --features test-kits --lib -- model:: frame::
+xcargo test --target "$target" --features test-kits --test data_window
 
 arm_bin="$aarch64_dir/$target/debug/fall-guard"
 # -L /: Debian's libc6:arm64 loader and libc, one glibc build (.cargo/config.toml).

@@ -93,10 +93,19 @@ pub struct RobotConfig {
     /// Joint table: only `"poppy_humanoid"` is built in.
     #[serde(default = "default_joint_table")]
     pub joints: String,
+    /// The tick rate, Hz: the grid every stream is resampled onto. The
+    /// networks are trained at it (checked when they load) and `record`
+    /// writes it as the recording's `rate_hz`, without loading a network.
+    #[serde(default = "default_tick_rate_hz")]
+    pub tick_rate_hz: f64,
 }
 
 fn default_joint_table() -> String {
     "poppy_humanoid".to_string()
+}
+
+fn default_tick_rate_hz() -> f64 {
+    30.0
 }
 
 /// `[model]`: the network files and the safety latch on its output.
@@ -312,6 +321,7 @@ impl Default for OutputConfig {
 pub struct ModelFacts {
     pub horizons_ms: Vec<u32>,
     pub joint_names: Vec<String>,
+    pub rate_hz: f64,
 }
 
 /// `a.b[1].c` -> `[a].b[1].c`; a top-level key stays bare.
@@ -405,6 +415,9 @@ impl Config {
                     self.robot.joints
                 ),
             ));
+        }
+        if let Err(e) = crate::window::TickGrid::new(self.robot.tick_rate_hz) {
+            return Err(self.value_error("[robot].tick_rate_hz", e.to_string()));
         }
         let m = &self.model;
         for (key, p) in [
@@ -517,6 +530,15 @@ impl Config {
                     "expected one of the model's horizons {}, got {}",
                     list.join(", "),
                     self.model.horizon_ms
+                ),
+            ));
+        }
+        if (facts.rate_hz - self.robot.tick_rate_hz).abs() > 1e-9 {
+            return Err(self.value_error(
+                "[robot].tick_rate_hz",
+                format!(
+                    "the model ticks at {} Hz, the config at {} Hz",
+                    facts.rate_hz, self.robot.tick_rate_hz
                 ),
             ));
         }
@@ -664,6 +686,7 @@ mod tests {
         let facts = ModelFacts {
             horizons_ms: vec![500, 1000, 1500, 2000],
             joint_names: vec!["a".into()],
+            rate_hz: 30.0,
         };
         let err = config
             .check_against_model(&facts, &["a".to_string()])
@@ -680,6 +703,14 @@ mod tests {
             err.to_string().contains("first difference at index 0"),
             "{err}"
         );
+        let facts = ModelFacts {
+            rate_hz: 50.0,
+            ..facts
+        };
+        let err = config
+            .check_against_model(&facts, &["a".to_string()])
+            .expect_err("rate mismatch");
+        assert_eq!(err.key(), Some("[robot].tick_rate_hz"), "{err}");
     }
 
     #[test]

@@ -11,7 +11,6 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use clap::Args;
 use serde::Serialize;
 
 use crate::forecast::percentiles_ms;
@@ -19,24 +18,20 @@ use crate::service::{load_config, ReplaySetup, ServiceError};
 use crate::shutdown::ShutdownTrigger;
 use crate::sources::replay::{replay_samples, shifted, Pacing};
 
-#[derive(Debug, Clone, Args)]
-pub struct BenchDaemonArgs {
+/// `fall-guard bench-daemon`.
+#[derive(Debug, Clone)]
+pub struct BenchDaemonOptions {
     /// Config file; without it, the embedded config/replay.toml.
-    #[arg(long)]
     pub config: Option<PathBuf>,
     /// Recording to loop; without it, `[replay].recording`.
-    #[arg(long)]
     pub recording: Option<PathBuf>,
     /// Wall time to run, seconds.
-    #[arg(long, default_value_t = 120.0)]
     pub duration_s: f64,
     /// Also write the report as JSON here.
-    #[arg(long)]
     pub json: Option<PathBuf>,
     /// Replay at this many times real time instead of maximum speed: the
     /// sensor-to-publish latency as on the robot (at maximum speed a sample
     /// also waits for the previous tick's inference).
-    #[arg(long)]
     pub speed: Option<f64>,
 }
 
@@ -78,7 +73,7 @@ pub fn rss_mb() -> f64 {
         .map_or(0.0, |pages| pages * page / (1024.0 * 1024.0))
 }
 
-pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
+pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> {
     let mut config = load_config(args.config.as_deref())?;
     config.output.print_forecasts = false;
     let recording = match (&args.recording, &config.replay) {

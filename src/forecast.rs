@@ -178,6 +178,7 @@ impl ModelSet {
             &ModelFacts {
                 horizons_ms: horizons_ms.clone(),
                 joint_names: emp.joint_names.clone(),
+                rate_hz: emp.rate_hz,
             },
             robot_joints,
         )?;

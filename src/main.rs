@@ -1,47 +1,14 @@
-//! The `fall-guard` command line: parses arguments and dispatches to the
+//! The `fall-guard` command line: parses arguments (`cli.rs`, the only
+//! place that knows clap for the daemon's subcommands) and dispatches to the
 //! library; nothing else happens here.
 
+mod cli;
+
 use anyhow::Result;
-use clap::{Parser, Subcommand};
+use clap::Parser;
 
+use cli::{Cli, Command};
 use fall_guard::service;
-
-#[derive(Debug, Parser)]
-#[command(
-    name = "fall-guard",
-    version,
-    about = "Forecasts falls of a walking Poppy Humanoid and publishes them on ROS 2"
-)]
-struct Cli {
-    #[command(subcommand)]
-    command: Command,
-}
-
-#[derive(Debug, Subcommand)]
-enum Command {
-    /// Train a model (or the logistic baseline) on a data set.
-    Train(fall_guard::train::cli::TrainArgs),
-    /// Evaluate model files on a split; or forecast one recording per tick.
-    Eval(fall_guard::train::cli::EvalArgs),
-    /// Run the onboard daemon (servos, camera and plan in; forecasts out on ROS 2).
-    Run(service::RunArgs),
-    /// Replay an MCAP recording through the daemon with recorded time.
-    Replay(service::ReplayArgs),
-    /// Record the live streams as an MCAP recording.
-    Record(service::RecordArgs),
-    /// Mark the fall onset of a recording (in place).
-    Label(service::LabelArgs),
-    /// Benchmark the daemon: sensor-to-publish latency and memory while replaying at maximum speed.
-    BenchDaemon(fall_guard::daemon_bench::BenchDaemonArgs),
-    /// Warning lead time and false alarms of the safety latch on a split; choose its thresholds.
-    Warnings(fall_guard::train::warning::WarningsArgs),
-    /// Calibrate a model's probabilities on held-out windows (Platt scaling per horizon).
-    Calibrate(fall_guard::train::calibrate::CalibrateArgs),
-    /// Rewrite a model file with its weights in half precision (f16).
-    Half(fall_guard::train::cli::HalfArgs),
-    /// Per-tick latency and training throughput of the network.
-    Bench(fall_guard::train::bench::BenchArgs),
-}
 
 /// Logs when `RUST_LOG` is unset: fall-guard at info; DDS (rustdds,
 /// ros2-client) only from warnings up, less two sources that say nothing an
@@ -76,22 +43,22 @@ fn main() -> Result<()> {
         .enable_all()
         .build()?;
     match cli.command {
-        Command::Train(args) => fall_guard::train::cli::run_train(&args)?,
-        Command::Eval(args) => fall_guard::train::cli::run_eval(&args)?,
-        Command::Warnings(args) => fall_guard::train::warning::run_warnings(&args)?,
-        Command::Half(args) => fall_guard::train::cli::run_half(&args)?,
-        Command::Calibrate(args) => fall_guard::train::calibrate::run_calibrate(&args)?,
+        Command::Train(args) => fall_guard::train::cli::run_train(&args.into())?,
+        Command::Eval(args) => fall_guard::train::cli::run_eval(&args.into())?,
+        Command::Warnings(args) => fall_guard::train::warning::run_warnings(&args.into())?,
+        Command::Half(args) => fall_guard::train::cli::run_half(&args.into())?,
+        Command::Calibrate(args) => fall_guard::train::calibrate::run_calibrate(&args.into())?,
         Command::Run(args) => {
-            runtime.block_on(service::run(args))?;
+            runtime.block_on(service::run(args.into()))?;
         }
         Command::Replay(args) => {
-            let report = runtime.block_on(service::replay(args))?;
+            let report = runtime.block_on(service::replay(args.into()))?;
             if report.interrupted {
                 anyhow::bail!("replay of {} interrupted", report.recording.display());
             }
         }
         Command::Record(args) => {
-            let summary = runtime.block_on(service::record(args))?;
+            let summary = runtime.block_on(service::record(args.into()))?;
             eprintln!(
                 "recorded {} joint states, {} frames, {} plans over {:.1} s",
                 summary.counts[0],
@@ -100,7 +67,7 @@ fn main() -> Result<()> {
                 summary.duration_ns as f64 / 1e9
             );
         }
-        Command::Label(args) => match service::label(&args)? {
+        Command::Label(args) => match service::label(&args.clone().into())? {
             Some(onset_ns) => eprintln!(
                 "{}: fall onset at log time {onset_ns} ns",
                 args.recording.display()
@@ -108,10 +75,10 @@ fn main() -> Result<()> {
             None => eprintln!("{}: labelled as not falling", args.recording.display()),
         },
         Command::BenchDaemon(args) => {
-            runtime.block_on(fall_guard::daemon_bench::run(args))?;
+            runtime.block_on(fall_guard::daemon_bench::run(args.into()))?;
         }
         Command::Bench(args) => {
-            fall_guard::train::bench::run_bench(&args)?;
+            fall_guard::train::bench::run_bench(&args.into())?;
         }
     }
     Ok(())

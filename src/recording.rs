@@ -4,10 +4,12 @@
 //! Files enter through [`Recording::open`] (typed per-topic streams of
 //! `(log_time_ns, msg)` plus the `fall_guard.episode` metadata as
 //! [`EpisodeMeta`]); they are written by [`RecordingWriter`] (the daemon's
-//! `record` command, the simulator's Rust twin in [`synthetic`], tests) and
+//! `record` command, the simulator's Rust twin in `synthetic`, a test kit behind the cargo
+//! feature `test-kits`, tests) and
 //! rewritten in place, safely, by [`label`]. Errors name the file and, for a
 //! damaged file, the byte offset of the record that could not be read.
 
+#[cfg(any(test, feature = "test-kits"))]
 pub mod synthetic;
 
 use std::collections::{BTreeMap, HashMap};

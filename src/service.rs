@@ -2,8 +2,9 @@
 //! thread -> outputs, for the subcommands `run`, `replay`, `record` and
 //! `label`.
 //!
-//! Each subcommand has a clap `Args` struct and an async `execute` here;
-//! `main.rs` only parses and dispatches. Shutdown is a value
+//! Each subcommand has a plain options struct and an async function here;
+//! the binary (`src/cli.rs`) parses the command line into them and
+//! dispatches. Shutdown is a value
 //! ([`Shutdown`]) handed to every task; SIGINT/SIGTERM, the end of a replay,
 //! or a failed task fire it. sd-notify READY/WATCHDOG come from the tick
 //! loop (`tick.rs`), so a hung tick gets the service restarted by systemd.
@@ -11,13 +12,13 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use clap::Args;
 use thiserror::Error;
 use tokio::task::JoinHandle;
 
 use crate::config::{CameraSource, Config, ConfigError, JointsSource, PlanSource};
 use crate::forecast::{ablation_name, ForecastError, Inference, ModelSet};
 use crate::frame::Frame;
+use crate::msgs::CompressedImage;
 use crate::outputs::latch::{LatchError, SafetyLatch};
 use crate::outputs::recorder::Recorder;
 use crate::outputs::OutputBus;
@@ -27,7 +28,7 @@ use crate::shutdown::{Shutdown, ShutdownTrigger};
 use crate::sources::replay::{replay_samples, Pacing, ReplayError, ReplayRecording};
 use crate::sources::{stream, StreamFeed, StreamKind, StreamStats, StreamTap};
 use crate::tick::{LiveTaps, StreamSlot, TickCounters, TickLoop, TickSettings};
-use crate::window::{Plan, Sample, WindowError};
+use crate::window::{Plan, Sample, WindowError, WindowSpec};
 
 #[derive(Debug, Error)]
 pub enum ServiceError {
@@ -54,65 +55,52 @@ pub enum ServiceError {
 }
 
 /// `fall-guard run`: the onboard daemon.
-#[derive(Debug, Clone, Args)]
-pub struct RunArgs {
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
     /// The config file (see config/poppy_humanoid.toml).
-    #[arg(long, default_value = "/etc/fall-guard/poppy_humanoid.toml")]
     pub config: PathBuf,
     /// ROS namespace for every relative topic (overrides `[ros].namespace`).
-    #[arg(long)]
     pub namespace: Option<String>,
 }
 
 /// `fall-guard replay`: the daemon on a recording, with recorded time.
-#[derive(Debug, Clone, Args)]
-pub struct ReplayArgs {
+#[derive(Debug, Clone, Default)]
+pub struct ReplayOptions {
     /// Config file; without it, the embedded config/replay.toml.
-    #[arg(long)]
     pub config: Option<PathBuf>,
     /// MCAP recording; without it, `[replay].recording` of the config.
-    #[arg(long)]
     pub recording: Option<PathBuf>,
     /// Recorded time runs this many times faster than real time.
-    #[arg(long, conflicts_with = "max_speed")]
     pub speed: Option<f64>,
     /// As fast as inference allows (every tick forecast, none skipped).
-    #[arg(long)]
     pub max_speed: bool,
     /// Do not print one line per forecast on stdout.
-    #[arg(long)]
     pub quiet: bool,
     /// Also write the recording with the daemon's outputs merged in
     /// (`/fall_guard/forecast`, `/fall_guard/fall_imminent`, `/diagnostics`
     /// at recorded time), e.g. to open in Foxglove with
     /// `docs/foxglove/fall-guard.json`.
-    #[arg(long)]
     pub out: Option<PathBuf>,
 }
 
 /// `fall-guard record`: record the live streams as an MCAP recording.
-#[derive(Debug, Clone, Args)]
-pub struct RecordArgs {
-    #[arg(long)]
+#[derive(Debug, Clone, Default)]
+pub struct RecordOptions {
     pub config: PathBuf,
     /// Output file (.mcap).
-    #[arg(long)]
     pub out: PathBuf,
     /// Stop after this many seconds (default: until Ctrl-C / SIGTERM).
-    #[arg(long)]
     pub duration_s: Option<f64>,
 }
 
 /// `fall-guard label`: mark the fall onset of a recording, in place.
-#[derive(Debug, Clone, Args)]
-pub struct LabelArgs {
+#[derive(Debug, Clone, Default)]
+pub struct LabelOptions {
     /// The recording to label.
     pub recording: PathBuf,
     /// Seconds after the recording's first message when the fall starts.
-    #[arg(long, required_unless_present = "no_fall", conflicts_with = "no_fall")]
     pub fall_at: Option<f64>,
     /// The episode does not fall.
-    #[arg(long)]
     pub no_fall: bool,
 }
 
@@ -273,7 +261,7 @@ impl ReplaySetup {
 }
 
 /// `fall-guard replay`.
-pub async fn replay(args: ReplayArgs) -> Result<ReplayReport, ServiceError> {
+pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
     let config = load_config(args.config.as_deref())?;
     let replay_defaults = config.replay.clone();
     let recording = match (&args.recording, &replay_defaults) {
@@ -476,6 +464,7 @@ fn start_sources(
         joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
         camera: (config.streams.camera == CameraSource::Ros).then(|| streams.camera.clone()),
         plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
+        camera_raw: None,
     };
     if wanted.any() {
         let bridge = ros.ok_or_else(|| {
@@ -532,6 +521,11 @@ fn start_camera(
     _feed: StreamFeed<Arc<Frame>>,
     _shutdown: Shutdown,
 ) -> Result<SourceHandle, ServiceError> {
+    start_camera_unavailable(config)
+}
+
+#[cfg(not(feature = "camera-v4l"))]
+fn start_camera_unavailable(config: &Config) -> Result<SourceHandle, ServiceError> {
     Err(ServiceError::Usage(format!(
         "{}: [streams].camera = \"v4l2\" needs a build with cargo feature `camera-v4l`",
         config.origin
@@ -539,7 +533,7 @@ fn start_camera(
 }
 
 /// `fall-guard run`.
-pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
+pub async fn run(args: RunOptions) -> Result<TickCounters, ServiceError> {
     let mut config = Config::load(&args.config)?;
     if let Some(ns) = &args.namespace {
         config.set_namespace(ns, "--namespace")?;
@@ -606,27 +600,37 @@ pub async fn run(args: RunArgs) -> Result<TickCounters, ServiceError> {
     Ok(counters)
 }
 
-/// `fall-guard record`.
+/// `fall-guard record`: the live streams into an MCAP recording, loading
+/// no network. What it needs comes from the config (`[robot].tick_rate_hz`
+/// as the recording's `rate_hz`, the robot's joint names, the sources and
+/// topics); the camera is kept as the camera gave it ([`Recorder::record_image`]).
 pub async fn record(
-    args: RecordArgs,
+    args: RecordOptions,
 ) -> Result<crate::outputs::recorder::RecordSummary, ServiceError> {
     let config = Config::load(&args.config)?;
     let joints = robot_joints(&config);
-    let models = ModelSet::load(&config, &joints)?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let signals = shutdown_on_signals(Arc::clone(&trigger));
     let streams = LiveStreams::new();
+    let (camera_feed, mut camera) = stream::<Arc<CompressedImage>>(StreamKind::Camera);
     let mut ros = if config.ros.enabled {
         Some(RosBridge::start(&config)?)
     } else {
         None
     };
-    let sources = start_sources(&config, &models, &streams, ros.as_mut(), &trigger)?;
+    let sources = start_record_sources(
+        &config,
+        &joints,
+        &streams,
+        camera_feed,
+        ros.as_mut(),
+        &trigger,
+    )?;
     let mut recorder = Recorder::create(
         &args.out,
         joints,
         &config.robot.joints,
-        models.spec().rate_hz,
+        config.robot.tick_rate_hz,
     )?;
     let mut shutdown = trigger.subscribe();
     let deadline = args
@@ -634,23 +638,23 @@ pub async fn record(
         .map(|s| tokio::time::Instant::now() + std::time::Duration::from_secs_f64(s.max(0.0)));
     let LiveTaps {
         mut joints,
-        mut camera,
+        camera: _,
         mut plan,
     } = streams.taps.clone();
     let result: Result<(), ServiceError> = loop {
-        let sample = tokio::select! {
+        let written = tokio::select! {
             () = shutdown.recv() => break Ok(()),
             () = async { match deadline { Some(d) => tokio::time::sleep_until(d).await, None => std::future::pending().await } } => break Ok(()),
             // A servo read that lacks a motor (NaN) is not recorded: a
             // recording holds whole readings, which a replay can use.
             Some(s) = changed(&mut joints) => {
                 if s.value.iter().any(|v| !v.is_finite()) { continue; }
-                Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() }
+                recorder.record(&Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() })
             }
-            Some(s) = changed(&mut camera) => Sample::Frame { stamp_ns: s.stamp_ns, frame: Arc::clone(&s.value) },
-            Some(s) = changed(&mut plan) => Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) },
+            Some(s) = changed(&mut camera) => recorder.record_image(s.stamp_ns, &s.value),
+            Some(s) = changed(&mut plan) => recorder.record(&Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) }),
         };
-        if let Err(e) = recorder.record(&sample) {
+        if let Err(e) = written {
             break Err(e.into());
         }
     };
@@ -667,12 +671,89 @@ pub async fn record(
     Ok(summary?)
 }
 
+/// The sources of `record`: joints and plan as `run` has them, the camera
+/// not decoded (`camera`: the ROS message as received, or the V4L2 buffer).
+fn start_record_sources(
+    config: &Config,
+    joints: &[String],
+    streams: &LiveStreams,
+    camera: StreamFeed<Arc<CompressedImage>>,
+    ros: Option<&mut RosBridge>,
+    shutdown: &ShutdownTrigger,
+) -> Result<Vec<SourceHandle>, ServiceError> {
+    let mut handles = Vec::new();
+    if config.streams.joints == JointsSource::Dynamixel {
+        handles.push(servo_bridge::start(
+            config,
+            streams.joints.clone(),
+            shutdown.subscribe(),
+        )?);
+    }
+    if config.streams.camera == CameraSource::V4l2 {
+        handles.push(start_camera_compressed(
+            config,
+            camera.clone(),
+            shutdown.subscribe(),
+        )?);
+    }
+    let wanted = InputsWanted {
+        joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
+        camera: None,
+        plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
+        camera_raw: (config.streams.camera == CameraSource::Ros).then_some(camera),
+    };
+    if wanted.any() {
+        let bridge = ros.ok_or_else(|| {
+            ServiceError::Usage(format!(
+                "{}: [streams] reads from ROS 2 but [ros].enabled = false",
+                config.origin
+            ))
+        })?;
+        // Only the joint names and the tick rate matter to the inputs
+        // without a decoded camera: no network, no window.
+        let spec = WindowSpec {
+            n_ticks: 1,
+            max_horizon_ticks: 0,
+            rate_hz: config.robot.tick_rate_hz,
+            joint_names: joints.to_vec(),
+            frame_size: 0,
+        };
+        let tasks = bridge.start_inputs(config, &spec, wanted, shutdown.subscribe())?;
+        handles.extend(tasks.into_iter().map(SourceHandle::Task));
+    }
+    Ok(handles)
+}
+
+#[cfg(feature = "camera-v4l")]
+fn start_camera_compressed(
+    config: &Config,
+    feed: StreamFeed<Arc<CompressedImage>>,
+    shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
+    let camera = config
+        .camera
+        .clone()
+        .ok_or_else(|| ServiceError::Usage(format!("{}: [camera] missing", config.origin)))?;
+    crate::sources::camera::spawn_camera_compressed(camera, feed, shutdown)
+        .map(SourceHandle::Thread)
+        .map_err(|e| ServiceError::Source(format!("cannot start the camera thread: {e}")))
+}
+
+#[cfg(not(feature = "camera-v4l"))]
+fn start_camera_compressed(
+    config: &Config,
+    _feed: StreamFeed<Arc<CompressedImage>>,
+    _shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
+    start_camera_unavailable(config)
+}
+
 async fn changed<T>(tap: &mut StreamTap<T>) -> Option<Arc<crate::sources::Stamped<T>>> {
     tap.changed().await
 }
 
 /// `fall-guard label`.
-pub fn label(args: &LabelArgs) -> Result<Option<i64>, ServiceError> {
+pub fn label(args: &LabelOptions) -> Result<Option<i64>, ServiceError> {
     let fall_at = if args.no_fall { None } else { args.fall_at };
     if !args.no_fall && fall_at.is_none() {
         return Err(ServiceError::Usage(

@@ -90,6 +90,64 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
     }
 }
 
+/// A recording whose camera frames are 320x240 JPEGs (a camera's own size,
+/// as `record` keeps them) replays to exactly the forecasts of the same
+/// recording with those frames already resized to the networks' 32x32.
+#[test]
+fn camera_frames_of_any_size_replay_as_their_resized_frames() {
+    use fall_guard::frame::{decode_compressed, encode_jpeg, encode_png, Frame};
+    let scene = Scene::new("unused.mcap");
+    let base = scene.path("base.mcap");
+    write_recording(&base, 7, true, 60);
+    let big = scene.path("big_frames.mcap");
+    copy_with_images(&base, &big, |msg| {
+        let small = decode_compressed(&msg.format, &msg.data, FRAME_SIZE).expect("frame");
+        let (w, h) = (320u32, 240u32);
+        let rgb = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .flat_map(|(x, y)| {
+                let (sx, sy) = (x * FRAME_SIZE / w, y * FRAME_SIZE / h);
+                let i = ((sy * FRAME_SIZE + sx) * 3) as usize;
+                [small.rgb[i], small.rgb[i + 1], small.rgb[i + 2]]
+            })
+            .collect();
+        let mut out = msg.clone();
+        out.data = encode_jpeg(&Frame::from_rgb(w, h, rgb).expect("frame"), 90).expect("jpeg");
+        out
+    });
+    let resized = scene.path("resized.mcap");
+    copy_with_images(&big, &resized, |msg| {
+        let frame = decode_compressed(&msg.format, &msg.data, FRAME_SIZE).expect("frame");
+        let mut out = msg.clone();
+        out.format = "png".into();
+        out.data = encode_png(&frame).expect("png");
+        out
+    });
+    let big_rec = Recording::open(&big).expect("reads");
+    let first = image::load_from_memory(&big_rec.images[0].msg.data).expect("jpeg");
+    assert_eq!((first.width(), first.height()), (320, 240));
+
+    let replay = |recording: &std::path::Path| {
+        let out = fall_guard(&[
+            "replay",
+            "--config",
+            scene.config.to_str().expect("utf8"),
+            "--max-speed",
+            "--recording",
+            recording.to_str().expect("utf8"),
+        ]);
+        assert!(out.status.success(), "replay failed: {}", stderr(&out));
+        parse_lines(&out.stdout)
+    };
+    let from_big = replay(&big);
+    let from_resized = replay(&resized);
+    assert!(
+        from_big.iter().any(|l| l.valid && l.ablation == "EMP"),
+        "no valid EMP forecast"
+    );
+    assert_eq!(from_big, from_resized);
+}
+
 #[test]
 fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
     let scene = Scene::new("no_camera.mcap");

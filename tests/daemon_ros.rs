@@ -13,7 +13,9 @@
 //! - a joints gap in a replay: NaN on `/fall_guard/forecast` from the
 //!   stale tick until N fresh ticks have refilled the window, and
 //!   `fall_imminent` asserted meanwhile;
-//! - `record` then `label` then `replay` of live ROS 2 streams;
+//! - `record` then `label` then `replay` of live ROS 2 streams; `record`
+//!   keeps the camera's messages byte for byte (a 320x240 JPEG) and runs
+//!   with a config whose network files do not exist;
 //! - run on the Dynamixel servo buses (both emulated on pseudo-terminals):
 //!   faults (no reply, bad checksums, garbage, an error bit, an unplugged
 //!   adapter) make the forecast not valid on `/diagnostics`, the daemon
@@ -477,25 +479,87 @@ async fn record_label_and_replay_live_ros_streams() {
     let config = replay_config(dir.path(), domain, |t| t);
     let out = dir.path().join("walk.mcap");
     let joints = robot_joints().join(",");
+    // The walker's camera: a 320x240 JPEG, not the networks' 64x64.
+    let jpeg_path = dir.path().join("camera.jpg");
+    let jpeg = camera_jpeg(320, 240);
+    std::fs::write(&jpeg_path, &jpeg).expect("write jpeg");
     let walker = Peer::spawn(
         &python,
         domain,
-        &["walk", "--joints", &joints, "--timeout", "30"],
+        &[
+            "walk",
+            "--joints",
+            &joints,
+            "--timeout",
+            "30",
+            "--camera-jpeg",
+            jpeg_path.to_str().expect("utf8"),
+        ],
     );
-    let daemon = Daemon::start(&[
-        "record",
-        "--config",
-        config.to_str().expect("utf8"),
-        "--out",
-        out.to_str().expect("utf8"),
-        "--duration-s",
-        "5",
-    ]);
+    // A second recorder beside it, on the camera too, with a config whose
+    // network files do not exist: `record` loads no network.
+    let no_models_dir = dir.path().join("no_models");
+    std::fs::create_dir_all(&no_models_dir).expect("mkdir");
+    let no_models = replay_config(&no_models_dir, domain, |t| {
+        let models = format!("dir = \"{}\"", repo("models").display());
+        assert!(t.contains(&models), "config/replay.toml changed shape");
+        t.replace(&models, "dir = \"/nonexistent/fall-guard-models\"")
+            .replace("camera = \"none\"", "camera = \"ros\"")
+    });
+    let camera_out = dir.path().join("camera.mcap");
+    let record = |config: &Path, out: &Path| {
+        Daemon::start(&[
+            "record",
+            "--config",
+            config.to_str().expect("utf8"),
+            "--out",
+            out.to_str().expect("utf8"),
+            "--duration-s",
+            "5",
+        ])
+    };
+    let daemon = record(&config, &out);
+    let camera_daemon = record(&no_models, &camera_out);
     let (success, _, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
         .await
         .expect("join");
+    let (camera_success, _, camera_stderr) =
+        tokio::task::spawn_blocking(move || camera_daemon.wait())
+            .await
+            .expect("join");
     drop(walker);
     assert!(success, "record failed: {stderr}");
+    assert!(
+        camera_success,
+        "record without network files failed: {camera_stderr}"
+    );
+
+    // The camera as published: the same bytes, format and header.
+    let rec = fall_guard::recording::Recording::open(&camera_out).expect("recording reads");
+    assert!(rec.images.len() > 60, "{} frames", rec.images.len());
+    assert!(
+        rec.joint_states.len() > 60,
+        "{} joint states",
+        rec.joint_states.len()
+    );
+    for m in &rec.images {
+        assert!(
+            m.msg.data == jpeg,
+            "recorded camera bytes differ from the published ones"
+        );
+        assert_eq!(m.msg.format, "jpeg");
+        assert_eq!(m.msg.header.frame_id, "head_camera");
+        assert_eq!(
+            m.msg.header.stamp.to_ns(),
+            m.log_time_ns,
+            "logged at the header stamp"
+        );
+    }
+    assert_eq!(
+        rec.episode().expect("episode").rate_hz,
+        30.0,
+        "[robot].tick_rate_hz"
+    );
 
     // The recording holds what the walker published, in the recording format.
     let rec = fall_guard::recording::Recording::open(&out).expect("recording reads");
@@ -553,6 +617,15 @@ async fn record_label_and_replay_live_ros_streams() {
         lines.iter().any(|l| l.valid && l.ablation == "MP"),
         "no valid MP forecast from the recorded streams"
     );
+}
+
+/// A `width` x `height` JPEG of a colour gradient.
+fn camera_jpeg(width: u32, height: u32) -> Vec<u8> {
+    let rgb = (0..height)
+        .flat_map(|y| (0..width).flat_map(move |x| [(x % 256) as u8, (y % 256) as u8, 90]))
+        .collect();
+    let frame = fall_guard::frame::Frame::from_rgb(width, height, rgb).expect("frame");
+    fall_guard::frame::encode_jpeg(&frame, 85).expect("jpeg")
 }
 
 /// Waits for a `/diagnostics` message whose model status says `valid` =

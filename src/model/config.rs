@@ -68,9 +68,7 @@ impl FromStr for Ablation {
 /// model file (in its [`ModelConfig`]), so that training, `eval` and the
 /// streaming forecaster build the same input; files written before this
 /// option existed read as [`TrajectoryInput::Planned`].
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize, clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum TrajectoryInput {
     /// The planned joint angles of ticks `t-N+1 ..= t+h_K` (`N + h_K` rows):

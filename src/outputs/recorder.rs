@@ -2,14 +2,19 @@
 //! so that a user can build a real-robot data set and label it afterwards
 //! (`fall-guard label`).
 //!
-//! Samples enter in model form, as the tick sees them (joints in model
-//! order, frames already S x S, plans); they leave as the messages of
-//! `interfaces.md` through the data plane's [`RecordingWriter`]:
-//! `/joint_states` (`JointState`, radians), `/head_camera/image_raw/compressed`
-//! (JPEG of the S x S frame, as the simulator writes it) and
-//! `/planned_trajectory` (`JointTrajectory`, every point of the plan), with
-//! the sample's stamp as log time and `header.stamp`. The episode metadata
-//! (`source = robot`, no fall onset until labelled) is written at the end.
+//! Joints and plans enter in model form, as the tick sees them (joints in
+//! model order, plans); camera frames enter as the camera's own
+//! `CompressedImage` ([`Recorder::record_image`]: the ROS message as
+//! received, or the V4L2 camera's MJPEG buffer, or one full-size JPEG of a
+//! raw frame), never the network's S x S input, so a recording outlives the
+//! model it was made with (readers decode and resize any JPEG/PNG size).
+//! They leave as the messages of `interfaces.md` through the data plane's
+//! [`RecordingWriter`]: `/joint_states` (`JointState`, radians),
+//! `/head_camera/image_raw/compressed` (unchanged: format, header and bytes)
+//! and `/planned_trajectory` (`JointTrajectory`, every point of the plan),
+//! with the sample's stamp as log time (and `header.stamp` of the joints
+//! and plans). The episode metadata (`source = robot`, `rate_hz` of the
+//! config, no fall onset until labelled) is written at the end.
 
 use std::path::{Path, PathBuf};
 
@@ -76,7 +81,25 @@ impl Recorder {
         })
     }
 
-    /// Write one sample as its message.
+    /// Write one camera message unchanged, logged at `stamp_ns`.
+    pub fn record_image(
+        &mut self,
+        stamp_ns: i64,
+        msg: &CompressedImage,
+    ) -> Result<(), RecordingError> {
+        self.writer.write(topics::HEAD_CAMERA, stamp_ns, msg)?;
+        self.counts[1] += 1;
+        self.stamped(stamp_ns);
+        Ok(())
+    }
+
+    fn stamped(&mut self, stamp_ns: i64) {
+        self.first_ns.get_or_insert(stamp_ns);
+        self.last_ns = Some(self.last_ns.map_or(stamp_ns, |t| t.max(stamp_ns)));
+    }
+
+    /// Write one sample as its message (a model-form frame as a JPEG of
+    /// its S x S pixels).
     pub fn record(&mut self, sample: &Sample) -> Result<(), RecordingError> {
         let stamp_ns = sample.stamp_ns();
         let header = Header {
@@ -110,8 +133,7 @@ impl Recorder {
                 self.counts[2] += 1;
             }
         }
-        self.first_ns.get_or_insert(stamp_ns);
-        self.last_ns = Some(self.last_ns.map_or(stamp_ns, |t| t.max(stamp_ns)));
+        self.stamped(stamp_ns);
         Ok(())
     }
 
@@ -223,9 +245,22 @@ mod tests {
         for s in &input {
             recorder.record(s).expect("record");
         }
+        // A camera message as received: kept byte for byte.
+        let big = Frame::solid(320, 240, [10, 200, 40]);
+        let received = CompressedImage {
+            header: Header {
+                stamp: Time::from_ns(33_000_000),
+                frame_id: "head_camera".into(),
+            },
+            format: "rgb8; jpeg compressed bgr8".into(),
+            data: encode_jpeg(&big, 80).expect("jpeg"),
+        };
+        recorder
+            .record_image(33_337_000, &received)
+            .expect("record image");
         let summary = recorder.finish().expect("finish");
-        assert_eq!(summary.counts, [2, 1, 1]);
-        assert_eq!(summary.duration_ns, 33_335_000);
+        assert_eq!(summary.counts, [2, 2, 1]);
+        assert_eq!(summary.duration_ns, 33_336_000);
 
         let rec = Recording::open(&path).expect("read back");
         let meta = rec.episode().expect("episode metadata");
@@ -245,8 +280,14 @@ mod tests {
             joint_names: names(),
             frame_size: 8,
         };
+        assert_eq!(rec.images[1].msg, received);
+        assert_eq!(rec.images[1].log_time_ns, 33_337_000);
         let back = samples_from_recording(&rec, &spec).expect("samples");
-        assert_eq!(back.len(), input.len());
+        assert_eq!(back.len(), input.len() + 1);
+        let Sample::Frame { frame, .. } = &back[4] else {
+            panic!("the image last: {:?}", back[4]);
+        };
+        assert_eq!((frame.width, frame.height), (8, 8), "resized to the model");
         for (a, b) in input.iter().zip(&back) {
             assert_eq!(a.stamp_ns(), b.stamp_ns());
             match (a, b) {

@@ -17,7 +17,7 @@ use tokio::task::JoinHandle;
 use crate::config::Config;
 use crate::forecast::ModelSet;
 use crate::frame::Frame;
-use crate::msgs::{Header, JointState};
+use crate::msgs::{CompressedImage, Header, JointState};
 use crate::outputs::ros::{ros_time, OutputTopics, RosOutputs};
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
@@ -64,11 +64,16 @@ pub struct InputsWanted {
     pub joints: Option<StreamFeed<Vec<f32>>>,
     pub camera: Option<StreamFeed<Arc<Frame>>>,
     pub plan: Option<StreamFeed<Arc<Plan>>>,
+    /// The camera's messages as received, not decoded (`record`).
+    pub camera_raw: Option<StreamFeed<Arc<CompressedImage>>>,
 }
 
 impl InputsWanted {
     pub fn any(&self) -> bool {
-        self.joints.is_some() || self.camera.is_some() || self.plan.is_some()
+        self.joints.is_some()
+            || self.camera.is_some()
+            || self.plan.is_some()
+            || self.camera_raw.is_some()
     }
 }
 
@@ -166,7 +171,8 @@ impl RosBridge {
         let topics = InputTopics {
             joint_states: wanted.joints.as_ref().map(|_| t.joint_states.clone()),
             planned_trajectory: wanted.plan.as_ref().map(|_| t.planned_trajectory.clone()),
-            camera: wanted.camera.as_ref().map(|_| t.camera.clone()),
+            camera: (wanted.camera.is_some() || wanted.camera_raw.is_some())
+                .then(|| t.camera.clone()),
         };
         let inputs = RosInputs::start(&mut self.node, &topics)?;
         let mut tasks = Vec::new();
@@ -184,6 +190,13 @@ impl RosBridge {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
                 frame_from_msg(&r.msg, size).map(|f| (stamp_ns, Arc::new(f)))
+            }));
+        }
+        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), wanted.camera_raw) {
+            tasks.push(forward(rx, feed, shutdown.clone(), |r| {
+                let stamp = r.msg.header.stamp.to_ns();
+                let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
+                Ok((stamp_ns, Arc::new(r.msg.clone())))
             }));
         }
         if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), wanted.plan) {

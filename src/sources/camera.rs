@@ -12,7 +12,8 @@
 //! backoff until shutdown.
 
 use crate::config::PixelFormat;
-use crate::frame::{decode_compressed, resize_area, Frame};
+use crate::frame::{decode_compressed, encode_jpeg, resize_area, Frame};
+use crate::msgs::{CompressedImage, Header, Time};
 
 use thiserror::Error;
 
@@ -61,6 +62,39 @@ pub fn decode_raw(
     }
 }
 
+/// JPEG quality of a raw (YUYV) frame kept by `record`.
+pub const RECORD_JPEG_QUALITY: u8 = 90;
+
+/// One raw camera buffer as `record` keeps it, at the camera's own size: an
+/// MJPEG buffer unchanged, a YUYV one encoded once as JPEG; `format`
+/// `"jpeg"`, `header.stamp` the capture time, `frame_id` `"head_camera"`.
+pub fn compressed_raw(
+    format: PixelFormat,
+    width: u32,
+    height: u32,
+    data: &[u8],
+    stamp_ns: i64,
+) -> Result<CompressedImage, CameraError> {
+    let data = match format {
+        PixelFormat::Mjpeg => data.to_vec(),
+        PixelFormat::Yuyv => {
+            let rgb = yuyv_to_rgb(width, height, data)?;
+            let frame = Frame::from_rgb(width, height, rgb)
+                .map_err(|e| CameraError::Frame(e.to_string()))?;
+            encode_jpeg(&frame, RECORD_JPEG_QUALITY)
+                .map_err(|e| CameraError::Frame(e.to_string()))?
+        }
+    };
+    Ok(CompressedImage {
+        header: Header {
+            stamp: Time::from_ns(stamp_ns),
+            frame_id: "head_camera".into(),
+        },
+        format: "jpeg".into(),
+        data,
+    })
+}
+
 /// YUYV 4:2:2 (Y0 U Y1 V per two pixels, BT.601 limited range) -> RGB8.
 pub fn yuyv_to_rgb(width: u32, height: u32, data: &[u8]) -> Result<Vec<u8>, CameraError> {
     if width == 0 || height == 0 || !width.is_multiple_of(2) {
@@ -96,7 +130,7 @@ pub fn yuyv_to_rgb(width: u32, height: u32, data: &[u8]) -> Result<Vec<u8>, Came
 }
 
 #[cfg(feature = "camera-v4l")]
-pub use capture::spawn_camera;
+pub use capture::{spawn_camera, spawn_camera_compressed};
 
 #[cfg(feature = "camera-v4l")]
 mod capture {
@@ -111,9 +145,10 @@ mod capture {
     };
     use nokhwa::Camera;
 
-    use super::decode_raw;
+    use super::{compressed_raw, decode_raw, CameraError};
     use crate::config::{CameraConfig, PixelFormat};
     use crate::frame::Frame;
+    use crate::msgs::CompressedImage;
     use crate::shutdown::Shutdown;
     use crate::sources::StreamFeed;
 
@@ -152,6 +187,34 @@ mod capture {
         feed: StreamFeed<Arc<Frame>>,
         shutdown: Shutdown,
     ) -> std::io::Result<JoinHandle<()>> {
+        let format = config.format;
+        spawn_capture(config, feed, shutdown, move |w, h, data, _| {
+            decode_raw(format, w, h, data, size).map(Arc::new)
+        })
+    }
+
+    /// Start the capture thread for `record`: each buffer goes to `feed` as
+    /// the camera gave it ([`compressed_raw`]: MJPEG unchanged, YUYV as one
+    /// JPEG at full size).
+    pub fn spawn_camera_compressed(
+        config: CameraConfig,
+        feed: StreamFeed<Arc<CompressedImage>>,
+        shutdown: Shutdown,
+    ) -> std::io::Result<JoinHandle<()>> {
+        let format = config.format;
+        spawn_capture(config, feed, shutdown, move |w, h, data, stamp_ns| {
+            compressed_raw(format, w, h, data, stamp_ns).map(Arc::new)
+        })
+    }
+
+    /// The capture loop; `convert(width, height, buffer, stamp_ns)` makes
+    /// the stream's value of each buffer.
+    fn spawn_capture<T: Send + Sync + 'static>(
+        config: CameraConfig,
+        feed: StreamFeed<T>,
+        shutdown: Shutdown,
+        convert: impl Fn(u32, u32, &[u8], i64) -> Result<T, CameraError> + Send + 'static,
+    ) -> std::io::Result<JoinHandle<()>> {
         std::thread::Builder::new()
             .name("camera".into())
             .spawn(move || {
@@ -183,14 +246,8 @@ mod capture {
                         };
                         let stamp_ns = crate::tick::unix_now_ns();
                         let res = buffer.resolution();
-                        match decode_raw(
-                            config.format,
-                            res.width(),
-                            res.height(),
-                            buffer.buffer(),
-                            size,
-                        ) {
-                            Ok(frame) => feed.send(stamp_ns, Arc::new(frame)),
+                        match convert(res.width(), res.height(), buffer.buffer(), stamp_ns) {
+                            Ok(value) => feed.send(stamp_ns, value),
                             Err(e) => feed.error("decode", &e),
                         }
                     }
@@ -314,6 +371,32 @@ mod tests {
             "{:?}",
             pixel(&frame, 54, 50)
         );
+    }
+
+    #[test]
+    fn record_keeps_mjpeg_unchanged_and_yuyv_as_one_full_size_jpeg() {
+        let (w, h, rgb) = test_card();
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 95)
+            .encode(&rgb, w, h, image::ExtendedColorType::Rgb8)
+            .expect("encode");
+        let msg = compressed_raw(PixelFormat::Mjpeg, w, h, &jpeg, 1_500_000_000).expect("mjpeg");
+        assert_eq!(msg.data, jpeg, "the camera's own bytes");
+        assert_eq!(
+            (msg.format.as_str(), msg.header.stamp.to_ns()),
+            ("jpeg", 1_500_000_000)
+        );
+
+        let msg =
+            compressed_raw(PixelFormat::Yuyv, w, h, &rgb_to_yuyv(w, h, &rgb), 7).expect("yuyv");
+        let full = decode_compressed("jpeg", &msg.data, w).expect("a JPEG");
+        let back = image::load_from_memory(&msg.data).expect("decodes");
+        assert_eq!((back.width(), back.height()), (w, h), "full size");
+        assert_eq!(full.width, w);
+        assert!(matches!(
+            compressed_raw(PixelFormat::Yuyv, 3, 2, &[0; 12], 0),
+            Err(CameraError::Size { .. })
+        ));
     }
 
     #[test]

@@ -38,6 +38,7 @@
 //! ```
 
 mod bus;
+#[cfg(any(test, feature = "test-kits"))]
 pub mod emulator;
 pub mod protocol;
 mod stats;

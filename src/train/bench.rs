@@ -15,34 +15,26 @@ use crate::model::{
 };
 
 /// Arguments of `fall-guard bench`.
-#[derive(Debug, Clone, clap::Args)]
-pub struct BenchArgs {
+#[derive(Debug, Clone)]
+pub struct BenchOptions {
     /// Model file whose configuration is benchmarked (every ablation of it;
     /// the file's own ablation with its weights, held at the file's
     /// precision); without one, the reference `lite` configuration (N=60,
     /// C=25, 64 px) with freshly initialised f32 weights.
-    #[arg(long)]
     pub model: Option<PathBuf>,
     /// Configuration when no model is given: lite or paper.
-    #[arg(long, default_value = "lite")]
     pub config: String,
     /// Write the results here as JSON.
-    #[arg(long)]
     pub json: Option<PathBuf>,
     /// Ticks measured per ablation (after the window is full).
-    #[arg(long, default_value_t = 300)]
     pub ticks: usize,
     /// Training steps measured (batch 4, EMP); 0 skips.
-    #[arg(long, default_value_t = 10)]
     pub train_steps: usize,
     /// Measure only these ablations (repeatable); all four when absent.
-    #[arg(long = "ablation")]
     pub ablations: Vec<Ablation>,
     /// Measure training throughput only (skip the inference latencies).
-    #[arg(long)]
     pub train_only: bool,
     /// Device of the training part: cpu, cuda, cuda:N or wgpu (see `train --device`).
-    #[arg(long, default_value = "cpu")]
     pub device: TrainDevice,
 }
 
@@ -154,7 +146,7 @@ fn noise(len: usize, seed: u64) -> Vec<f32> {
 }
 
 /// Runs the benchmark.
-pub fn run_bench(args: &BenchArgs) -> anyhow::Result<BenchReport> {
+pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
     let file_model = match &args.model {
         Some(p) => Some(LoadedModel::load(p)?),
         None => None,
@@ -333,7 +325,7 @@ mod tests {
     #[test]
     #[ignore = "benchmark, not a test: run by hand"]
     fn reference_benchmark() {
-        let args = BenchArgs {
+        let args = BenchOptions {
             model: None,
             config: std::env::var("FALL_GUARD_BENCH_CONFIG").unwrap_or_else(|_| "lite".into()),
             json: std::env::var("FALL_GUARD_BENCH_JSON")

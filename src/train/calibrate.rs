@@ -18,32 +18,24 @@ use crate::model::file::{load_emp, sigmoid};
 use crate::model::{Calibration, LoadedModel, WeightPrecision};
 
 /// Arguments of `fall-guard calibrate`.
-#[derive(Debug, Clone, clap::Args)]
-pub struct CalibrateArgs {
+#[derive(Debug, Clone)]
+pub struct CalibrateOptions {
     /// Model file to calibrate (a network; any calibration it has is replaced).
-    #[arg(long)]
     pub model: PathBuf,
     /// Data set directory.
-    #[arg(long)]
     pub data: PathBuf,
     /// Split to fit on: never the one the model is judged on.
-    #[arg(long, default_value = "validation")]
     pub split: String,
     /// Windows drawn per episode (each an independent draw).
-    #[arg(long, default_value_t = 10)]
     pub draws: usize,
     /// Seed of the window sampler.
-    #[arg(long, default_value_t = 12345)]
     pub sample_seed: u64,
     /// How the fitting windows are drawn: `deployment` or `paper` (each
     /// horizon fitted on its own balanced set); see `train --protocol`.
-    #[arg(long, value_enum, default_value_t = Protocol::Deployment)]
     pub protocol: Protocol,
     /// Output model file (may be the input).
-    #[arg(long)]
     pub out: PathBuf,
     /// Store the weights in half precision (f16).
-    #[arg(long)]
     pub half: bool,
 }
 
@@ -174,7 +166,7 @@ pub fn fit_calibration(
 }
 
 /// Runs `fall-guard calibrate`.
-pub fn run_calibrate(args: &CalibrateArgs) -> anyhow::Result<()> {
+pub fn run_calibrate(args: &CalibrateOptions) -> anyhow::Result<()> {
     let split: Split = args.split.parse().map_err(anyhow::Error::msg)?;
     if split == Split::Train {
         bail!("--split train: calibrate on windows the network was not trained on (validation)");

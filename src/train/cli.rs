@@ -23,110 +23,80 @@ use crate::train::sampler::{labels_at, Protocol, SamplerConfig, SamplerError, Wi
 use crate::window::{EpisodeTicks, Streams, WindowSpec};
 
 /// Arguments of `fall-guard train`.
-#[derive(Debug, Clone, clap::Args)]
-pub struct TrainArgs {
+#[derive(Debug, Clone)]
+pub struct TrainOptions {
     /// Data set directory (recordings + manifest.json).
-    #[arg(long)]
     pub data: PathBuf,
     /// P, MP, EP, EMP, or logreg (the logistic-regression baseline).
-    #[arg(long, default_value = "EMP")]
     pub ablation: String,
     /// Network configuration: lite or paper.
-    #[arg(long, default_value = "lite")]
     pub config: String,
     /// Seed of initialisation, dropout and window sampling.
-    #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Output model file.
-    #[arg(long)]
     pub out: PathBuf,
     /// At most this many epochs.
-    #[arg(long, default_value_t = 10)]
     pub epochs: usize,
     /// Early-stopping patience on validation loss, epochs.
-    #[arg(long, default_value_t = 3)]
     pub patience: usize,
     /// Windows per step.
-    #[arg(long, default_value_t = 4)]
     pub batch: usize,
     /// Learning-rate table: sim (SimP column) or robot (RP column).
-    #[arg(long, default_value = "sim")]
     pub rates: String,
     /// Window length N, ticks.
-    #[arg(long, default_value_t = 60)]
     pub n_ticks: usize,
     /// Horizons, ticks, comma-separated.
-    #[arg(long, default_value = "15,30,45,60", value_delimiter = ',')]
     pub horizons: Vec<usize>,
     /// Tick rate, Hz.
-    #[arg(long, default_value_t = 30.0)]
     pub rate_hz: f64,
     /// Frame side, pixels.
-    #[arg(long, default_value_t = 64)]
     pub frame_size: u32,
     /// Joint names in model order, comma-separated (default: the Poppy Humanoid's 25).
-    #[arg(long, value_delimiter = ',')]
     pub joint_names: Option<Vec<String>>,
     /// What the data is, stored in the model file.
-    #[arg(long, default_value = "simulated")]
     pub trained_on: String,
     /// How training and validation windows are drawn: `deployment` (one set
     /// for all horizons, balanced at the middle one) or `paper` (one set per
     /// horizon, balanced at it, windows ending at or before its stop line).
-    #[arg(long, value_enum, default_value_t = Protocol::Deployment)]
     pub protocol: Protocol,
     /// Train one network per horizon P (each with that one horizon, its plan
     /// reaching P ticks ahead), written next to --out as `NAME.h<P>.EXT`.
-    #[arg(long)]
     pub per_horizon: bool,
     /// What the trajectory encoder reads: `planned` (past and future plan),
     /// `historical-only` (past N plan ticks), `real-position` (the measured
     /// joints). Stored in the model file.
-    #[arg(long, value_enum, default_value_t = TrajectoryInput::Planned)]
     pub trajectory: TrajectoryInput,
     /// Where the network trains: cpu, cuda, cuda:N (feature `cuda`) or wgpu
     /// (feature `wgpu`). The model file is the same whichever trains it.
-    #[arg(long, default_value = "cpu")]
     pub device: TrainDevice,
     /// No progress bar.
-    #[arg(long)]
     pub quiet: bool,
 }
 
 /// Arguments of `fall-guard eval`.
-#[derive(Debug, Clone, clap::Args)]
-pub struct EvalArgs {
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
     /// Model file (network or logreg baseline).
-    #[arg(long)]
     pub model: PathBuf,
     /// More model files of other seeds: metrics become mean ± std.
-    #[arg(long, num_args = 1..)]
     pub seeds: Vec<PathBuf>,
     /// Data set directory.
-    #[arg(long)]
     pub data: Option<PathBuf>,
     /// Split to evaluate.
-    #[arg(long, default_value = "test")]
     pub split: String,
     /// Output directory (metrics.json, metrics.md, PNG plots).
-    #[arg(long)]
     pub out: Option<PathBuf>,
     /// Seed of the test-window sampler.
-    #[arg(long, default_value_t = 12345)]
     pub sample_seed: u64,
     /// Windows drawn per episode (each an independent draw; under the paper
     /// protocol, per episode and horizon).
-    #[arg(long, default_value_t = 1)]
     pub draws: usize,
     /// The protocol of the plots and of the report's top-level `horizons`;
     /// the report has a section for each protocol either way.
-    #[arg(long, value_enum, default_value_t = Protocol::Deployment)]
     pub protocol: Protocol,
     /// Offline per-tick forecast of one recording (with --per-tick-out).
-    #[arg(long)]
     pub recording: Option<PathBuf>,
     /// JSON lines: one forecast per tick of --recording.
-    #[arg(long)]
     pub per_tick_out: Option<PathBuf>,
 }
 
@@ -318,7 +288,7 @@ pub fn per_horizon_path(out: &Path, horizon_ticks: usize) -> PathBuf {
 
 /// Runs `fall-guard train`: one model for all horizons, or with
 /// `--per-horizon` one per horizon.
-pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
+pub fn run_train(args: &TrainOptions) -> anyhow::Result<()> {
     if args.device != TrainDevice::Cpu && args.ablation.eq_ignore_ascii_case("logreg") {
         bail!(
             "--device {}: the logistic baseline trains on the CPU only",
@@ -407,7 +377,7 @@ pub fn run_train(args: &TrainArgs) -> anyhow::Result<()> {
 
 /// Trains and writes one model of `cfg`'s horizons.
 fn train_one(
-    args: &TrainArgs,
+    args: &TrainOptions,
     ablation: Option<Ablation>,
     cfg: ModelConfig,
     joint_names: &[String],
@@ -485,7 +455,7 @@ fn load_any(path: &Path) -> anyhow::Result<AnyModel> {
 }
 
 /// Runs `fall-guard eval`.
-pub fn run_eval(args: &EvalArgs) -> anyhow::Result<()> {
+pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
     if let Some(rec) = &args.recording {
         let out = args
             .per_tick_out
@@ -706,19 +676,17 @@ pub fn per_tick_forecast(
 }
 
 /// `fall-guard half`: the same model file with its weights in half precision.
-#[derive(Debug, clap::Args)]
-pub struct HalfArgs {
+#[derive(Debug)]
+pub struct HalfOptions {
     /// Model file to convert (f32 or already half).
-    #[arg(long)]
     pub model: PathBuf,
     /// Output model file.
-    #[arg(long)]
     pub out: PathBuf,
 }
 
 /// Rewrites a model file with f16 weights (metadata unchanged), then loads
 /// it back to check it reads.
-pub fn run_half(args: &HalfArgs) -> anyhow::Result<()> {
+pub fn run_half(args: &HalfOptions) -> anyhow::Result<()> {
     let device = crate::model::cpu_device();
     let (meta, emp) = crate::model::file::load_emp(&args.model, &device)
         .with_context(|| format!("reading {}", args.model.display()))?;

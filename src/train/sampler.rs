@@ -68,7 +68,7 @@ pub enum SamplerError {
 
 /// Which windows are drawn and at which horizons they are scored (see the
 /// module doc).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Protocol {
     /// One window set for all horizons, balanced at the middle horizon, no
     /// fallen tick in a window (as the daemon sees an episode).

@@ -86,7 +86,7 @@ fn logistic_baseline_learns_the_ramp_task_and_round_trips() {
 /// `window.rs` builds from the same recording.
 #[test]
 fn train_and_eval_commands_on_synthetic_recordings() {
-    use super::cli::{per_tick_forecast, run_eval, run_train, EvalArgs, TrainArgs};
+    use super::cli::{per_tick_forecast, run_eval, run_train, EvalOptions, TrainOptions};
     use crate::recording::synthetic::{joint_names, learnable_episode, write_dataset};
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
@@ -99,7 +99,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
     };
     write_dataset(&data, &eps(0, 80), &eps(1000, 16), &eps(2000, 24)).unwrap();
     let model_path = dir.path().join("models/emp.bpk");
-    let args = TrainArgs {
+    let args = TrainOptions {
         data: data.clone(),
         ablation: "EMP".into(),
         config: "lite".into(),
@@ -123,7 +123,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
     };
     run_train(&args).unwrap();
     let out = dir.path().join("eval");
-    let eval = EvalArgs {
+    let eval = EvalOptions {
         model: model_path.clone(),
         seeds: vec![],
         data: Some(data.clone()),
@@ -208,14 +208,14 @@ fn masked_loss_counts_only_the_scored_labels() {
 /// reaching that far, and `eval` reports both protocols for it.
 #[test]
 fn per_horizon_paper_training_on_the_fixtures() {
-    use super::cli::{per_horizon_path, run_eval, run_train, EvalArgs, TrainArgs};
+    use super::cli::{per_horizon_path, run_eval, run_train, EvalOptions, TrainOptions};
     use super::sampler::Protocol;
     use crate::model::TrajectoryInput;
     let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("mp.bpk");
     let horizons = vec![10, 20];
-    let args = TrainArgs {
+    let args = TrainOptions {
         data: data.clone(),
         ablation: "MP".into(),
         config: "lite".into(),
@@ -247,7 +247,7 @@ fn per_horizon_paper_training_on_the_fixtures() {
         assert_eq!(m.meta.config.plan_len(), 20 + h);
         assert_eq!(m.meta.protocol.as_deref(), Some("paper"));
         let eval_dir = dir.path().join(format!("eval{h}"));
-        run_eval(&EvalArgs {
+        run_eval(&EvalOptions {
             model: path,
             seeds: vec![],
             data: Some(data.clone()),
@@ -280,73 +280,6 @@ fn per_horizon_paper_training_on_the_fixtures() {
         assert!(
             md.contains("## Protocol: paper") && md.contains("## Protocol: deployment"),
             "{md}"
-        );
-    }
-}
-
-#[test]
-fn train_and_bench_take_a_device_flag() {
-    use super::bench::BenchArgs;
-    use super::cli::TrainArgs;
-    use super::device::TrainDevice;
-    use clap::Parser;
-    #[derive(Parser)]
-    struct Train {
-        #[command(flatten)]
-        args: TrainArgs,
-    }
-    #[derive(Parser)]
-    struct Bench {
-        #[command(flatten)]
-        args: BenchArgs,
-    }
-    let base = ["train", "--data", "d", "--out", "o.bpk"];
-    let t = Train::try_parse_from(base).unwrap();
-    assert_eq!(t.args.device, TrainDevice::Cpu, "the CPU by default");
-    let t = Train::try_parse_from(base.iter().copied().chain(["--device", "cuda:1"])).unwrap();
-    assert_eq!(t.args.device, TrainDevice::Cuda(1));
-    let e = Train::try_parse_from(base.iter().copied().chain(["--device", "tpu"]))
-        .err()
-        .expect("unknown device refused")
-        .to_string();
-    assert!(e.contains("cuda:N"), "{e}");
-    let b = Bench::try_parse_from(["bench", "--train-only", "--device", "wgpu"]).unwrap();
-    assert!(b.args.train_only);
-    assert_eq!(b.args.device, TrainDevice::Wgpu);
-}
-
-#[test]
-fn training_on_a_backend_not_compiled_in_fails_before_reading_data() {
-    use super::cli::{run_train, TrainArgs};
-    use super::device::TrainDevice;
-    use clap::Parser;
-    #[derive(Parser)]
-    struct Train {
-        #[command(flatten)]
-        args: TrainArgs,
-    }
-    for (device, built) in [
-        ("cuda", cfg!(feature = "cuda")),
-        ("wgpu", cfg!(feature = "wgpu")),
-    ] {
-        if built {
-            continue;
-        }
-        let t = Train::try_parse_from([
-            "train",
-            "--data",
-            "/nonexistent/data",
-            "--out",
-            "/nonexistent/o.bpk",
-            "--device",
-            device,
-        ])
-        .unwrap();
-        assert_ne!(t.args.device, TrainDevice::Cpu);
-        let e = format!("{:#}", run_train(&t.args).expect_err("not compiled in"));
-        assert!(
-            e.contains(&format!("--features {device}")) && !e.contains("/nonexistent"),
-            "{e}"
         );
     }
 }

@@ -23,36 +23,27 @@ use crate::model::LoadedModel;
 use crate::outputs::latch::SafetyLatch;
 
 /// `fall-guard warnings`.
-#[derive(Debug, clap::Args)]
-pub struct WarningsArgs {
+#[derive(Debug)]
+pub struct WarningsOptions {
     /// Model file (EMP, MP, EP or P).
-    #[arg(long)]
     pub model: PathBuf,
     /// Data set directory (recordings + manifest.json).
-    #[arg(long)]
     pub data: PathBuf,
     /// Split to replay: choose thresholds on `validation`, report on `test`.
-    #[arg(long, default_value = "validation")]
     pub split: Split,
     /// Horizon the latch watches, ms (one of the model's horizons).
-    #[arg(long, default_value_t = 1000)]
     pub horizon_ms: u32,
     /// Latch on at or above this probability.
-    #[arg(long, default_value_t = 0.7)]
     pub trigger: f32,
     /// Latch off below this probability.
-    #[arg(long, default_value_t = 0.4)]
     pub release: f32,
     /// Search the thresholds on this split instead (trigger 0.30..0.95,
     /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
     /// false-alarm rate is within --max-false-alarms-per-min.
-    #[arg(long)]
     pub choose: bool,
     /// False-alarm budget for --choose, per minute of non-falling walking.
-    #[arg(long, default_value_t = 0.5)]
     pub max_false_alarms_per_min: f64,
     /// JSON report.
-    #[arg(long)]
     pub out: Option<PathBuf>,
 }
 
@@ -203,7 +194,7 @@ pub fn forecast_split(
 }
 
 /// `fall-guard warnings`: prints a table, writes JSON with `--out`.
-pub fn run_warnings(args: &WarningsArgs) -> anyhow::Result<()> {
+pub fn run_warnings(args: &WarningsOptions) -> anyhow::Result<()> {
     let model = LoadedModel::load(&args.model)
         .with_context(|| format!("reading {}", args.model.display()))?;
     let tick_s = 1.0 / model.meta.rate_hz;

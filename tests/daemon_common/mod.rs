@@ -213,6 +213,25 @@ pub fn write_joints_gap_recording(scene: &Scene) -> PathBuf {
 /// lost for a while, the others going on.
 pub fn copy_without(src: &Path, dst: &Path, topic: &str, from_ns: i64, to_ns: i64) {
     let keep = |t: &str, log_time_ns: i64| t != topic || !(from_ns..to_ns).contains(&log_time_ns);
+    copy_edited(src, dst, keep, Clone::clone);
+}
+
+/// Copies `src` to `dst` with every camera message replaced by
+/// `image(message)`, the rest unchanged.
+pub fn copy_with_images(
+    src: &Path,
+    dst: &Path,
+    image: impl Fn(&fall_guard::msgs::CompressedImage) -> fall_guard::msgs::CompressedImage,
+) {
+    copy_edited(src, dst, |_, _| true, image);
+}
+
+fn copy_edited(
+    src: &Path,
+    dst: &Path,
+    keep: impl Fn(&str, i64) -> bool,
+    image: impl Fn(&fall_guard::msgs::CompressedImage) -> fall_guard::msgs::CompressedImage,
+) {
     let rec = Recording::open(src).expect("read");
     let mut w = RecordingWriter::create(dst).expect("create");
     let mut i = (0, 0, 0);
@@ -238,7 +257,7 @@ pub fn copy_without(src: &Path, dst: &Path, topic: &str, from_ns: i64, to_ns: i6
             Some((_, 1)) => {
                 let m = &rec.images[i.1];
                 if keep(topics::HEAD_CAMERA, m.log_time_ns) {
-                    w.write(topics::HEAD_CAMERA, m.log_time_ns, &m.msg)
+                    w.write(topics::HEAD_CAMERA, m.log_time_ns, &image(&m.msg))
                         .expect("write");
                 }
                 i.1 += 1;

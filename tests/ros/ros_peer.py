@@ -228,13 +228,19 @@ def sway(names, t):
 
 
 def walk(args):
-    from sensor_msgs.msg import JointState
+    from sensor_msgs.msg import CompressedImage, JointState
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     names = args.joints.split(",")
     node = rclpy.create_node("fall_guard_test_walker")
     joints = node.create_publisher(JointState, args.joint_states, QOS["sensor_data"])
     plans = node.create_publisher(JointTrajectory, args.planned_trajectory, QOS["latched"])
+    images = None
+    if args.camera_jpeg:
+        # Camera frames: the given file's bytes, as a camera driver sends them.
+        with open(args.camera_jpeg, "rb") as f:
+            jpeg = f.read()
+        images = node.create_publisher(CompressedImage, args.camera, QOS["sensor_data"])
     start = time.time()
     deadline = time.monotonic() + args.timeout
     i = 0
@@ -262,6 +268,13 @@ def walk(args):
         js.name = names
         js.position = sway(names, now - start)
         joints.publish(js)
+        if images is not None:
+            img = CompressedImage()
+            stamp(img.header.stamp, now_ns)
+            img.header.frame_id = "head_camera"
+            img.format = "jpeg"
+            img.data = jpeg
+            images.publish(img)
         if i == 1 or i % 30 == 0:
             emit({"event": "published", "topic": args.joint_states, "n": i})
         rclpy.spin_once(node, timeout_sec=args.period)
@@ -291,6 +304,8 @@ def main():
     wp.add_argument("--joints", required=True, help="joint names, comma-separated")
     wp.add_argument("--joint-states", default="/joint_states")
     wp.add_argument("--planned-trajectory", default="/planned_trajectory")
+    wp.add_argument("--camera", default="/head_camera/image_raw/compressed")
+    wp.add_argument("--camera-jpeg", default=None, help="publish this file as camera frames")
     wp.add_argument("--period", type=float, default=0.033)
     wp.add_argument("--timeout", type=float, default=60.0)
     args = parser.parse_args()

@@ -1,0 +1,665 @@
+//! The command line (binary side only): clap's parsing structs, each turned
+//! into the library's plain options struct (`service::RunOptions`,
+//! `train::cli::TrainOptions`, ...) by `From`. The library has no clap
+//! derive: its enums (`Protocol`, `TrajectoryInput`) get their command-line
+//! twins here; `Ablation`, `Split` and `TrainDevice` parse by `FromStr`.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+use clap::ValueEnum;
+
+use fall_guard::daemon_bench::BenchDaemonOptions;
+use fall_guard::model::{Ablation, TrajectoryInput};
+use fall_guard::service::{LabelOptions, RecordOptions, ReplayOptions, RunOptions};
+use fall_guard::train::bench::BenchOptions;
+use fall_guard::train::calibrate::CalibrateOptions;
+use fall_guard::train::cli::{EvalOptions, HalfOptions, TrainOptions};
+use fall_guard::train::dataset::Split;
+use fall_guard::train::device::TrainDevice;
+use fall_guard::train::sampler::Protocol;
+use fall_guard::train::warning::WarningsOptions;
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "fall-guard",
+    version,
+    about = "Forecasts falls of a walking Poppy Humanoid and publishes them on ROS 2"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Train a model (or the logistic baseline) on a data set.
+    Train(TrainArgs),
+    /// Evaluate model files on a split; or forecast one recording per tick.
+    Eval(EvalArgs),
+    /// Run the onboard daemon (servos, camera and plan in; forecasts out on ROS 2).
+    Run(RunArgs),
+    /// Replay an MCAP recording through the daemon with recorded time.
+    Replay(ReplayArgs),
+    /// Record the live streams as an MCAP recording.
+    Record(RecordArgs),
+    /// Mark the fall onset of a recording (in place).
+    Label(LabelArgs),
+    /// Benchmark the daemon: sensor-to-publish latency and memory while replaying at maximum speed.
+    BenchDaemon(BenchDaemonArgs),
+    /// Warning lead time and false alarms of the safety latch on a split; choose its thresholds.
+    Warnings(WarningsArgs),
+    /// Calibrate a model's probabilities on held-out windows (Platt scaling per horizon).
+    Calibrate(CalibrateArgs),
+    /// Rewrite a model file with its weights in half precision (f16).
+    Half(HalfArgs),
+    /// Per-tick latency and training throughput of the network.
+    Bench(BenchArgs),
+}
+
+/// `fall-guard run`: the onboard daemon.
+#[derive(Debug, Clone, Args)]
+pub struct RunArgs {
+    /// The config file (see config/poppy_humanoid.toml).
+    #[arg(long, default_value = "/etc/fall-guard/poppy_humanoid.toml")]
+    pub config: PathBuf,
+    /// ROS namespace for every relative topic (overrides `[ros].namespace`).
+    #[arg(long)]
+    pub namespace: Option<String>,
+}
+
+impl From<RunArgs> for RunOptions {
+    fn from(a: RunArgs) -> Self {
+        RunOptions {
+            config: a.config,
+            namespace: a.namespace,
+        }
+    }
+}
+
+/// `fall-guard replay`: the daemon on a recording, with recorded time.
+#[derive(Debug, Clone, Args)]
+pub struct ReplayArgs {
+    /// Config file; without it, the embedded config/replay.toml.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// MCAP recording; without it, `[replay].recording` of the config.
+    #[arg(long)]
+    pub recording: Option<PathBuf>,
+    /// Recorded time runs this many times faster than real time.
+    #[arg(long, conflicts_with = "max_speed")]
+    pub speed: Option<f64>,
+    /// As fast as inference allows (every tick forecast, none skipped).
+    #[arg(long)]
+    pub max_speed: bool,
+    /// Do not print one line per forecast on stdout.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Also write the recording with the daemon's outputs merged in
+    /// (`/fall_guard/forecast`, `/fall_guard/fall_imminent`, `/diagnostics`
+    /// at recorded time), e.g. to open in Foxglove with
+    /// `docs/foxglove/fall-guard.json`.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+impl From<ReplayArgs> for ReplayOptions {
+    fn from(a: ReplayArgs) -> Self {
+        ReplayOptions {
+            config: a.config,
+            recording: a.recording,
+            speed: a.speed,
+            max_speed: a.max_speed,
+            quiet: a.quiet,
+            out: a.out,
+        }
+    }
+}
+
+/// `fall-guard record`: record the live streams as an MCAP recording.
+#[derive(Debug, Clone, Args)]
+pub struct RecordArgs {
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Output file (.mcap).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Stop after this many seconds (default: until Ctrl-C / SIGTERM).
+    #[arg(long)]
+    pub duration_s: Option<f64>,
+}
+
+impl From<RecordArgs> for RecordOptions {
+    fn from(a: RecordArgs) -> Self {
+        RecordOptions {
+            config: a.config,
+            out: a.out,
+            duration_s: a.duration_s,
+        }
+    }
+}
+
+/// `fall-guard label`: mark the fall onset of a recording, in place.
+#[derive(Debug, Clone, Args)]
+pub struct LabelArgs {
+    /// The recording to label.
+    pub recording: PathBuf,
+    /// Seconds after the recording's first message when the fall starts.
+    #[arg(long, required_unless_present = "no_fall", conflicts_with = "no_fall")]
+    pub fall_at: Option<f64>,
+    /// The episode does not fall.
+    #[arg(long)]
+    pub no_fall: bool,
+}
+
+impl From<LabelArgs> for LabelOptions {
+    fn from(a: LabelArgs) -> Self {
+        LabelOptions {
+            recording: a.recording,
+            fall_at: a.fall_at,
+            no_fall: a.no_fall,
+        }
+    }
+}
+
+/// `fall-guard bench-daemon`.
+#[derive(Debug, Clone, Args)]
+pub struct BenchDaemonArgs {
+    /// Config file; without it, the embedded config/replay.toml.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Recording to loop; without it, `[replay].recording`.
+    #[arg(long)]
+    pub recording: Option<PathBuf>,
+    /// Wall time to run, seconds.
+    #[arg(long, default_value_t = 120.0)]
+    pub duration_s: f64,
+    /// Also write the report as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Replay at this many times real time instead of maximum speed: the
+    /// sensor-to-publish latency as on the robot (at maximum speed a sample
+    /// also waits for the previous tick's inference).
+    #[arg(long)]
+    pub speed: Option<f64>,
+}
+
+impl From<BenchDaemonArgs> for BenchDaemonOptions {
+    fn from(a: BenchDaemonArgs) -> Self {
+        BenchDaemonOptions {
+            config: a.config,
+            recording: a.recording,
+            duration_s: a.duration_s,
+            json: a.json,
+            speed: a.speed,
+        }
+    }
+}
+
+/// `--protocol` (`train`, `eval`, `calibrate`): `train::sampler::Protocol`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ProtocolArg {
+    /// One window set for all horizons, balanced at the middle horizon, no
+    /// fallen tick in a window (as the daemon sees an episode).
+    Deployment,
+    /// The paper's: one window set per horizon `P`, balanced at `P`, windows
+    /// ending at or before the stop line `onset - P`.
+    Paper,
+}
+
+impl From<ProtocolArg> for Protocol {
+    fn from(p: ProtocolArg) -> Self {
+        match p {
+            ProtocolArg::Deployment => Protocol::Deployment,
+            ProtocolArg::Paper => Protocol::Paper,
+        }
+    }
+}
+
+/// `train --trajectory`: `model::TrajectoryInput`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum TrajectoryArg {
+    /// The planned joint angles of ticks `t-N+1 ..= t+h_K`: the past and
+    /// the known future of the plan (EMP as published).
+    Planned,
+    /// The planned joint angles of ticks `t-N+1 ..= t`, nothing from the future.
+    HistoricalOnly,
+    /// The measured joint angles of ticks `t-N+1 ..= t` in place of the plan.
+    RealPosition,
+}
+
+impl From<TrajectoryArg> for TrajectoryInput {
+    fn from(t: TrajectoryArg) -> Self {
+        match t {
+            TrajectoryArg::Planned => TrajectoryInput::Planned,
+            TrajectoryArg::HistoricalOnly => TrajectoryInput::HistoricalOnly,
+            TrajectoryArg::RealPosition => TrajectoryInput::RealPosition,
+        }
+    }
+}
+
+/// Arguments of `fall-guard train`.
+#[derive(Debug, Clone, Args)]
+pub struct TrainArgs {
+    /// Data set directory (recordings + manifest.json).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// P, MP, EP, EMP, or logreg (the logistic-regression baseline).
+    #[arg(long, default_value = "EMP")]
+    pub ablation: String,
+    /// Network configuration: lite or paper.
+    #[arg(long, default_value = "lite")]
+    pub config: String,
+    /// Seed of initialisation, dropout and window sampling.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output model file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// At most this many epochs.
+    #[arg(long, default_value_t = 10)]
+    pub epochs: usize,
+    /// Early-stopping patience on validation loss, epochs.
+    #[arg(long, default_value_t = 3)]
+    pub patience: usize,
+    /// Windows per step.
+    #[arg(long, default_value_t = 4)]
+    pub batch: usize,
+    /// Learning-rate table: sim (SimP column) or robot (RP column).
+    #[arg(long, default_value = "sim")]
+    pub rates: String,
+    /// Window length N, ticks.
+    #[arg(long, default_value_t = 60)]
+    pub n_ticks: usize,
+    /// Horizons, ticks, comma-separated.
+    #[arg(long, default_value = "15,30,45,60", value_delimiter = ',')]
+    pub horizons: Vec<usize>,
+    /// Tick rate, Hz.
+    #[arg(long, default_value_t = 30.0)]
+    pub rate_hz: f64,
+    /// Frame side, pixels.
+    #[arg(long, default_value_t = 64)]
+    pub frame_size: u32,
+    /// Joint names in model order, comma-separated (default: the Poppy Humanoid's 25).
+    #[arg(long, value_delimiter = ',')]
+    pub joint_names: Option<Vec<String>>,
+    /// What the data is, stored in the model file.
+    #[arg(long, default_value = "simulated")]
+    pub trained_on: String,
+    /// How training and validation windows are drawn: `deployment` (one set
+    /// for all horizons, balanced at the middle one) or `paper` (one set per
+    /// horizon, balanced at it, windows ending at or before its stop line).
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Deployment)]
+    pub protocol: ProtocolArg,
+    /// Train one network per horizon P (each with that one horizon, its plan
+    /// reaching P ticks ahead), written next to --out as `NAME.h<P>.EXT`.
+    #[arg(long)]
+    pub per_horizon: bool,
+    /// What the trajectory encoder reads: `planned` (past and future plan),
+    /// `historical-only` (past N plan ticks), `real-position` (the measured
+    /// joints). Stored in the model file.
+    #[arg(long, value_enum, default_value_t = TrajectoryArg::Planned)]
+    pub trajectory: TrajectoryArg,
+    /// Where the network trains: cpu, cuda, cuda:N (feature `cuda`) or wgpu
+    /// (feature `wgpu`). The model file is the same whichever trains it.
+    #[arg(long, default_value = "cpu")]
+    pub device: TrainDevice,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+impl From<TrainArgs> for TrainOptions {
+    fn from(a: TrainArgs) -> Self {
+        TrainOptions {
+            data: a.data,
+            ablation: a.ablation,
+            config: a.config,
+            seed: a.seed,
+            out: a.out,
+            epochs: a.epochs,
+            patience: a.patience,
+            batch: a.batch,
+            rates: a.rates,
+            n_ticks: a.n_ticks,
+            horizons: a.horizons,
+            rate_hz: a.rate_hz,
+            frame_size: a.frame_size,
+            joint_names: a.joint_names,
+            trained_on: a.trained_on,
+            protocol: a.protocol.into(),
+            per_horizon: a.per_horizon,
+            trajectory: a.trajectory.into(),
+            device: a.device,
+            quiet: a.quiet,
+        }
+    }
+}
+
+/// Arguments of `fall-guard eval`.
+#[derive(Debug, Clone, Args)]
+pub struct EvalArgs {
+    /// Model file (network or logreg baseline).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// More model files of other seeds: metrics become mean ± std.
+    #[arg(long, num_args = 1..)]
+    pub seeds: Vec<PathBuf>,
+    /// Data set directory.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Split to evaluate.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Output directory (metrics.json, metrics.md, PNG plots).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Seed of the test-window sampler.
+    #[arg(long, default_value_t = 12345)]
+    pub sample_seed: u64,
+    /// Windows drawn per episode (each an independent draw; under the paper
+    /// protocol, per episode and horizon).
+    #[arg(long, default_value_t = 1)]
+    pub draws: usize,
+    /// The protocol of the plots and of the report's top-level `horizons`;
+    /// the report has a section for each protocol either way.
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Deployment)]
+    pub protocol: ProtocolArg,
+    /// Offline per-tick forecast of one recording (with --per-tick-out).
+    #[arg(long)]
+    pub recording: Option<PathBuf>,
+    /// JSON lines: one forecast per tick of --recording.
+    #[arg(long)]
+    pub per_tick_out: Option<PathBuf>,
+}
+
+impl From<EvalArgs> for EvalOptions {
+    fn from(a: EvalArgs) -> Self {
+        EvalOptions {
+            model: a.model,
+            seeds: a.seeds,
+            data: a.data,
+            split: a.split,
+            out: a.out,
+            sample_seed: a.sample_seed,
+            draws: a.draws,
+            protocol: a.protocol.into(),
+            recording: a.recording,
+            per_tick_out: a.per_tick_out,
+        }
+    }
+}
+
+/// `fall-guard half`: the same model file with its weights in half precision.
+#[derive(Debug, Args)]
+pub struct HalfArgs {
+    /// Model file to convert (f32 or already half).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Output model file.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+impl From<HalfArgs> for HalfOptions {
+    fn from(a: HalfArgs) -> Self {
+        HalfOptions {
+            model: a.model,
+            out: a.out,
+        }
+    }
+}
+
+/// Arguments of `fall-guard bench`.
+#[derive(Debug, Clone, Args)]
+pub struct BenchArgs {
+    /// Model file whose configuration is benchmarked (every ablation of it;
+    /// the file's own ablation with its weights, held at the file's
+    /// precision); without one, the reference `lite` configuration (N=60,
+    /// C=25, 64 px) with freshly initialised f32 weights.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Configuration when no model is given: lite or paper.
+    #[arg(long, default_value = "lite")]
+    pub config: String,
+    /// Write the results here as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Ticks measured per ablation (after the window is full).
+    #[arg(long, default_value_t = 300)]
+    pub ticks: usize,
+    /// Training steps measured (batch 4, EMP); 0 skips.
+    #[arg(long, default_value_t = 10)]
+    pub train_steps: usize,
+    /// Measure only these ablations (repeatable); all four when absent.
+    #[arg(long = "ablation")]
+    pub ablations: Vec<Ablation>,
+    /// Measure training throughput only (skip the inference latencies).
+    #[arg(long)]
+    pub train_only: bool,
+    /// Device of the training part: cpu, cuda, cuda:N or wgpu (see `train --device`).
+    #[arg(long, default_value = "cpu")]
+    pub device: TrainDevice,
+}
+
+impl From<BenchArgs> for BenchOptions {
+    fn from(a: BenchArgs) -> Self {
+        BenchOptions {
+            model: a.model,
+            config: a.config,
+            json: a.json,
+            ticks: a.ticks,
+            train_steps: a.train_steps,
+            ablations: a.ablations,
+            train_only: a.train_only,
+            device: a.device,
+        }
+    }
+}
+
+/// Arguments of `fall-guard calibrate`.
+#[derive(Debug, Clone, Args)]
+pub struct CalibrateArgs {
+    /// Model file to calibrate (a network; any calibration it has is replaced).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Data set directory.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Split to fit on: never the one the model is judged on.
+    #[arg(long, default_value = "validation")]
+    pub split: String,
+    /// Windows drawn per episode (each an independent draw).
+    #[arg(long, default_value_t = 10)]
+    pub draws: usize,
+    /// Seed of the window sampler.
+    #[arg(long, default_value_t = 12345)]
+    pub sample_seed: u64,
+    /// How the fitting windows are drawn: `deployment` or `paper` (each
+    /// horizon fitted on its own balanced set); see `train --protocol`.
+    #[arg(long, value_enum, default_value_t = ProtocolArg::Deployment)]
+    pub protocol: ProtocolArg,
+    /// Output model file (may be the input).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Store the weights in half precision (f16).
+    #[arg(long)]
+    pub half: bool,
+}
+
+impl From<CalibrateArgs> for CalibrateOptions {
+    fn from(a: CalibrateArgs) -> Self {
+        CalibrateOptions {
+            model: a.model,
+            data: a.data,
+            split: a.split,
+            draws: a.draws,
+            sample_seed: a.sample_seed,
+            protocol: a.protocol.into(),
+            out: a.out,
+            half: a.half,
+        }
+    }
+}
+
+/// `fall-guard warnings`.
+#[derive(Debug, Args)]
+pub struct WarningsArgs {
+    /// Model file (EMP, MP, EP or P).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Data set directory (recordings + manifest.json).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Split to replay: choose thresholds on `validation`, report on `test`.
+    #[arg(long, default_value = "validation")]
+    pub split: Split,
+    /// Horizon the latch watches, ms (one of the model's horizons).
+    #[arg(long, default_value_t = 1000)]
+    pub horizon_ms: u32,
+    /// Latch on at or above this probability.
+    #[arg(long, default_value_t = 0.7)]
+    pub trigger: f32,
+    /// Latch off below this probability.
+    #[arg(long, default_value_t = 0.4)]
+    pub release: f32,
+    /// Search the thresholds on this split instead (trigger 0.30..0.95,
+    /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
+    /// false-alarm rate is within --max-false-alarms-per-min.
+    #[arg(long)]
+    pub choose: bool,
+    /// False-alarm budget for --choose, per minute of non-falling walking.
+    #[arg(long, default_value_t = 0.5)]
+    pub max_false_alarms_per_min: f64,
+    /// JSON report.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+impl From<WarningsArgs> for WarningsOptions {
+    fn from(a: WarningsArgs) -> Self {
+        WarningsOptions {
+            model: a.model,
+            data: a.data,
+            split: a.split,
+            horizon_ms: a.horizon_ms,
+            trigger: a.trigger,
+            release: a.release,
+            choose: a.choose,
+            max_false_alarms_per_min: a.max_false_alarms_per_min,
+            out: a.out,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        use clap::CommandFactory;
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn daemon_commands_parse_into_the_library_options() {
+        let cli = Cli::try_parse_from(["fall-guard", "replay", "--max-speed", "--quiet"])
+            .expect("parses");
+        let Command::Replay(args) = cli.command else {
+            panic!("not replay");
+        };
+        let o = ReplayOptions::from(args);
+        assert!(o.max_speed && o.quiet && o.config.is_none() && o.speed.is_none());
+        assert!(
+            Cli::try_parse_from(["fall-guard", "replay", "--max-speed", "--speed", "2"]).is_err(),
+            "--speed conflicts with --max-speed"
+        );
+        let cli = Cli::try_parse_from(["fall-guard", "run"]).expect("parses");
+        let Command::Run(args) = cli.command else {
+            panic!("not run");
+        };
+        assert_eq!(
+            RunOptions::from(args).config,
+            PathBuf::from("/etc/fall-guard/poppy_humanoid.toml")
+        );
+        assert!(Cli::try_parse_from(["fall-guard", "label", "r.mcap"]).is_err());
+        let cli = Cli::try_parse_from(["fall-guard", "bench-daemon"]).expect("parses");
+        let Command::BenchDaemon(args) = cli.command else {
+            panic!("not bench-daemon");
+        };
+        assert_eq!(BenchDaemonOptions::from(args).duration_s, 120.0);
+    }
+
+    #[test]
+    fn train_and_bench_take_a_device_flag() {
+        let train = |extra: &[&str]| {
+            let mut all = vec!["fall-guard", "train", "--data", "d", "--out", "o.bpk"];
+            all.extend_from_slice(extra);
+            Cli::try_parse_from(all).map(|c| match c.command {
+                Command::Train(a) => TrainOptions::from(a),
+                _ => panic!("not train"),
+            })
+        };
+        let t = train(&[]).unwrap();
+        assert_eq!(t.device, TrainDevice::Cpu, "the CPU by default");
+        assert_eq!(t.protocol, Protocol::Deployment);
+        assert_eq!(t.trajectory, TrajectoryInput::Planned);
+        let t = train(&["--device", "cuda:1"]).unwrap();
+        assert_eq!(t.device, TrainDevice::Cuda(1));
+        let t = train(&["--protocol", "paper", "--trajectory", "historical-only"]).unwrap();
+        assert_eq!(
+            (t.protocol, t.trajectory),
+            (Protocol::Paper, TrajectoryInput::HistoricalOnly)
+        );
+        let e = train(&["--device", "tpu"])
+            .expect_err("unknown device refused")
+            .to_string();
+        assert!(e.contains("cuda:N"), "{e}");
+        let cli = Cli::try_parse_from(["fall-guard", "bench", "--train-only", "--device", "wgpu"])
+            .unwrap();
+        let Command::Bench(b) = cli.command else {
+            panic!("not bench");
+        };
+        let b = BenchOptions::from(b);
+        assert!(b.train_only);
+        assert_eq!(b.device, TrainDevice::Wgpu);
+    }
+
+    #[test]
+    fn training_on_a_backend_not_compiled_in_fails_before_reading_data() {
+        for (device, built) in [
+            ("cuda", cfg!(feature = "cuda")),
+            ("wgpu", cfg!(feature = "wgpu")),
+        ] {
+            if built {
+                continue;
+            }
+            let cli = Cli::try_parse_from([
+                "fall-guard",
+                "train",
+                "--data",
+                "/nonexistent/data",
+                "--out",
+                "/nonexistent/o.bpk",
+                "--device",
+                device,
+            ])
+            .unwrap();
+            let Command::Train(args) = cli.command else {
+                panic!("not train");
+            };
+            let args = TrainOptions::from(args);
+            assert_ne!(args.device, TrainDevice::Cpu);
+            let e = format!(
+                "{:#}",
+                fall_guard::train::cli::run_train(&args).expect_err("not compiled in")
+            );
+            assert!(
+                e.contains(&format!("--features {device}")) && !e.contains("/nonexistent"),
+                "{e}"
+            );
+        }
+    }
+}
