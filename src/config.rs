@@ -125,6 +125,13 @@ pub struct ModelConfig {
     pub ep: Option<PathBuf>,
     #[serde(default)]
     pub p: Option<PathBuf>,
+    /// When the fallbacks are loaded: `"at_start"` (default: every network
+    /// in memory, a switch costs one whole-window forward) or
+    /// `"when_needed"` (each fallback is loaded and checked at start, then
+    /// released, and loaded again the first time it is needed, then kept:
+    /// less memory until the first switch, which also pays the load).
+    #[serde(default)]
+    pub fallbacks: FallbackLoading,
     /// Horizon watched by the safety latch (`/fall_guard/fall_imminent`), ms;
     /// must be one of the model's horizons.
     pub horizon_ms: u32,
@@ -132,6 +139,17 @@ pub struct ModelConfig {
     pub trigger: f32,
     /// Latch turns off only when it drops below this (< `trigger`).
     pub release: f32,
+}
+
+/// `[model].fallbacks`: when the fallback networks are in memory.
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum FallbackLoading {
+    /// All networks loaded at start and kept.
+    #[default]
+    AtStart,
+    /// Checked at start, released, loaded at their first use, then kept.
+    WhenNeeded,
 }
 
 fn default_model_dir() -> PathBuf {

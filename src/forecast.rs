@@ -29,7 +29,7 @@ use std::time::Instant;
 use thiserror::Error;
 use tokio::sync::Notify;
 
-use crate::config::{Config, ConfigError, ModelFacts};
+use crate::config::{Config, ConfigError, FallbackLoading, ModelFacts};
 use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster, TrajectoryInput};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
@@ -89,18 +89,106 @@ pub fn ablation_name(ablation: Ablation) -> &'static str {
 }
 
 /// The networks of one configuration: EMP and the fallbacks that are
-/// configured, all on the same window.
+/// configured, all on the same window. With `[model].fallbacks =
+/// "when_needed"` a fallback is checked at start, released, and loaded again
+/// at its first use ([`ModelSet::model`]), then kept.
 #[derive(Debug)]
 pub struct ModelSet {
-    models: Vec<LoadedModel>,
+    slots: Vec<ModelSlot>,
     spec: WindowSpec,
     horizons_ms: Vec<u32>,
+    robot_joints: Vec<String>,
+}
+
+/// One configured network: its file, and the network while in memory.
+#[derive(Debug)]
+struct ModelSlot {
+    key: &'static str,
+    ablation: Ablation,
+    path: PathBuf,
+    loaded: Mutex<Option<LoadedModel>>,
+}
+
+impl ModelSlot {
+    fn loaded(&self) -> std::sync::MutexGuard<'_, Option<LoadedModel>> {
+        self.loaded.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// Loads `path` for `key` and refuses a file that is not the ablation its
+/// key names, does not fit the robot's joints, or (for a fallback) does not
+/// share EMP's window.
+fn load_checked(
+    key: &str,
+    path: &Path,
+    expected: Ablation,
+    robot_joints: &[String],
+    emp: Option<&LoadedModel>,
+) -> Result<LoadedModel, ForecastError> {
+    let model = LoadedModel::load(path).map_err(|source| ForecastError::Load {
+        key: key.to_string(),
+        file: path.to_path_buf(),
+        source,
+    })?;
+    let meta = &model.meta;
+    if meta.ablation != expected {
+        return Err(ForecastError::WrongAblation {
+            key: key.to_string(),
+            file: path.to_path_buf(),
+            found: meta.ablation,
+            expected,
+        });
+    }
+    // The stream freshness and fallback rules below are written for
+    // networks whose trajectory encoder reads the plan stream.
+    if meta.config.trajectory != TrajectoryInput::Planned {
+        return Err(ForecastError::Trajectory {
+            key: key.to_string(),
+            file: path.to_path_buf(),
+            trajectory: meta.config.trajectory,
+        });
+    }
+    meta.check_compatible_with(
+        robot_joints,
+        meta.rate_hz,
+        meta.n_ticks,
+        meta.config.max_horizon_ticks(),
+        meta.frame_size,
+    )
+    .map_err(|source| ForecastError::Incompatible {
+        key: key.to_string(),
+        file: path.to_path_buf(),
+        source,
+    })?;
+    if let Some(emp) = emp {
+        let e = &emp.meta;
+        let what = if e.n_ticks != meta.n_ticks {
+            Some("window length N")
+        } else if (e.rate_hz - meta.rate_hz).abs() > 1e-9 {
+            Some("tick rate")
+        } else if e.horizons_ticks != meta.horizons_ticks {
+            Some("horizons")
+        } else {
+            None
+        };
+        if let Some(what) = what {
+            return Err(ForecastError::Mismatch {
+                key: key.to_string(),
+                file: path.to_path_buf(),
+                what,
+                emp: emp.path.display().to_string(),
+            });
+        }
+    }
+    Ok(model)
 }
 
 impl ModelSet {
     /// Loads `[model].emp` and the configured fallbacks, refusing a file
     /// that is not the ablation its key names, does not fit the robot's
     /// joints, or does not share EMP's window; checks `[model].horizon_ms`.
+    /// With `[model].fallbacks = "when_needed"` the fallbacks are released
+    /// once checked.
     pub fn load(config: &Config, robot_joints: &[String]) -> Result<ModelSet, ForecastError> {
         let m = &config.model;
         let entries = [
@@ -109,95 +197,69 @@ impl ModelSet {
             ("[model].ep", m.ep.as_ref(), Ablation::EP),
             ("[model].p", m.p.as_ref(), Ablation::P),
         ];
-        let mut models: Vec<LoadedModel> = Vec::new();
+        let mut slots: Vec<ModelSlot> = Vec::new();
+        let mut emp: Option<LoadedModel> = None;
         for (key, file, expected) in entries {
             let Some(file) = file else { continue };
             let path = config.model_path(file);
-            let model = LoadedModel::load(&path).map_err(|source| ForecastError::Load {
-                key: key.to_string(),
-                file: path.clone(),
-                source,
-            })?;
+            let model = load_checked(key, &path, expected, robot_joints, emp.as_ref())?;
             let meta = &model.meta;
-            if meta.ablation != expected {
-                return Err(ForecastError::WrongAblation {
-                    key: key.to_string(),
-                    file: path,
-                    found: meta.ablation,
-                    expected,
-                });
-            }
-            // The stream freshness and fallback rules below are written for
-            // networks whose trajectory encoder reads the plan stream.
-            if meta.config.trajectory != TrajectoryInput::Planned {
-                return Err(ForecastError::Trajectory {
-                    key: key.to_string(),
-                    file: path,
-                    trajectory: meta.config.trajectory,
-                });
-            }
-            meta.check_compatible_with(
-                robot_joints,
-                meta.rate_hz,
-                meta.n_ticks,
-                meta.config.max_horizon_ticks(),
-                meta.frame_size,
-            )
-            .map_err(|source| ForecastError::Incompatible {
-                key: key.to_string(),
-                file: path.clone(),
-                source,
-            })?;
-            if let Some(emp) = models.first() {
-                let e = &emp.meta;
-                let what = if e.n_ticks != meta.n_ticks {
-                    Some("window length N")
-                } else if (e.rate_hz - meta.rate_hz).abs() > 1e-9 {
-                    Some("tick rate")
-                } else if e.horizons_ticks != meta.horizons_ticks {
-                    Some("horizons")
-                } else {
-                    None
-                };
-                if let Some(what) = what {
-                    return Err(ForecastError::Mismatch {
-                        key: key.to_string(),
-                        file: path,
-                        what,
-                        emp: emp.path.display().to_string(),
-                    });
-                }
-            }
             tracing::info!(key, file = %path.display(), ablation = ablation_name(meta.ablation),
                 trained_on = %meta.trained_on, best_epoch = meta.best_epoch, "network ready");
-            models.push(model);
+            if emp.is_none() {
+                emp = Some(model.clone());
+            }
+            let keep = expected == Ablation::EMP || m.fallbacks == FallbackLoading::AtStart;
+            if !keep {
+                tracing::info!(key, "checked; released until it is first needed ([model].fallbacks = \"when_needed\")");
+            }
+            slots.push(ModelSlot {
+                key,
+                ablation: expected,
+                path,
+                loaded: Mutex::new(keep.then_some(model)),
+            });
         }
-        let emp = &models[0].meta;
-        let horizons_ms = emp.horizons_ms();
+        let emp = emp.expect("[model].emp is required");
+        let horizons_ms = emp.meta.horizons_ms();
         config.check_against_model(
             &ModelFacts {
                 horizons_ms: horizons_ms.clone(),
-                joint_names: emp.joint_names.clone(),
-                rate_hz: emp.rate_hz,
+                joint_names: emp.meta.joint_names.clone(),
+                rate_hz: emp.meta.rate_hz,
             },
             robot_joints,
         )?;
-        let spec = emp.window_spec();
+        let spec = emp.meta.window_spec();
+        drop(emp);
         release_freed_memory();
         Ok(ModelSet {
-            models,
+            slots,
             spec,
             horizons_ms,
+            robot_joints: robot_joints.to_vec(),
         })
     }
 
     /// Wraps networks already in memory (tests, benches); the first is EMP.
     pub fn from_models(models: Vec<LoadedModel>) -> ModelSet {
         let emp = &models[0].meta;
+        let spec = emp.window_spec();
+        let horizons_ms = emp.horizons_ms();
+        let robot_joints = emp.joint_names.clone();
         ModelSet {
-            spec: emp.window_spec(),
-            horizons_ms: emp.horizons_ms(),
-            models,
+            spec,
+            horizons_ms,
+            robot_joints,
+            slots: models
+                .into_iter()
+                .map(|m| ModelSlot {
+                    key: "(in memory)",
+                    ablation: m.meta.ablation,
+                    path: m.path.clone(),
+                    loaded: Mutex::new(Some(m)),
+                })
+                .collect(),
         }
     }
 
@@ -209,18 +271,54 @@ impl ModelSet {
         &self.horizons_ms
     }
 
-    /// Which ablations are loaded.
+    /// Which ablations are configured and were checked at start (in memory
+    /// or not).
     pub fn available(&self) -> Vec<Ablation> {
-        self.models.iter().map(|m| m.meta.ablation).collect()
+        self.slots.iter().map(|s| s.ablation).collect()
     }
 
-    pub fn get(&self, ablation: Ablation) -> Option<&LoadedModel> {
-        self.models.iter().find(|m| m.meta.ablation == ablation)
+    /// Which ablations are in memory now.
+    pub fn in_memory(&self) -> Vec<Ablation> {
+        self.slots
+            .iter()
+            .filter(|s| s.loaded().is_some())
+            .map(|s| s.ablation)
+            .collect()
     }
 
-    /// File of a loaded ablation.
+    /// The network of `ablation`, loading it (and checking it again against
+    /// EMP and the robot) when it is not in memory; `Ok(None)` when it is not
+    /// configured. A load here is the first switch to a `"when_needed"`
+    /// fallback; its time is logged.
+    pub fn model(&self, ablation: Ablation) -> Result<Option<LoadedModel>, ForecastError> {
+        let Some(slot) = self.slots.iter().find(|s| s.ablation == ablation) else {
+            return Ok(None);
+        };
+        if let Some(m) = slot.loaded().as_ref() {
+            return Ok(Some(m.clone()));
+        }
+        let emp = self.slots.first().and_then(|s| s.loaded().clone());
+        let started = std::time::Instant::now();
+        let model = load_checked(
+            slot.key,
+            &slot.path,
+            ablation,
+            &self.robot_joints,
+            emp.as_ref().filter(|e| e.meta.ablation != ablation),
+        )?;
+        tracing::info!(key = slot.key, file = %slot.path.display(),
+            load_ms = format!("{:.1}", started.elapsed().as_secs_f64() * 1e3),
+            "fallback loaded at its first use");
+        *slot.loaded() = Some(model.clone());
+        Ok(Some(model))
+    }
+
+    /// File of a configured ablation.
     pub fn file(&self, ablation: Ablation) -> Option<&Path> {
-        self.get(ablation).map(|m| m.path.as_path())
+        self.slots
+            .iter()
+            .find(|s| s.ablation == ablation)
+            .map(|s| s.path.as_path())
     }
 }
 
@@ -521,7 +619,7 @@ fn inference_loop(
             forecasters.prepare(job.ablation, &job.ticks);
         } else {
             let started = Instant::now();
-            match forecasters.forecast(job.ablation, &job.ticks) {
+            match forecasters.forecast(models, job.ablation, &job.ticks) {
                 Ok(p) => {
                     latency_us =
                         Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
@@ -535,13 +633,18 @@ fn inference_loop(
                     valid = false;
                     invalid_reason = e;
                 }
-                Err(ForecastFailure::Model(e)) => {
+                Err(failure @ (ForecastFailure::Model(_) | ForecastFailure::Unavailable(_))) => {
+                    let e = match failure {
+                        ForecastFailure::Model(e) => format!("inference failed: {e}"),
+                        ForecastFailure::Unavailable(e) => format!("network not loaded: {e}"),
+                        ForecastFailure::Input(e) => e,
+                    };
                     if !logged_error {
-                        tracing::error!(tick = job.tick, error = %e, "inference failed (logged once, counted in /diagnostics)");
+                        tracing::error!(tick = job.tick, error = %e, "no forecast (logged once, counted in /diagnostics)");
                         logged_error = true;
                     }
                     valid = false;
-                    invalid_reason = format!("inference failed: {e}");
+                    invalid_reason = e;
                     if let Ok(mut s) = stats.lock() {
                         s.errors += 1;
                     }
@@ -598,6 +701,8 @@ enum ForecastFailure {
     Input(String),
     /// The network refused or failed: an error.
     Model(ModelError),
+    /// A `"when_needed"` fallback could not be loaded at its first use.
+    Unavailable(String),
 }
 
 /// One [`StreamingForecaster`] per loaded network, fed tick by tick: the
@@ -613,12 +718,37 @@ impl Forecasters {
     fn new(models: &ModelSet) -> Forecasters {
         Forecasters {
             by_ablation: models
-                .models
+                .slots
                 .iter()
-                .map(|m| (m.meta.ablation, StreamingForecaster::new(m)))
+                .filter_map(|s| {
+                    s.loaded()
+                        .as_ref()
+                        .map(|m| (s.ablation, StreamingForecaster::new(m)))
+                })
                 .collect(),
             refused_at: None,
         }
+    }
+
+    /// The forecaster of `ablation`, made (and its network loaded, for a
+    /// `"when_needed"` fallback) at its first use.
+    fn forecaster(
+        &mut self,
+        models: &ModelSet,
+        ablation: Ablation,
+    ) -> Result<&mut StreamingForecaster, ForecastFailure> {
+        if let Some(i) = self.by_ablation.iter().position(|(a, _)| *a == ablation) {
+            return Ok(&mut self.by_ablation[i].1);
+        }
+        let model = models
+            .model(ablation)
+            .map_err(|e| ForecastFailure::Unavailable(e.to_string()))?
+            .ok_or_else(|| {
+                ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation)))
+            })?;
+        self.by_ablation
+            .push((ablation, StreamingForecaster::new(&model)));
+        Ok(&mut self.by_ablation.last_mut().expect("just pushed").1)
     }
 
     /// The forecast of `ablation` for the window `ticks` (N consecutive
@@ -627,17 +757,11 @@ impl Forecasters {
     /// whole window after a model switch or a gap.
     fn forecast(
         &mut self,
+        models: &ModelSet,
         ablation: Ablation,
         ticks: &[TickInput],
     ) -> Result<Vec<f32>, ForecastFailure> {
-        let forecaster = self
-            .by_ablation
-            .iter_mut()
-            .find(|(a, _)| *a == ablation)
-            .map(|(_, f)| f)
-            .ok_or_else(|| {
-                ForecastFailure::Input(format!("no {} network loaded", ablation_name(ablation)))
-            })?;
+        let forecaster = self.forecaster(models, ablation)?;
         let first = ticks.first().map(|t| t.tick).unwrap_or_default();
         let from = match forecaster.last_tick() {
             // Continue only a forecaster that holds the window's start (one

@@ -539,6 +539,13 @@ impl TickLoop {
                 ring_capacity: self.ring.capacity(),
                 imminent,
                 latch_horizon_ms: self.settings.latch_horizon_ms,
+                networks_in_memory: self
+                    .models
+                    .in_memory()
+                    .into_iter()
+                    .map(ablation_name)
+                    .collect::<Vec<_>>()
+                    .join(","),
             },
         }
     }

@@ -189,6 +189,57 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
     assert!(err.contains("model switch"), "switches are logged: {err}");
 }
 
+/// `[model].fallbacks = "when_needed"`: the fallback is loaded at its first
+/// use (logged once), and every forecast is what the daemon with all
+/// networks loaded at start prints.
+#[test]
+fn fallbacks_loaded_when_needed_forecast_as_if_loaded_at_start() {
+    let scene = Scene::new("no_camera.mcap");
+    let full = scene.path("full.mcap");
+    write_recording(&full, 3, false, 120);
+    copy_without(
+        &full,
+        &scene.path("no_camera.mcap"),
+        topics::HEAD_CAMERA,
+        1_500_000_000,
+        2_500_000_000,
+    );
+    let (at_start, at_start_log) = scene.replay_max_speed();
+    assert!(!at_start_log.contains("fallback loaded at its first use"));
+    let text = std::fs::read_to_string(&scene.config).expect("config");
+    let lazy = text.replace(
+        "release = 0.3\n",
+        "release = 0.3\nfallbacks = \"when_needed\"\n",
+    );
+    assert_ne!(lazy, text, "config edited");
+    std::fs::write(&scene.config, lazy).expect("config");
+    let (when_needed, log) = scene.replay_max_speed();
+    assert!(log.contains("released until it is first needed"), "{log}");
+    // MP is needed once (the camera gap); EP and P never.
+    assert_eq!(
+        log.matches("fallback loaded at its first use").count(),
+        1,
+        "{log}"
+    );
+    assert!(log.contains("key=\"[model].mp\""), "{log}");
+    assert!(when_needed.iter().any(|l| l.ablation == "MP" && l.valid));
+    assert_eq!(at_start.len(), when_needed.len());
+    for (a, b) in at_start.iter().zip(&when_needed) {
+        assert_eq!(
+            (a.tick, &a.ablation, a.valid, a.imminent),
+            (b.tick, &b.ablation, b.valid, b.imminent)
+        );
+        assert_eq!(a.probabilities.len(), b.probabilities.len());
+        for (x, y) in a.probabilities.iter().zip(&b.probabilities) {
+            assert!(
+                x == y || (x.is_nan() && y.is_nan()),
+                "tick {}: {x} vs {y}",
+                a.tick
+            );
+        }
+    }
+}
+
 #[test]
 fn label_marks_the_fall_onset_in_place() {
     let dir = tempfile::tempdir().expect("tempdir");

@@ -76,6 +76,7 @@ fn health(tick: u32) -> DiagnosticsSnapshot {
             ring_capacity: 60,
             imminent: true,
             latch_horizon_ms: 1000,
+            networks_in_memory: "EMP,MP,EP,P".to_string(),
         },
     }
 }

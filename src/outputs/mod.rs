@@ -157,6 +157,9 @@ pub struct ModelDiagnostics {
     /// Safety latch state and the horizon it watches.
     pub imminent: bool,
     pub latch_horizon_ms: u32,
+    /// The networks in memory now ("EMP,MP"): with `[model].fallbacks =
+    /// "when_needed"` a fallback appears after its first use.
+    pub networks_in_memory: String,
 }
 
 /// Everything `/diagnostics` says, once per second.
@@ -250,6 +253,10 @@ impl DiagnosticsSnapshot {
                 (
                     "latch_horizon_ms".to_string(),
                     m.latch_horizon_ms.to_string(),
+                ),
+                (
+                    "networks_in_memory".to_string(),
+                    m.networks_in_memory.clone(),
                 ),
             ],
         });
@@ -436,6 +443,7 @@ mod tests {
                 ring_capacity: 60,
                 imminent: false,
                 latch_horizon_ms: 1000,
+                networks_in_memory: "EMP,MP,EP,P".to_string(),
             },
         };
         let statuses = snap.statuses("fall_guard");
