@@ -142,7 +142,7 @@ pub async fn run(args: BenchDaemonArgs) -> Result<BenchReport, ServiceError> {
             samples,
             setup.recording.end_ns + offset,
             pacing,
-            &setup.stats,
+            &setup.gates,
             &mut shutdown,
         )
         .await;

@@ -55,6 +55,12 @@ pub enum WindowError {
     MissingJoint { topic: &'static str, joint: String },
     #[error("{topic}: {what}")]
     BadMessage { topic: &'static str, what: String },
+    #[error("{topic}: {what}")]
+    JointCount { topic: &'static str, what: String },
+    #[error("{topic}: trajectory has no points")]
+    EmptyPlan { topic: &'static str },
+    #[error("{topic}: point {point}: time_from_start does not increase")]
+    PlanTimes { topic: &'static str, point: usize },
     #[error("{topic}: joint {joint:?} is {value} (not finite)")]
     NonFinite {
         topic: &'static str,
@@ -202,17 +208,14 @@ impl Plan {
         const TOPIC: &str = topics::PLANNED_TRAJECTORY;
         let index = joint_indices(&msg.joint_names, joint_names, TOPIC)?;
         if msg.points.is_empty() {
-            return Err(WindowError::BadMessage {
-                topic: TOPIC,
-                what: "trajectory has no points".into(),
-            });
+            return Err(WindowError::EmptyPlan { topic: TOPIC });
         }
         let stamp_ns = msg.header.stamp.to_ns();
         let mut times_ns = Vec::with_capacity(msg.points.len());
         let mut positions_rad = Vec::with_capacity(msg.points.len() * joint_names.len());
         for (p, point) in msg.points.iter().enumerate() {
             if point.positions.len() != msg.joint_names.len() {
-                return Err(WindowError::BadMessage {
+                return Err(WindowError::JointCount {
                     topic: TOPIC,
                     what: format!(
                         "point {p} has {} positions for {} joint names",
@@ -224,9 +227,9 @@ impl Plan {
             let t = stamp_ns + point.time_from_start.to_ns();
             if let Some(&prev) = times_ns.last() {
                 if t <= prev {
-                    return Err(WindowError::BadMessage {
+                    return Err(WindowError::PlanTimes {
                         topic: TOPIC,
-                        what: format!("point {p}: time_from_start does not increase"),
+                        point: p,
                     });
                 }
             }
@@ -283,7 +286,7 @@ impl Plan {
 pub fn joints_from_msg(msg: &JointState, joint_names: &[String]) -> Result<Vec<f32>, WindowError> {
     const TOPIC: &str = topics::JOINT_STATES;
     if msg.position.len() != msg.name.len() {
-        return Err(WindowError::BadMessage {
+        return Err(WindowError::JointCount {
             topic: TOPIC,
             what: format!(
                 "{} positions for {} joint names",
@@ -369,6 +372,18 @@ pub struct StreamAges {
     pub joints_ns: Option<i64>,
     pub frame_ns: Option<i64>,
     pub plan_ns: Option<i64>,
+}
+
+impl StreamAges {
+    /// The age of `kind`'s last sample.
+    pub fn get(&self, kind: crate::sources::StreamKind) -> Option<i64> {
+        use crate::sources::StreamKind;
+        match kind {
+            StreamKind::Joints => self.joints_ns,
+            StreamKind::Camera => self.frame_ns,
+            StreamKind::Plan => self.plan_ns,
+        }
+    }
 }
 
 /// One tick of resampled inputs (zero-order hold: last sample at or before the tick).

@@ -1,9 +1,10 @@
 //! The daemon's side of the ROS 2 seam: one node ([`RosBridge`]) whose
 //! publishers (`outputs::ros`) are fed from the [`OutputBus`], and whose
-//! subscriptions (`sources::ros`) are turned into model-form samples on the
-//! live [`StreamFeed`]s, converted once per message with the same functions
+//! subscriptions (`sources::ros`) are turned into model-form samples and
+//! offered to the live [`StreamFeed`]s (the input boundary,
+//! `sources/input.rs`), converted once per message with the same functions
 //! a replay uses (`window::joints_from_msg`, `frame_from_msg`,
-//! `Plan::from_msg`).
+//! `Plan::from_msg`); a conversion error is a typed rejection there.
 //!
 //! The node honours `ROS_DOMAIN_ID` and `ROS_AUTOMATIC_DISCOVERY_RANGE`
 //! (`ROS_LOCALHOST_ONLY`), unless `[ros].domain_id` / `[ros].localhost_only`
@@ -23,6 +24,7 @@ use crate::outputs::{ForecastOutput, OutputBus};
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
+use crate::sources::input::{Rejection, StreamValue};
 use crate::sources::ros::{InputTopics, Latest, RosInputs};
 use crate::sources::{StreamFeed, StreamTap};
 use crate::window::{frame_from_msg, joints_from_msg, Plan, WindowSpec};
@@ -175,7 +177,7 @@ impl RosBridge {
             tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                joints_from_msg(&r.msg, &names).map(|j| (stamp_ns, j))
+                (stamp_ns, joints_from_msg(&r.msg, &names))
             }));
         }
         if let (Some(rx), Some(feed)) = (inputs.camera.clone(), wanted.camera) {
@@ -183,14 +185,14 @@ impl RosBridge {
             tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                frame_from_msg(&r.msg, size).map(|f| (stamp_ns, Arc::new(f)))
+                (stamp_ns, frame_from_msg(&r.msg, size).map(Arc::new))
             }));
         }
         if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), wanted.plan) {
             let names = spec.joint_names.clone();
             // A plan is known from the moment it arrives: stamped on receipt.
             tasks.push(forward(rx, feed, shutdown, move |r| {
-                Plan::from_msg(&r.msg, &names).map(|p| (r.received_ns, Arc::new(p)))
+                (r.received_ns, Plan::from_msg(&r.msg, &names).map(Arc::new))
             }));
         }
         self.inputs = Some(inputs);
@@ -267,7 +269,8 @@ fn forward<M, T, F>(
 where
     M: Send + Sync + 'static,
     T: Send + Sync + 'static,
-    F: Fn(&crate::sources::ros::Received<M>) -> Result<(i64, T), crate::window::WindowError>
+    T: StreamValue,
+    F: Fn(&crate::sources::ros::Received<M>) -> (i64, Result<T, crate::window::WindowError>)
         + Send
         + 'static,
 {
@@ -284,10 +287,8 @@ where
             }
             let latest = rx.borrow_and_update().clone();
             let Some(received) = latest else { continue };
-            match convert(&received) {
-                Ok((stamp_ns, value)) => feed.send(stamp_ns, value),
-                Err(e) => feed.error("bad message", &e),
-            }
+            let (stamp_ns, value) = convert(&received);
+            let _ = feed.offer(stamp_ns, value.map_err(|e| Rejection::from_window(&e)));
         }
     })
 }

@@ -183,16 +183,16 @@ mod capture {
                         };
                         let stamp_ns = crate::tick::unix_now_ns();
                         let res = buffer.resolution();
-                        match decode_raw(
+                        let frame = decode_raw(
                             config.format,
                             res.width(),
                             res.height(),
                             buffer.buffer(),
                             size,
-                        ) {
-                            Ok(frame) => feed.send(stamp_ns, Arc::new(frame)),
-                            Err(e) => feed.error("decode", &e),
-                        }
+                        )
+                        .map(Arc::new)
+                        .map_err(|e| crate::sources::input::Rejection::from_frame(&e));
+                        let _ = feed.offer(stamp_ns, frame);
                     }
                     let _ = camera.stop_stream();
                 }
