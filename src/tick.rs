@@ -191,7 +191,7 @@ fn invalid_reason(
     let not_ready: Vec<String> = StreamKind::ALL
         .into_iter()
         .filter(|&kind| used[kind] && !choice.refilled(kind))
-        .map(|kind| match tick.age_ns.get(kind) {
+        .map(|kind| match tick.age_ns[kind] {
             None => format!("no {kind} sample yet"),
             Some(age) if age > slots[kind].stale_ns => {
                 format!("{kind} stale ({} ms old)", age / 1_000_000)
@@ -297,9 +297,7 @@ impl TickLoop {
         let slots = &self.settings.streams;
         let complete = joints_complete(&tick);
         let fresh: Freshness = PerStream::from_fn(|kind| {
-            tick.age_ns
-                .get(kind)
-                .is_some_and(|age| age <= slots[kind].stale_ns)
+            tick.age_ns[kind].is_some_and(|age| age <= slots[kind].stale_ns)
                 && (kind != StreamKind::Joints || complete)
         });
         self.choice.update(fresh);
@@ -374,7 +372,7 @@ impl TickLoop {
         latest: Option<&TickInput>,
     ) -> DiagnosticsSnapshot {
         let active = self.choice.active();
-        let age = |kind: StreamKind| latest.and_then(|t| t.age_ns.get(kind));
+        let age = |kind: StreamKind| latest.and_then(|t| t.age_ns[kind]);
         let period_s = (period_ns as f64 / 1e9).max(1e-9);
         let mut streams = Vec::with_capacity(3);
         let mut devices = Vec::new();

@@ -37,6 +37,7 @@ use std::sync::Arc;
 use crate::frame::{decode_compressed, Frame, FrameError};
 use crate::msgs::{CompressedImage, JointState, JointTrajectory};
 use crate::recording::{topics, Recording};
+use crate::sources::PerStream;
 
 /// A resampler that sees no sample for longer than this restarts its grid at
 /// the next sample instead of emitting every tick of the gap.
@@ -367,24 +368,7 @@ impl Sample {
 }
 
 /// Per stream, ns from the last sample to the tick (`None`: no sample yet).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct StreamAges {
-    pub joints_ns: Option<i64>,
-    pub frame_ns: Option<i64>,
-    pub plan_ns: Option<i64>,
-}
-
-impl StreamAges {
-    /// The age of `kind`'s last sample.
-    pub fn get(&self, kind: crate::sources::StreamKind) -> Option<i64> {
-        use crate::sources::StreamKind;
-        match kind {
-            StreamKind::Joints => self.joints_ns,
-            StreamKind::Camera => self.frame_ns,
-            StreamKind::Plan => self.plan_ns,
-        }
-    }
-}
+pub type StreamAges = PerStream<Option<i64>>;
 
 /// One tick of resampled inputs (zero-order hold: last sample at or before the tick).
 #[derive(Debug, Clone, PartialEq)]
@@ -400,26 +384,23 @@ pub struct TickInput {
     pub age_ns: StreamAges,
 }
 
-/// Which streams a window must hold (an ablation without vision does not need frames).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Streams {
-    pub joints: bool,
-    pub plan: bool,
-    pub frames: bool,
-}
+/// Which streams a window must hold (an ablation without vision does not
+/// need the camera's frames).
+pub type Streams = PerStream<bool>;
 
-impl Streams {
+impl PerStream<bool> {
+    /// Every stream.
     pub const ALL: Streams = Streams {
         joints: true,
+        camera: true,
         plan: true,
-        frames: true,
     };
 
     /// Whether `tick` has every stream needed here.
     pub fn present_in(&self, tick: &TickInput) -> bool {
         (!self.joints || tick.joints_rad.is_some())
             && (!self.plan || tick.plan.is_some())
-            && (!self.frames || tick.frame.is_some())
+            && (!self.camera || tick.frame.is_some())
     }
 }
 
@@ -542,9 +523,9 @@ impl Resampler {
                 frame: self.frame.as_ref().map(|(_, f)| Arc::clone(f)),
                 plan: self.plan.as_ref().map(|(_, p)| Arc::clone(p)),
                 age_ns: StreamAges {
-                    joints_ns: self.joints.as_ref().map(|(t, _)| stamp_ns - t),
-                    frame_ns: self.frame.as_ref().map(|(t, _)| stamp_ns - t),
-                    plan_ns: self.plan.as_ref().map(|(t, _)| stamp_ns - t),
+                    joints: self.joints.as_ref().map(|(t, _)| stamp_ns - t),
+                    camera: self.frame.as_ref().map(|(t, _)| stamp_ns - t),
+                    plan: self.plan.as_ref().map(|(t, _)| stamp_ns - t),
                 },
             });
             tick += 1;
@@ -638,7 +619,7 @@ impl Window {
             }
         }
         let mut frames = Vec::new();
-        if needs.frames {
+        if needs.camera {
             let plane = s * s;
             frames = vec![0f32; 3 * n * plane];
             for (i, t) in ticks.clone().enumerate() {

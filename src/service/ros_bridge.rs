@@ -10,6 +10,7 @@
 //! (`ROS_LOCALHOST_ONLY`), unless `[ros].domain_id` / `[ros].localhost_only`
 //! set them in the config.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use tokio::sync::broadcast::error::RecvError;
@@ -25,7 +26,7 @@ use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
 use crate::sources::input::{Rejection, StreamValue};
-use crate::sources::ros::{InputTopics, Latest, RosInputs};
+use crate::sources::ros::{InputErrors, InputTopics, Latest, RosInputs};
 use crate::sources::{StreamFeed, StreamTap};
 use crate::window::{frame_from_msg, joints_from_msg, Plan, WindowSpec};
 
@@ -172,9 +173,12 @@ impl RosBridge {
         };
         let inputs = RosInputs::start(&mut self.node, &topics)?;
         let mut tasks = Vec::new();
+        let errors =
+            |counter: fn(&InputErrors) -> &AtomicU64| (Arc::clone(&inputs.errors), counter);
         if let (Some(rx), Some(feed)) = (inputs.joint_states.clone(), wanted.joints) {
             let names = spec.joint_names.clone();
-            tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
+            let dds = errors(|e| &e.joint_states);
+            tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
                 (stamp_ns, joints_from_msg(&r.msg, &names))
@@ -182,7 +186,8 @@ impl RosBridge {
         }
         if let (Some(rx), Some(feed)) = (inputs.camera.clone(), wanted.camera) {
             let size = spec.frame_size;
-            tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
+            let dds = errors(|e| &e.camera);
+            tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
                 (stamp_ns, frame_from_msg(&r.msg, size).map(Arc::new))
@@ -191,7 +196,8 @@ impl RosBridge {
         if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), wanted.plan) {
             let names = spec.joint_names.clone();
             // A plan is known from the moment it arrives: stamped on receipt.
-            tasks.push(forward(rx, feed, shutdown, move |r| {
+            let dds = errors(|e| &e.planned_trajectory);
+            tasks.push(forward(rx, feed, dds, shutdown, move |r| {
                 (r.received_ns, Plan::from_msg(&r.msg, &names).map(Arc::new))
             }));
         }
@@ -259,10 +265,13 @@ pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
     }
 }
 
-/// Convert each new message of `rx` once and hand it to `feed`.
+/// Convert each new message of `rx` once and offer it to `feed`; the
+/// samples DDS could not deserialize (`dds`, counted by the subscription)
+/// go to the stream's errors (`dds_undecodable`), polled twice a second.
 fn forward<M, T, F>(
     mut rx: Latest<M>,
     feed: StreamFeed<T>,
+    dds: (Arc<InputErrors>, fn(&InputErrors) -> &AtomicU64),
     mut shutdown: Shutdown,
     convert: F,
 ) -> JoinHandle<()>
@@ -275,6 +284,8 @@ where
         + 'static,
 {
     tokio::spawn(async move {
+        let mut poll = tokio::time::interval(std::time::Duration::from_millis(500));
+        let mut undecodable = 0;
         loop {
             tokio::select! {
                 changed = rx.changed() => {
@@ -282,6 +293,14 @@ where
                         feed.stats().set_state("subscription ended");
                         return;
                     }
+                }
+                _ = poll.tick() => {
+                    let n = (dds.1)(&dds.0).load(Ordering::Relaxed);
+                    if n != undecodable {
+                        undecodable = n;
+                        feed.stats().set_external(n, vec![("dds_undecodable".into(), n.to_string())]);
+                    }
+                    continue;
                 }
                 () = shutdown.recv() => return,
             }
