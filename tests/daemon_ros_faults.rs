@@ -220,6 +220,9 @@ struct Scenario {
     daemon: Option<Daemon>,
     fault_file: PathBuf,
     streams: Vec<&'static str>,
+    /// The last `fall_imminent` heard (published on change and latched:
+    /// its current value is the last message of the whole run).
+    imminent: Option<bool>,
 }
 
 impl Scenario {
@@ -276,6 +279,7 @@ impl Scenario {
             daemon: Some(daemon),
             fault_file,
             streams: vec![": joints", ": plan", ": model"],
+            imminent: None,
         }
     }
 
@@ -286,6 +290,16 @@ impl Scenario {
             statuses(last_diag(events)),
             self.walker.stderr()
         );
+    }
+
+    /// Notes the `fall_imminent` messages among `events`.
+    fn heard(&mut self, events: &[Value]) {
+        if let Some(b) = msgs(events, "/fall_guard/fall_imminent")
+            .filter_map(|m| m["msg"]["data"].as_bool())
+            .last()
+        {
+            self.imminent = Some(b);
+        }
     }
 
     /// Waits until every status this scenario watches is OK.
@@ -299,6 +313,7 @@ impl Scenario {
                 .all(|s| status_named(d, s).is_some_and(|st| level(st) == 0))
         })
         .await;
+        self.heard(&seen);
         match ok {
             Some(ok) => ok,
             None => self.fail(&format!("never all OK {what}"), &seen),
@@ -315,6 +330,7 @@ impl Scenario {
                 .is_some_and(|s| level(s) == 3 && kv(s, &rejected).is_some_and(|n| n != "0"))
         })
         .await;
+        self.heard(&seen);
         let Some(bad) = bad else {
             self.fail(
                 &format!(
@@ -353,6 +369,7 @@ impl Scenario {
                 }
                 tokio::time::sleep(Duration::from_millis(700)).await;
                 let during = self.listener.drain();
+                self.heard(&during);
                 let forecasts: Vec<Vec<f32>> = msgs(&during, "/fall_guard/forecast")
                     .map(forecast_values)
                     .collect();
@@ -360,12 +377,8 @@ impl Scenario {
                     let what = format!("{}: forecasts during the fault: {forecasts:?}", fault.name);
                     self.fail(&what, &during);
                 }
-                let imminent: Vec<bool> = msgs(&seen, "/fall_guard/fall_imminent")
-                    .chain(msgs(&during, "/fall_guard/fall_imminent"))
-                    .filter_map(|m| m["msg"]["data"].as_bool())
-                    .collect();
-                if imminent.last() != Some(&true) {
-                    let what = format!("{}: fall_imminent {imminent:?}", fault.name);
+                if self.imminent != Some(true) {
+                    let what = format!("{}: fall_imminent {:?}", fault.name, self.imminent);
                     self.fail(&what, &during);
                 }
             }
@@ -379,6 +392,7 @@ impl Scenario {
                         })
                     })
                     .await;
+                self.heard(&more);
                 if degraded.is_none() {
                     let what = format!("{}: model never degraded to {fallback}", fault.name);
                     self.fail(&what, &more);
@@ -388,6 +402,7 @@ impl Scenario {
                         p.iter().all(|v| v.is_finite())
                     })
                     .await;
+                self.heard(&during);
                 if !finite {
                     let what = format!("{}: no finite forecast from {fallback}", fault.name);
                     self.fail(&what, &during);
