@@ -489,19 +489,25 @@ fn start_sources(
             shutdown.subscribe(),
         )?);
     }
-    let wanted = InputsWanted {
-        joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
-        camera: (config.streams.camera == CameraSource::Ros).then(|| streams.camera.clone()),
-        plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
+    let from_ros = PerStream {
+        joints: config.streams.joints == JointsSource::Ros,
+        camera: config.streams.camera == CameraSource::Ros,
+        plan: config.streams.plan == PlanSource::Ros,
     };
-    if wanted.any() {
+    if from_ros.iter().any(|(_, &ros)| ros) {
         let bridge = ros.ok_or_else(|| {
             ServiceError::Usage(format!(
                 "{}: [streams] reads from ROS 2 but [ros].enabled = false",
                 config.origin
             ))
         })?;
-        let tasks = bridge.start_inputs(config, models.spec(), wanted, shutdown.subscribe())?;
+        let tasks = bridge.start_inputs(
+            config,
+            models.spec(),
+            streams,
+            from_ros,
+            shutdown.subscribe(),
+        )?;
         handles.extend(tasks.into_iter().map(SourceHandle::Task));
     }
     Ok(handles)
@@ -694,4 +700,4 @@ pub fn label(args: &LabelArgs) -> Result<Option<i64>, ServiceError> {
 pub mod ros_bridge;
 pub mod servo_bridge;
 
-use ros_bridge::{InputsWanted, RosBridge};
+use ros_bridge::RosBridge;

@@ -18,16 +18,16 @@ use tokio::task::JoinHandle;
 
 use crate::config::Config;
 use crate::forecast::ModelSet;
-use crate::frame::Frame;
 use crate::msgs::{Header, JointState};
 use crate::outputs::ros::{ros_time, OutputTopics, RosOutputs};
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
+use crate::service::LiveStreams;
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
 use crate::sources::input::{Rejection, StreamValue};
 use crate::sources::ros::{InputErrors, InputTopics, Latest, RosInputs};
-use crate::sources::{StreamFeed, StreamTap};
+use crate::sources::{PerStream, StreamFeed, StreamTap};
 use crate::window::{frame_from_msg, joints_from_msg, Plan, WindowSpec};
 
 impl From<RosError> for ServiceError {
@@ -60,19 +60,6 @@ pub fn settings(config: &Config) -> Result<RosSettings, RosError> {
 pub struct RosBridge {
     node: RosNode,
     inputs: Option<RosInputs>,
-}
-
-/// The live streams that come from ROS 2 (`None`: another source feeds it).
-pub struct InputsWanted {
-    pub joints: Option<StreamFeed<Vec<f32>>>,
-    pub camera: Option<StreamFeed<Arc<Frame>>>,
-    pub plan: Option<StreamFeed<Arc<Plan>>>,
-}
-
-impl InputsWanted {
-    pub fn any(&self) -> bool {
-        self.joints.is_some() || self.camera.is_some() || self.plan.is_some()
-    }
 }
 
 impl RosBridge {
@@ -157,25 +144,30 @@ impl RosBridge {
         }))
     }
 
-    /// Subscribe to the wanted topics and feed the live streams until `shutdown`.
+    /// Subscribe to the topics of the streams `from_ros` selects and feed
+    /// those of `streams` until `shutdown`.
     pub fn start_inputs(
         &mut self,
         config: &Config,
         spec: &WindowSpec,
-        wanted: InputsWanted,
+        streams: &LiveStreams,
+        from_ros: PerStream<bool>,
         shutdown: Shutdown,
     ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
         let t = &config.ros.topics;
         let topics = InputTopics {
-            joint_states: wanted.joints.as_ref().map(|_| t.joint_states.clone()),
-            planned_trajectory: wanted.plan.as_ref().map(|_| t.planned_trajectory.clone()),
-            camera: wanted.camera.as_ref().map(|_| t.camera.clone()),
+            joint_states: from_ros.joints.then(|| t.joint_states.clone()),
+            planned_trajectory: from_ros.plan.then(|| t.planned_trajectory.clone()),
+            camera: from_ros.camera.then(|| t.camera.clone()),
         };
+        let joints = from_ros.joints.then(|| streams.joints.clone());
+        let camera = from_ros.camera.then(|| streams.camera.clone());
+        let plan = from_ros.plan.then(|| streams.plan.clone());
         let inputs = RosInputs::start(&mut self.node, &topics)?;
         let mut tasks = Vec::new();
         let errors =
             |counter: fn(&InputErrors) -> &AtomicU64| (Arc::clone(&inputs.errors), counter);
-        if let (Some(rx), Some(feed)) = (inputs.joint_states.clone(), wanted.joints) {
+        if let (Some(rx), Some(feed)) = (inputs.joint_states.clone(), joints) {
             let names = spec.joint_names.clone();
             let dds = errors(|e| &e.joint_states);
             tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
@@ -184,7 +176,7 @@ impl RosBridge {
                 (stamp_ns, joints_from_msg(&r.msg, &names))
             }));
         }
-        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), wanted.camera) {
+        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), camera) {
             let size = spec.frame_size;
             let dds = errors(|e| &e.camera);
             tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
@@ -193,7 +185,7 @@ impl RosBridge {
                 (stamp_ns, frame_from_msg(&r.msg, size).map(Arc::new))
             }));
         }
-        if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), wanted.plan) {
+        if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), plan) {
             let names = spec.joint_names.clone();
             // A plan is known from the moment it arrives: stamped on receipt.
             let dds = errors(|e| &e.planned_trajectory);
