@@ -202,6 +202,37 @@ pub struct StreamsConfig {
     pub joints_stale_ms: u32,
     pub camera_stale_ms: u32,
     pub plan_stale_ms: u32,
+    /// The input boundary (`sources/input.rs`) rejects a sample stamped
+    /// more than this after the tick clock (live: the system clock).
+    #[serde(default = "default_max_future_ms")]
+    pub max_future_ms: u32,
+    /// ... or more than this before it.
+    #[serde(default = "default_max_past_ms")]
+    pub max_past_ms: u32,
+}
+
+fn default_max_future_ms() -> u32 {
+    250
+}
+
+fn default_max_past_ms() -> u32 {
+    10_000
+}
+
+impl StreamsConfig {
+    /// The boundary's limits for a model of `n_joints` joints and S x S frames.
+    pub fn input_limits(
+        &self,
+        n_joints: usize,
+        frame_size: u32,
+    ) -> crate::sources::input::InputLimits {
+        crate::sources::input::InputLimits {
+            max_future_ns: i64::from(self.max_future_ms) * 1_000_000,
+            max_past_ns: i64::from(self.max_past_ms) * 1_000_000,
+            n_joints,
+            frame_size,
+        }
+    }
 }
 
 /// Pixel format asked from a V4L2 camera.
@@ -462,6 +493,8 @@ impl Config {
             ("[streams].joints_stale_ms", s.joints_stale_ms),
             ("[streams].camera_stale_ms", s.camera_stale_ms),
             ("[streams].plan_stale_ms", s.plan_stale_ms),
+            ("[streams].max_future_ms", s.max_future_ms),
+            ("[streams].max_past_ms", s.max_past_ms),
         ] {
             if ms == 0 || ms > 60_000 {
                 return Err(self.value_error(key, format!("expected 1 to 60000 ms, got {ms}")));

@@ -137,7 +137,7 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
             samples,
             setup.recording.end_ns + offset,
             pacing,
-            &setup.stats,
+            &setup.gates,
             &mut shutdown,
         )
         .await;

@@ -337,22 +337,15 @@ fn release_freed_memory() {
 }
 
 /// Which streams are fresh (not stale) at one tick.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Freshness {
-    pub joints: bool,
-    pub camera: bool,
-    pub plan: bool,
-}
+pub type Freshness = crate::sources::PerStream<bool>;
 
 /// Chooses the network per tick from stream freshness (see module docs).
 #[derive(Debug, Clone)]
 pub struct ModelChoice {
     available: Vec<Ablation>,
     active: Ablation,
-    /// Consecutive fresh ticks of joints, camera and plan (0 on a stale tick).
-    joints_run: usize,
-    camera_run: usize,
-    plan_run: usize,
+    /// Consecutive fresh ticks of each stream (0 on a stale tick).
+    runs: crate::sources::PerStream<usize>,
     window_ticks: usize,
     switches: u64,
 }
@@ -374,9 +367,7 @@ impl ModelChoice {
         ModelChoice {
             available,
             active: Ablation::EMP,
-            joints_run: 0,
-            camera_run: 0,
-            plan_run: 0,
+            runs: Default::default(),
             window_ticks,
             switches: 0,
         }
@@ -392,11 +383,7 @@ impl ModelChoice {
 
     /// Consecutive fresh ticks of `stream` up to the last update.
     pub fn fresh_ticks(&self, stream: StreamKind) -> usize {
-        match stream {
-            StreamKind::Joints => self.joints_run,
-            StreamKind::Camera => self.camera_run,
-            StreamKind::Plan => self.plan_run,
-        }
+        self.runs[stream]
     }
 
     /// True when the last N ticks (a whole window) of `stream` were all
@@ -408,9 +395,9 @@ impl ModelChoice {
 
     /// Update with one tick's freshness; returns the new ablation if it changed.
     pub fn update(&mut self, fresh: Freshness) -> Option<Ablation> {
-        self.joints_run = if fresh.joints { self.joints_run + 1 } else { 0 };
-        self.camera_run = if fresh.camera { self.camera_run + 1 } else { 0 };
-        self.plan_run = if fresh.plan { self.plan_run + 1 } else { 0 };
+        self.runs = self
+            .runs
+            .map(|kind, run| if fresh[kind] { run + 1 } else { 0 });
         // A stream the active network reads may stay as long as it is fresh;
         // one it does not read must be back for a whole window first.
         let usable = |uses: bool, active_uses: bool, fresh: bool, stream: StreamKind| {

@@ -25,8 +25,9 @@ use crate::outputs::OutputBus;
 use crate::recording::RecordingError;
 use crate::robot::JointTable;
 use crate::shutdown::{Shutdown, ShutdownTrigger};
+use crate::sources::input::{Gate, InputLimits};
 use crate::sources::replay::{replay_samples, Pacing, ReplayError, ReplayRecording};
-use crate::sources::{stream, StreamFeed, StreamKind, StreamStats, StreamTap};
+use crate::sources::{stream, PerStream, StreamFeed, StreamKind, StreamStats, StreamTap};
 use crate::tick::{LiveTaps, StreamSlot, TickCounters, TickLoop, TickSettings};
 use crate::window::{Plan, Sample, WindowError, WindowSpec};
 
@@ -161,24 +162,25 @@ pub fn latch_for(config: &Config, models: &ModelSet) -> Result<SafetyLatch, Serv
     })
 }
 
-/// The tick settings of `config` for streams with these sources and stats.
+/// The tick settings of `config` for streams with these sources
+/// (name, configured) and stats.
 pub fn tick_settings(
     config: &Config,
-    sources: [(String, bool, Arc<StreamStats>); 3],
+    sources: PerStream<(String, bool)>,
+    stats: &PerStream<Arc<StreamStats>>,
 ) -> TickSettings {
     let s = &config.streams;
-    let stale_ms = [s.joints_stale_ms, s.camera_stale_ms, s.plan_stale_ms];
-    let mut i = 0;
-    let streams = sources.map(|(source, configured, stats)| {
-        let slot = StreamSlot {
-            kind: StreamKind::ALL[i],
-            source,
-            configured,
-            stale_ns: i64::from(stale_ms[i]) * 1_000_000,
-            stats,
-        };
-        i += 1;
-        slot
+    let stale_ms = PerStream {
+        joints: s.joints_stale_ms,
+        camera: s.camera_stale_ms,
+        plan: s.plan_stale_ms,
+    };
+    let streams = sources.map(|kind, (source, configured)| StreamSlot {
+        kind,
+        source,
+        configured,
+        stale_ns: i64::from(stale_ms[kind]) * 1_000_000,
+        stats: Arc::clone(&stats[kind]),
     });
     TickSettings {
         streams,
@@ -204,7 +206,8 @@ pub struct ReplaySetup {
     pub models: Arc<ModelSet>,
     pub recording: ReplayRecording,
     pub bus: OutputBus,
-    pub stats: [Arc<StreamStats>; 3],
+    /// The input boundary of each replayed stream.
+    pub gates: PerStream<Gate>,
     pub tick_loop: TickLoop,
 }
 
@@ -237,16 +240,14 @@ impl ReplaySetup {
         let bus = OutputBus::new();
         let latch = latch_for(&config, &models)?;
         let inference = Inference::spawn(Arc::clone(&models), latch, bus.clone(), print)?;
-        let stats: [Arc<StreamStats>; 3] =
-            std::array::from_fn(|_| Arc::new(StreamStats::default()));
+        let stats = PerStream::from_fn(|_| Arc::new(StreamStats::default()));
+        let limits = input_limits(&config, &models);
+        let gates = PerStream::from_fn(|kind| Gate::new(kind, limits, Arc::clone(&stats[kind])));
         let source = format!("replay {}", recording.path.display());
         let settings = tick_settings(
             &config,
-            [
-                (source.clone(), true, Arc::clone(&stats[0])),
-                (source.clone(), true, Arc::clone(&stats[1])),
-                (source, true, Arc::clone(&stats[2])),
-            ],
+            PerStream::from_fn(|_| (source.clone(), true)),
+            &stats,
         );
         let tick_loop = TickLoop::new(Arc::clone(&models), inference, settings, bus.clone())?;
         Ok(ReplaySetup {
@@ -254,7 +255,7 @@ impl ReplaySetup {
             models,
             recording,
             bus,
-            stats,
+            gates,
             tick_loop,
         })
     }
@@ -323,7 +324,7 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
         samples,
         setup.recording.end_ns,
         pacing,
-        &setup.stats,
+        &setup.gates,
         &mut shutdown,
     )
     .await;
@@ -377,10 +378,11 @@ pub struct LiveStreams {
 }
 
 impl LiveStreams {
-    pub fn new() -> LiveStreams {
-        let (joints, joints_tap) = stream(StreamKind::Joints);
-        let (camera, camera_tap) = stream(StreamKind::Camera);
-        let (plan, plan_tap) = stream(StreamKind::Plan);
+    /// The three streams, each behind its boundary with `limits`.
+    pub fn new(limits: InputLimits) -> LiveStreams {
+        let (joints, joints_tap) = stream(StreamKind::Joints, limits);
+        let (camera, camera_tap) = stream(StreamKind::Camera, limits);
+        let (plan, plan_tap) = stream(StreamKind::Plan, limits);
         LiveStreams {
             joints,
             camera,
@@ -392,16 +394,27 @@ impl LiveStreams {
             },
         }
     }
-}
 
-impl Default for LiveStreams {
-    fn default() -> Self {
-        Self::new()
+    /// Each stream's counters.
+    pub fn stats(&self) -> PerStream<Arc<StreamStats>> {
+        PerStream {
+            joints: Arc::clone(self.joints.stats()),
+            camera: Arc::clone(self.camera.stats()),
+            plan: Arc::clone(self.plan.stats()),
+        }
     }
 }
 
+/// The input boundary's limits for `config` and the loaded networks.
+pub fn input_limits(config: &Config, models: &ModelSet) -> InputLimits {
+    let spec = models.spec();
+    config
+        .streams
+        .input_limits(spec.joint_names.len(), spec.frame_size)
+}
+
 /// Names of the live sources, for diagnostics.
-fn source_names(config: &Config) -> [(String, bool); 3] {
+fn source_names(config: &Config) -> PerStream<(String, bool)> {
     let topics = &config.ros.topics;
     let joints = match config.streams.joints {
         JointsSource::Dynamixel => {
@@ -433,7 +446,11 @@ fn source_names(config: &Config) -> [(String, bool); 3] {
         PlanSource::Ros => (format!("ros {}", topics.planned_trajectory), true),
         PlanSource::None => ("none".to_string(), false),
     };
-    [(joints, true), camera, plan]
+    PerStream {
+        joints: (joints, true),
+        camera,
+        plan,
+    }
 }
 
 /// Start the configured live sources feeding `streams` (ROS 2 ones on `ros`).
@@ -460,20 +477,26 @@ fn start_sources(
             shutdown.subscribe(),
         )?);
     }
-    let wanted = InputsWanted {
-        joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
-        camera: (config.streams.camera == CameraSource::Ros).then(|| streams.camera.clone()),
-        plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
-        camera_raw: None,
+    let from_ros = PerStream {
+        joints: config.streams.joints == JointsSource::Ros,
+        camera: config.streams.camera == CameraSource::Ros,
+        plan: config.streams.plan == PlanSource::Ros,
     };
-    if wanted.any() {
+    if from_ros.iter().any(|(_, &ros)| ros) {
         let bridge = ros.ok_or_else(|| {
             ServiceError::Usage(format!(
                 "{}: [streams] reads from ROS 2 but [ros].enabled = false",
                 config.origin
             ))
         })?;
-        let tasks = bridge.start_inputs(config, models.spec(), wanted, shutdown.subscribe())?;
+        let tasks = bridge.start_inputs(
+            config,
+            models.spec(),
+            streams,
+            from_ros,
+            None,
+            shutdown.subscribe(),
+        )?;
         handles.extend(tasks.into_iter().map(SourceHandle::Task));
     }
     Ok(handles)
@@ -550,16 +573,8 @@ pub async fn run(args: RunOptions) -> Result<TickCounters, ServiceError> {
     )?;
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let signals = shutdown_on_signals(Arc::clone(&trigger));
-    let streams = LiveStreams::new();
-    let names = source_names(&config);
-    let stats = [
-        Arc::clone(streams.joints.stats()),
-        Arc::clone(streams.camera.stats()),
-        Arc::clone(streams.plan.stats()),
-    ];
-    let [(j, jc), (c, cc), (p, pc)] = names;
-    let [sj, sc, sp] = stats;
-    let settings = tick_settings(&config, [(j, jc, sj), (c, cc, sc), (p, pc, sp)]);
+    let streams = LiveStreams::new(input_limits(&config, &models));
+    let settings = tick_settings(&config, source_names(&config), &streams.stats());
     let mut ros = if config.ros.enabled {
         Some(RosBridge::start(&config)?)
     } else {
@@ -611,8 +626,11 @@ pub async fn record(
     let joints = robot_joints(&config);
     let trigger = Arc::new(ShutdownTrigger::new().0);
     let signals = shutdown_on_signals(Arc::clone(&trigger));
-    let streams = LiveStreams::new();
-    let (camera_feed, mut camera) = stream::<Arc<CompressedImage>>(StreamKind::Camera);
+    // The camera's own frames are not decoded: the limits' frame size
+    // does not apply to them (only their stamps are checked).
+    let limits = config.streams.input_limits(joints.len(), 0);
+    let streams = LiveStreams::new(limits);
+    let (camera_feed, mut camera) = stream::<Arc<CompressedImage>>(StreamKind::Camera, limits);
     let mut ros = if config.ros.enabled {
         Some(RosBridge::start(&config)?)
     } else {
@@ -696,13 +714,13 @@ fn start_record_sources(
             shutdown.subscribe(),
         )?);
     }
-    let wanted = InputsWanted {
-        joints: (config.streams.joints == JointsSource::Ros).then(|| streams.joints.clone()),
-        camera: None,
-        plan: (config.streams.plan == PlanSource::Ros).then(|| streams.plan.clone()),
-        camera_raw: (config.streams.camera == CameraSource::Ros).then_some(camera),
+    let from_ros = PerStream {
+        joints: config.streams.joints == JointsSource::Ros,
+        camera: false,
+        plan: config.streams.plan == PlanSource::Ros,
     };
-    if wanted.any() {
+    let camera_raw = (config.streams.camera == CameraSource::Ros).then_some(camera);
+    if from_ros.iter().any(|(_, &ros)| ros) || camera_raw.is_some() {
         let bridge = ros.ok_or_else(|| {
             ServiceError::Usage(format!(
                 "{}: [streams] reads from ROS 2 but [ros].enabled = false",
@@ -718,7 +736,14 @@ fn start_record_sources(
             joint_names: joints.to_vec(),
             frame_size: 0,
         };
-        let tasks = bridge.start_inputs(config, &spec, wanted, shutdown.subscribe())?;
+        let tasks = bridge.start_inputs(
+            config,
+            &spec,
+            streams,
+            from_ros,
+            camera_raw,
+            shutdown.subscribe(),
+        )?;
         handles.extend(tasks.into_iter().map(SourceHandle::Task));
     }
     Ok(handles)
@@ -766,4 +791,4 @@ pub fn label(args: &LabelOptions) -> Result<Option<i64>, ServiceError> {
 pub mod ros_bridge;
 pub mod servo_bridge;
 
-use ros_bridge::{InputsWanted, RosBridge};
+use ros_bridge::RosBridge;

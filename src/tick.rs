@@ -28,7 +28,8 @@ use crate::outputs::{
     ERROR_WINDOW_S,
 };
 use crate::shutdown::Shutdown;
-use crate::sources::{StreamKind, StreamStats, StreamTap};
+use crate::sources::input::Seq;
+use crate::sources::{PerStream, Stamped, StreamKind, StreamStats, StreamTap};
 use crate::window::{Plan, Resampler, Ring, Sample, TickInput, WindowError};
 
 /// Now, in ns since the UNIX epoch (the live tick clock, as ROS stamps).
@@ -53,8 +54,7 @@ pub struct StreamSlot {
 /// Everything the tick needs besides the networks.
 #[derive(Debug, Clone)]
 pub struct TickSettings {
-    /// Joints, camera, plan (in that order).
-    pub streams: [StreamSlot; 3],
+    pub streams: PerStream<StreamSlot>,
     pub diagnostics_period_ns: i64,
     pub hardware_id: String,
     pub latch_horizon_ms: u32,
@@ -125,11 +125,12 @@ pub struct TickLoop {
     pending: Vec<TickInput>,
     counters: TickCounters,
     /// Sample counts and stamp at the last diagnostics snapshot.
-    diag_samples: [u64; 3],
+    diag_samples: PerStream<u64>,
     diag_stamp_ns: Option<i64>,
-    /// Per stream, (tick stamp, error total) at each snapshot of the last
-    /// [`ERROR_WINDOW_S`] seconds: levels look at errors in that window.
-    error_history: [VecDeque<(i64, u64)>; 3],
+    /// Per stream, (tick stamp, error total, rejection total) at each
+    /// snapshot of the last [`ERROR_WINDOW_S`] seconds: levels look at
+    /// errors and rejections in that window.
+    error_history: PerStream<VecDeque<(i64, u64, u64)>>,
     /// Model-order joint names, to name the joints a reading lacks.
     joint_names: Vec<String>,
     last_valid: bool,
@@ -170,7 +171,7 @@ fn invalid_reason(
     ring: &Ring,
     tick: &TickInput,
     choice: &ModelChoice,
-    slots: &[StreamSlot; 3],
+    slots: &PerStream<StreamSlot>,
     joint_names: &[String],
 ) -> Option<String> {
     if !ring.is_full() {
@@ -180,32 +181,29 @@ fn invalid_reason(
             ring.capacity()
         ));
     }
-    let ages = [
-        tick.age_ns.joints_ns,
-        tick.age_ns.frame_ns,
-        tick.age_ns.plan_ns,
-    ];
     let active = choice.active();
-    let used = [true, active.uses_vision(), active.uses_plan()];
+    let used = PerStream {
+        joints: true,
+        camera: active.uses_vision(),
+        plan: active.uses_plan(),
+    };
     let window = ring.capacity();
-    let not_ready: Vec<String> = (0..3)
-        .filter(|&i| used[i] && !choice.refilled(slots[i].kind))
-        .map(|i| {
-            let kind = slots[i].kind;
-            match ages[i] {
-                None => format!("no {kind} sample yet"),
-                Some(age) if age > slots[i].stale_ns => {
-                    format!("{kind} stale ({} ms old)", age / 1_000_000)
-                }
-                Some(_) if i == 0 && !joints_complete(tick) => format!(
-                    "joints not read: {}",
-                    unread_joints(tick, joint_names).join(", ")
-                ),
-                Some(_) => format!(
-                    "{kind} back, window refilling ({}/{window} fresh ticks)",
-                    choice.fresh_ticks(kind)
-                ),
+    let not_ready: Vec<String> = StreamKind::ALL
+        .into_iter()
+        .filter(|&kind| used[kind] && !choice.refilled(kind))
+        .map(|kind| match tick.age_ns[kind] {
+            None => format!("no {kind} sample yet"),
+            Some(age) if age > slots[kind].stale_ns => {
+                format!("{kind} stale ({} ms old)", age / 1_000_000)
             }
+            Some(_) if kind == StreamKind::Joints && !joints_complete(tick) => format!(
+                "joints not read: {}",
+                unread_joints(tick, joint_names).join(", ")
+            ),
+            Some(_) => format!(
+                "{kind} back, window refilling ({}/{window} fresh ticks)",
+                choice.fresh_ticks(kind)
+            ),
         })
         .collect();
     (!not_ready.is_empty()).then(|| not_ready.join(", "))
@@ -230,7 +228,7 @@ impl TickLoop {
             watchdog: Watchdog::from_env(),
             pending: Vec::new(),
             counters: TickCounters::default(),
-            diag_samples: [0; 3],
+            diag_samples: PerStream::default(),
             diag_stamp_ns: None,
             error_history: Default::default(),
             joint_names: spec.joint_names.clone(),
@@ -296,21 +294,13 @@ impl TickLoop {
     ) {
         self.counters.ticks += 1;
         self.watchdog.tick();
-        let ages = [
-            tick.age_ns.joints_ns,
-            tick.age_ns.frame_ns,
-            tick.age_ns.plan_ns,
-        ];
         let slots = &self.settings.streams;
         let complete = joints_complete(&tick);
-        let fresh: [bool; 3] = std::array::from_fn(|i| {
-            ages[i].is_some_and(|age| age <= slots[i].stale_ns) && (i != 0 || complete)
+        let fresh: Freshness = PerStream::from_fn(|kind| {
+            tick.age_ns[kind].is_some_and(|age| age <= slots[kind].stale_ns)
+                && (kind != StreamKind::Joints || complete)
         });
-        self.choice.update(Freshness {
-            joints: fresh[0],
-            camera: fresh[1],
-            plan: fresh[2],
-        });
+        self.choice.update(fresh);
         let (tick_index, stamp_ns) = (tick.tick, tick.stamp_ns);
         self.ring.push(tick);
         let active = self.choice.active();
@@ -382,30 +372,42 @@ impl TickLoop {
         latest: Option<&TickInput>,
     ) -> DiagnosticsSnapshot {
         let active = self.choice.active();
-        let ages = latest.map_or([None; 3], |t| {
-            [t.age_ns.joints_ns, t.age_ns.frame_ns, t.age_ns.plan_ns]
-        });
+        let age = |kind: StreamKind| latest.and_then(|t| t.age_ns[kind]);
         let period_s = (period_ns as f64 / 1e9).max(1e-9);
         let mut streams = Vec::with_capacity(3);
         let mut devices = Vec::new();
-        for (i, slot) in self.settings.streams.iter().enumerate() {
+        for (kind, slot) in self.settings.streams.iter() {
             let stats = slot.stats.snapshot();
             let rate_hz =
-                (stats.samples - self.diag_samples[i].min(stats.samples)) as f64 / period_s;
-            self.diag_samples[i] = stats.samples;
-            let history = &mut self.error_history[i];
-            history.push_back((stamp_ns, stats.errors));
+                (stats.samples - self.diag_samples[kind].min(stats.samples)) as f64 / period_s;
+            self.diag_samples[kind] = stats.samples;
+            let history = &mut self.error_history[kind];
+            history.push_back((stamp_ns, stats.errors, stats.rejected));
             let window_ns = ERROR_WINDOW_S as i64 * 1_000_000_000;
             while history.len() > 1 && history[1].0 <= stamp_ns - window_ns {
                 history.pop_front();
             }
-            // Errors since the newest snapshot at or before the window's
-            // start (all of them while the run is younger than the window).
-            let recent_errors = match history.front() {
-                Some(&(t, n)) if t <= stamp_ns - window_ns => stats.errors.saturating_sub(n),
-                _ => stats.errors,
+            // Errors (rejections) since the newest snapshot at or before the
+            // window's start (all of them while the run is younger than the
+            // window).
+            let (recent_errors, recent_rejected) = match history.front() {
+                Some(&(t, e, r)) if t <= stamp_ns - window_ns => (
+                    stats.errors.saturating_sub(e),
+                    stats.rejected.saturating_sub(r),
+                ),
+                _ => (stats.errors, stats.rejected),
             };
-            let unread = if i == 0 {
+            // Why samples were refused, appended to a STALE message: a
+            // stream that is stale because every sample is rejected says so.
+            let rejected_note = if recent_rejected > 0 {
+                format!(
+                    "; {recent_rejected} samples rejected in the last {ERROR_WINDOW_S} s (last: {})",
+                    stats.last_rejection
+                )
+            } else {
+                String::new()
+            };
+            let unread = if kind == StreamKind::Joints {
                 latest.map_or_else(Vec::new, |t| unread_joints(t, &self.joint_names))
             } else {
                 Vec::new()
@@ -413,12 +415,15 @@ impl TickLoop {
             let (level, message) = if !slot.configured {
                 (DiagnosticLevel::Ok, "not configured".to_string())
             } else {
-                match ages[i] {
-                    None => (DiagnosticLevel::Stale, "no sample yet".to_string()),
+                match age(kind) {
+                    None => (
+                        DiagnosticLevel::Stale,
+                        format!("no sample yet{rejected_note}"),
+                    ),
                     Some(age) if age > slot.stale_ns => (
                         DiagnosticLevel::Stale,
                         format!(
-                            "stale: last sample {} ms old (limit {} ms)",
+                            "stale: last sample {} ms old (limit {} ms){rejected_note}",
                             age / 1_000_000,
                             slot.stale_ns / 1_000_000
                         ),
@@ -430,6 +435,13 @@ impl TickLoop {
                             unread.len(),
                             self.joint_names.len(),
                             unread.join(", ")
+                        ),
+                    ),
+                    Some(_) if recent_rejected > 0 => (
+                        DiagnosticLevel::Warn,
+                        format!(
+                            "{recent_rejected} samples rejected in the last {ERROR_WINDOW_S} s (last: {})",
+                            stats.last_rejection
                         ),
                     ),
                     Some(_) if recent_errors > 0 => (
@@ -444,11 +456,12 @@ impl TickLoop {
                 .iter()
                 .map(|(k, n)| (format!("errors.{k}"), n.to_string()))
                 .collect();
+            details.extend(rejection_details(&stats, recent_rejected));
             details.extend(stats.details.iter().cloned());
             if !stats.state.is_empty() {
                 details.push(("state".to_string(), stats.state.clone()));
             }
-            if i == 0 {
+            if kind == StreamKind::Joints {
                 details.push(("joints_not_read".to_string(), unread.join(",")));
             }
             devices.extend(stats.devices.iter().cloned());
@@ -458,7 +471,7 @@ impl TickLoop {
                 level,
                 message,
                 rate_hz,
-                last_sample_age_ms: ages[i].map(|a| a as f64 / 1e6),
+                last_sample_age_ms: age(kind).map(|a| a as f64 / 1e6),
                 errors: stats.errors,
                 recent_errors,
                 details,
@@ -478,9 +491,12 @@ impl TickLoop {
             )
         };
         let percentiles = percentiles_ms(&mut latencies);
-        let [_, camera, plan] = &self.settings.streams;
-        let expected =
-            best_configured(&self.models.available(), camera.configured, plan.configured);
+        let s = &self.settings.streams;
+        let expected = best_configured(
+            &self.models.available(),
+            s.camera.configured,
+            s.plan.configured,
+        );
         let (level, message) = if errors > 0 && !self.last_valid {
             (
                 DiagnosticLevel::Error,
@@ -559,12 +575,38 @@ impl TickLoop {
     }
 }
 
+/// The boundary's rejections of one stream as diagnostic key-values:
+/// `rejected` (total), `rejected_in_window`, `rejected_per_s` (over the
+/// window), `rejected_<reason>` (total per reason seen) and
+/// `last_rejection` (empty before the first).
+fn rejection_details(
+    stats: &crate::sources::StreamStatsSnapshot,
+    recent: u64,
+) -> Vec<(String, String)> {
+    let mut out = vec![
+        ("rejected".to_string(), stats.rejected.to_string()),
+        ("rejected_in_window".to_string(), recent.to_string()),
+        (
+            "rejected_per_s".to_string(),
+            format!("{:.2}", recent as f64 / ERROR_WINDOW_S as f64),
+        ),
+    ];
+    out.extend(
+        stats
+            .rejections
+            .iter()
+            .map(|(k, n)| (format!("rejected_{k}"), n.to_string())),
+    );
+    out.push(("last_rejection".to_string(), stats.last_rejection.clone()));
+    out
+}
+
 /// The configured streams, for a message (`joints, plan`).
-fn configured_streams(slots: &[StreamSlot; 3]) -> String {
+fn configured_streams(slots: &PerStream<StreamSlot>) -> String {
     slots
         .iter()
-        .filter(|s| s.configured)
-        .map(|s| s.kind.as_str())
+        .filter(|(_, s)| s.configured)
+        .map(|(k, _)| k.as_str())
         .collect::<Vec<_>>()
         .join(", ")
 }
@@ -587,8 +629,10 @@ pub async fn run_live(
     mut shutdown: Shutdown,
 ) -> (TickCounters, bool) {
     let grid = tick_loop.resampler.grid();
-    let mut seen: [Option<i64>; 3] = [None; 3];
-    let mut seen_ptr: [usize; 3] = [0; 3];
+    // The last sequence number taken per stream: a sample is new when its
+    // `seq` is above it (never by comparing pointers, which an allocator
+    // may reuse).
+    let mut seen: PerStream<Seq> = PerStream::default();
     loop {
         let now = unix_now_ns();
         let next = grid.stamp_ns(grid.last_tick_at_or_before(now) + 1);
@@ -599,49 +643,38 @@ pub async fn run_live(
         }
         let mut fresh: Vec<(i64, Sample)> = Vec::with_capacity(3);
         let mut sensed_at: Option<Instant> = None;
-        if let Some(s) = taps.joints.latest() {
-            let ptr = Arc::as_ptr(&s) as usize;
-            if seen_ptr[0] != ptr {
-                seen_ptr[0] = ptr;
-                seen[0] = Some(s.stamp_ns);
-                sensed_at = Some(s.received);
-                fresh.push((
-                    s.stamp_ns,
-                    Sample::Joints {
-                        stamp_ns: s.stamp_ns,
-                        positions_rad: s.value.clone(),
-                    },
-                ));
-            }
+        let mut sensed = |received: Instant| {
+            sensed_at = Some(sensed_at.map_or(received, |t| t.max(received)));
+        };
+        if let Some(s) = take_new(&taps.joints, &mut seen.joints) {
+            sensed(s.received);
+            fresh.push((
+                s.stamp_ns,
+                Sample::Joints {
+                    stamp_ns: s.stamp_ns,
+                    positions_rad: s.value.clone(),
+                },
+            ));
         }
-        if let Some(s) = taps.camera.latest() {
-            let ptr = Arc::as_ptr(&s) as usize;
-            if seen_ptr[1] != ptr {
-                seen_ptr[1] = ptr;
-                seen[1] = Some(s.stamp_ns);
-                sensed_at = Some(sensed_at.map_or(s.received, |t| t.max(s.received)));
-                fresh.push((
-                    s.stamp_ns,
-                    Sample::Frame {
-                        stamp_ns: s.stamp_ns,
-                        frame: Arc::clone(&s.value),
-                    },
-                ));
-            }
+        if let Some(s) = take_new(&taps.camera, &mut seen.camera) {
+            sensed(s.received);
+            fresh.push((
+                s.stamp_ns,
+                Sample::Frame {
+                    stamp_ns: s.stamp_ns,
+                    frame: Arc::clone(&s.value),
+                },
+            ));
         }
-        if let Some(s) = taps.plan.latest() {
-            let ptr = Arc::as_ptr(&s) as usize;
-            if seen_ptr[2] != ptr {
-                seen_ptr[2] = ptr;
-                seen[2] = Some(s.stamp_ns);
-                fresh.push((
-                    s.stamp_ns,
-                    Sample::Plan {
-                        stamp_ns: s.stamp_ns,
-                        plan: Arc::clone(&s.value),
-                    },
-                ));
-            }
+        // A plan is not a sensor reading: it does not start the latency.
+        if let Some(s) = take_new(&taps.plan, &mut seen.plan) {
+            fresh.push((
+                s.stamp_ns,
+                Sample::Plan {
+                    stamp_ns: s.stamp_ns,
+                    plan: Arc::clone(&s.value),
+                },
+            ));
         }
         fresh.sort_by_key(|(stamp, _)| *stamp);
         let now_ns = unix_now_ns();
@@ -663,9 +696,41 @@ pub async fn run_live(
     (tick_loop.finish().await, dead)
 }
 
+/// The tap's latest sample if its sequence number is above `seen` (which
+/// then becomes it).
+fn take_new<T>(tap: &StreamTap<T>, seen: &mut Seq) -> Option<Arc<Stamped<T>>> {
+    let s = tap.latest()?;
+    (s.seq > *seen).then(|| {
+        *seen = s.seq;
+        s
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sources::input::InputLimits;
+
+    #[test]
+    fn a_sample_is_taken_once_by_its_sequence_number() {
+        let now = unix_now_ns();
+        let (feed, tap) =
+            crate::sources::stream::<Vec<f32>>(StreamKind::Joints, InputLimits::shapes(1, 4));
+        let mut seen = 0;
+        assert!(take_new(&tap, &mut seen).is_none());
+        feed.offer_at(now, now, Ok(vec![1.0])).expect("admitted");
+        assert_eq!(take_new(&tap, &mut seen).map(|s| s.seq), Some(1));
+        assert!(take_new(&tap, &mut seen).is_none(), "taken twice");
+        // A rejected sample is not new.
+        assert!(feed
+            .offer_at(now, now + 60_000_000_000, Ok(vec![2.0]))
+            .is_err());
+        assert!(take_new(&tap, &mut seen).is_none());
+        // Two equal values in a row are two samples.
+        feed.offer_at(now, now + 1, Ok(vec![1.0]))
+            .expect("admitted");
+        assert_eq!(take_new(&tap, &mut seen).map(|s| s.seq), Some(2));
+    }
 
     #[test]
     fn unix_clock_is_after_2020() {

@@ -37,6 +37,7 @@ use std::sync::Arc;
 use crate::frame::{decode_compressed, Frame, FrameError};
 use crate::msgs::{CompressedImage, JointState, JointTrajectory};
 use crate::recording::{topics, Recording};
+use crate::sources::PerStream;
 
 /// A resampler that sees no sample for longer than this restarts its grid at
 /// the next sample instead of emitting every tick of the gap.
@@ -55,6 +56,12 @@ pub enum WindowError {
     MissingJoint { topic: &'static str, joint: String },
     #[error("{topic}: {what}")]
     BadMessage { topic: &'static str, what: String },
+    #[error("{topic}: {what}")]
+    JointCount { topic: &'static str, what: String },
+    #[error("{topic}: trajectory has no points")]
+    EmptyPlan { topic: &'static str },
+    #[error("{topic}: point {point}: time_from_start does not increase")]
+    PlanTimes { topic: &'static str, point: usize },
     #[error("{topic}: joint {joint:?} is {value} (not finite)")]
     NonFinite {
         topic: &'static str,
@@ -202,17 +209,14 @@ impl Plan {
         const TOPIC: &str = topics::PLANNED_TRAJECTORY;
         let index = joint_indices(&msg.joint_names, joint_names, TOPIC)?;
         if msg.points.is_empty() {
-            return Err(WindowError::BadMessage {
-                topic: TOPIC,
-                what: "trajectory has no points".into(),
-            });
+            return Err(WindowError::EmptyPlan { topic: TOPIC });
         }
         let stamp_ns = msg.header.stamp.to_ns();
         let mut times_ns = Vec::with_capacity(msg.points.len());
         let mut positions_rad = Vec::with_capacity(msg.points.len() * joint_names.len());
         for (p, point) in msg.points.iter().enumerate() {
             if point.positions.len() != msg.joint_names.len() {
-                return Err(WindowError::BadMessage {
+                return Err(WindowError::JointCount {
                     topic: TOPIC,
                     what: format!(
                         "point {p} has {} positions for {} joint names",
@@ -224,9 +228,9 @@ impl Plan {
             let t = stamp_ns + point.time_from_start.to_ns();
             if let Some(&prev) = times_ns.last() {
                 if t <= prev {
-                    return Err(WindowError::BadMessage {
+                    return Err(WindowError::PlanTimes {
                         topic: TOPIC,
-                        what: format!("point {p}: time_from_start does not increase"),
+                        point: p,
                     });
                 }
             }
@@ -283,7 +287,7 @@ impl Plan {
 pub fn joints_from_msg(msg: &JointState, joint_names: &[String]) -> Result<Vec<f32>, WindowError> {
     const TOPIC: &str = topics::JOINT_STATES;
     if msg.position.len() != msg.name.len() {
-        return Err(WindowError::BadMessage {
+        return Err(WindowError::JointCount {
             topic: TOPIC,
             what: format!(
                 "{} positions for {} joint names",
@@ -364,12 +368,7 @@ impl Sample {
 }
 
 /// Per stream, ns from the last sample to the tick (`None`: no sample yet).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct StreamAges {
-    pub joints_ns: Option<i64>,
-    pub frame_ns: Option<i64>,
-    pub plan_ns: Option<i64>,
-}
+pub type StreamAges = PerStream<Option<i64>>;
 
 /// One tick of resampled inputs (zero-order hold: last sample at or before the tick).
 #[derive(Debug, Clone, PartialEq)]
@@ -385,26 +384,23 @@ pub struct TickInput {
     pub age_ns: StreamAges,
 }
 
-/// Which streams a window must hold (an ablation without vision does not need frames).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Streams {
-    pub joints: bool,
-    pub plan: bool,
-    pub frames: bool,
-}
+/// Which streams a window must hold (an ablation without vision does not
+/// need the camera's frames).
+pub type Streams = PerStream<bool>;
 
-impl Streams {
+impl PerStream<bool> {
+    /// Every stream.
     pub const ALL: Streams = Streams {
         joints: true,
+        camera: true,
         plan: true,
-        frames: true,
     };
 
     /// Whether `tick` has every stream needed here.
     pub fn present_in(&self, tick: &TickInput) -> bool {
         (!self.joints || tick.joints_rad.is_some())
             && (!self.plan || tick.plan.is_some())
-            && (!self.frames || tick.frame.is_some())
+            && (!self.camera || tick.frame.is_some())
     }
 }
 
@@ -527,9 +523,9 @@ impl Resampler {
                 frame: self.frame.as_ref().map(|(_, f)| Arc::clone(f)),
                 plan: self.plan.as_ref().map(|(_, p)| Arc::clone(p)),
                 age_ns: StreamAges {
-                    joints_ns: self.joints.as_ref().map(|(t, _)| stamp_ns - t),
-                    frame_ns: self.frame.as_ref().map(|(t, _)| stamp_ns - t),
-                    plan_ns: self.plan.as_ref().map(|(t, _)| stamp_ns - t),
+                    joints: self.joints.as_ref().map(|(t, _)| stamp_ns - t),
+                    camera: self.frame.as_ref().map(|(t, _)| stamp_ns - t),
+                    plan: self.plan.as_ref().map(|(t, _)| stamp_ns - t),
                 },
             });
             tick += 1;
@@ -623,7 +619,7 @@ impl Window {
             }
         }
         let mut frames = Vec::new();
-        if needs.frames {
+        if needs.camera {
             let plane = s * s;
             frames = vec![0f32; 3 * n * plane];
             for (i, t) in ticks.clone().enumerate() {

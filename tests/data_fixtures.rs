@@ -76,7 +76,7 @@ fn python_written_fixtures_read_resample_and_sample() {
             .ticks
             .iter()
             .skip(1)
-            .filter(|t| t.age_ns.joints_ns.is_none_or(|a| a >= 33_333_334))
+            .filter(|t| t.age_ns.joints.is_none_or(|a| a >= 33_333_334))
             .count();
         assert_eq!(late, 0, "{}", ep.path.display());
     }

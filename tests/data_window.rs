@@ -107,10 +107,10 @@ proptest! {
             prop_assert_eq!(t.stamp_ns, g.stamp_ns(t.tick));
             let last_joint = samples.iter().rfind(|s| s.1 == 0 && s.0 <= t.stamp_ns);
             prop_assert_eq!(t.joints_rad.clone(), last_joint.map(|s| vec![s.2; c]));
-            prop_assert_eq!(t.age_ns.joints_ns, last_joint.map(|s| t.stamp_ns - s.0));
+            prop_assert_eq!(t.age_ns.joints, last_joint.map(|s| t.stamp_ns - s.0));
             let last_plan = samples.iter().rfind(|s| s.1 == 2 && s.0 <= t.stamp_ns);
             prop_assert_eq!(t.plan.as_ref().map(|p| p.stamp_ns), last_plan.map(|s| s.0));
-            prop_assert_eq!(t.age_ns.frame_ns.is_some(), samples.iter().any(|s| s.1 == 1 && s.0 <= t.stamp_ns));
+            prop_assert_eq!(t.age_ns.camera.is_some(), samples.iter().any(|s| s.1 == 1 && s.0 <= t.stamp_ns));
         }
     }
 
@@ -241,7 +241,7 @@ fn window_layout_is_time_major_and_channel_planes() {
         &no_frame,
         &sp,
         Streams {
-            frames: false,
+            camera: false,
             ..Streams::ALL
         },
     )
@@ -380,8 +380,8 @@ fn episode_ticks_from_synthetic_recording() {
     assert!(ticks.is_fallen(onset) && !ticks.is_fallen(onset - 1));
     // every tick has exactly the sample written for it
     for (k, t) in ticks.ticks.iter().enumerate() {
-        assert_eq!(t.age_ns.joints_ns, Some(0));
-        assert_eq!(t.age_ns.frame_ns, Some(0));
+        assert_eq!(t.age_ns.joints, Some(0));
+        assert_eq!(t.age_ns.camera, Some(0));
         let expected: Vec<f32> = ep.joints_rad[k]
             .iter()
             .map(|&v| f64::from(v) as f32)

@@ -673,7 +673,7 @@ fn trajectory_inputs_hold_what_their_names_say_everywhere() {
     let needs = Streams {
         joints: true,
         plan: true,
-        frames: false,
+        camera: false,
     };
     for trajectory in [
         TrajectoryInput::Planned,

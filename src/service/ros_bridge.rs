@@ -1,14 +1,16 @@
 //! The daemon's side of the ROS 2 seam: one node ([`RosBridge`]) whose
 //! publishers (`outputs::ros`) are fed from the [`OutputBus`], and whose
-//! subscriptions (`sources::ros`) are turned into model-form samples on the
-//! live [`StreamFeed`]s, converted once per message with the same functions
+//! subscriptions (`sources::ros`) are turned into model-form samples and
+//! offered to the live [`StreamFeed`]s (the input boundary,
+//! `sources/input.rs`), converted once per message with the same functions
 //! a replay uses (`window::joints_from_msg`, `frame_from_msg`,
-//! `Plan::from_msg`).
+//! `Plan::from_msg`); a conversion error is a typed rejection there.
 //!
 //! The node honours `ROS_DOMAIN_ID` and `ROS_AUTOMATIC_DISCOVERY_RANGE`
 //! (`ROS_LOCALHOST_ONLY`), unless `[ros].domain_id` / `[ros].localhost_only`
 //! set them in the config.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use tokio::sync::broadcast::error::RecvError;
@@ -16,15 +18,16 @@ use tokio::task::JoinHandle;
 
 use crate::config::Config;
 use crate::forecast::ModelSet;
-use crate::frame::Frame;
 use crate::msgs::{CompressedImage, Header, JointState};
 use crate::outputs::ros::{ros_time, OutputTopics, RosOutputs};
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
+use crate::service::LiveStreams;
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
-use crate::sources::ros::{InputTopics, Latest, RosInputs};
-use crate::sources::{StreamFeed, StreamTap};
+use crate::sources::input::{Rejection, StreamValue};
+use crate::sources::ros::{InputErrors, InputTopics, Latest, RosInputs};
+use crate::sources::{PerStream, StreamFeed, StreamTap};
 use crate::window::{frame_from_msg, joints_from_msg, Plan, WindowSpec};
 
 impl From<RosError> for ServiceError {
@@ -57,24 +60,6 @@ pub fn settings(config: &Config) -> Result<RosSettings, RosError> {
 pub struct RosBridge {
     node: RosNode,
     inputs: Option<RosInputs>,
-}
-
-/// The live streams that come from ROS 2 (`None`: another source feeds it).
-pub struct InputsWanted {
-    pub joints: Option<StreamFeed<Vec<f32>>>,
-    pub camera: Option<StreamFeed<Arc<Frame>>>,
-    pub plan: Option<StreamFeed<Arc<Plan>>>,
-    /// The camera's messages as received, not decoded (`record`).
-    pub camera_raw: Option<StreamFeed<Arc<CompressedImage>>>,
-}
-
-impl InputsWanted {
-    pub fn any(&self) -> bool {
-        self.joints.is_some()
-            || self.camera.is_some()
-            || self.plan.is_some()
-            || self.camera_raw.is_some()
-    }
 }
 
 impl RosBridge {
@@ -159,51 +144,64 @@ impl RosBridge {
         }))
     }
 
-    /// Subscribe to the wanted topics and feed the live streams until `shutdown`.
+    /// Subscribe to the topics of the streams `from_ros` selects and feed
+    /// those of `streams` until `shutdown`. `camera_raw` (`record`): the
+    /// camera's messages as received, not decoded, offered to that feed
+    /// (their stamps checked at the same boundary).
     pub fn start_inputs(
         &mut self,
         config: &Config,
         spec: &WindowSpec,
-        wanted: InputsWanted,
+        streams: &LiveStreams,
+        from_ros: PerStream<bool>,
+        camera_raw: Option<StreamFeed<Arc<CompressedImage>>>,
         shutdown: Shutdown,
     ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
         let t = &config.ros.topics;
         let topics = InputTopics {
-            joint_states: wanted.joints.as_ref().map(|_| t.joint_states.clone()),
-            planned_trajectory: wanted.plan.as_ref().map(|_| t.planned_trajectory.clone()),
-            camera: (wanted.camera.is_some() || wanted.camera_raw.is_some())
-                .then(|| t.camera.clone()),
+            joint_states: from_ros.joints.then(|| t.joint_states.clone()),
+            planned_trajectory: from_ros.plan.then(|| t.planned_trajectory.clone()),
+            camera: (from_ros.camera || camera_raw.is_some()).then(|| t.camera.clone()),
         };
+        let joints = from_ros.joints.then(|| streams.joints.clone());
+        let camera = from_ros.camera.then(|| streams.camera.clone());
+        let plan = from_ros.plan.then(|| streams.plan.clone());
         let inputs = RosInputs::start(&mut self.node, &topics)?;
         let mut tasks = Vec::new();
-        if let (Some(rx), Some(feed)) = (inputs.joint_states.clone(), wanted.joints) {
+        let errors =
+            |counter: fn(&InputErrors) -> &AtomicU64| (Arc::clone(&inputs.errors), counter);
+        if let (Some(rx), Some(feed)) = (inputs.joint_states.clone(), joints) {
             let names = spec.joint_names.clone();
-            tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
+            let dds = errors(|e| &e.joint_states);
+            tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                joints_from_msg(&r.msg, &names).map(|j| (stamp_ns, j))
+                (stamp_ns, joints_from_msg(&r.msg, &names))
             }));
         }
-        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), wanted.camera) {
+        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), camera) {
             let size = spec.frame_size;
-            tasks.push(forward(rx, feed, shutdown.clone(), move |r| {
+            let dds = errors(|e| &e.camera);
+            tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                frame_from_msg(&r.msg, size).map(|f| (stamp_ns, Arc::new(f)))
+                (stamp_ns, frame_from_msg(&r.msg, size).map(Arc::new))
             }));
         }
-        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), wanted.camera_raw) {
-            tasks.push(forward(rx, feed, shutdown.clone(), |r| {
+        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), camera_raw) {
+            let dds = errors(|e| &e.camera);
+            tasks.push(forward(rx, feed, dds, shutdown.clone(), |r| {
                 let stamp = r.msg.header.stamp.to_ns();
                 let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                Ok((stamp_ns, Arc::new(r.msg.clone())))
+                (stamp_ns, Ok(Arc::new(r.msg.clone())))
             }));
         }
-        if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), wanted.plan) {
+        if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), plan) {
             let names = spec.joint_names.clone();
             // A plan is known from the moment it arrives: stamped on receipt.
-            tasks.push(forward(rx, feed, shutdown, move |r| {
-                Plan::from_msg(&r.msg, &names).map(|p| (r.received_ns, Arc::new(p)))
+            let dds = errors(|e| &e.planned_trajectory);
+            tasks.push(forward(rx, feed, dds, shutdown, move |r| {
+                (r.received_ns, Plan::from_msg(&r.msg, &names).map(Arc::new))
             }));
         }
         self.inputs = Some(inputs);
@@ -270,21 +268,27 @@ pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
     }
 }
 
-/// Convert each new message of `rx` once and hand it to `feed`.
+/// Convert each new message of `rx` once and offer it to `feed`; the
+/// samples DDS could not deserialize (`dds`, counted by the subscription)
+/// go to the stream's errors (`dds_undecodable`), polled twice a second.
 fn forward<M, T, F>(
     mut rx: Latest<M>,
     feed: StreamFeed<T>,
+    dds: (Arc<InputErrors>, fn(&InputErrors) -> &AtomicU64),
     mut shutdown: Shutdown,
     convert: F,
 ) -> JoinHandle<()>
 where
     M: Send + Sync + 'static,
     T: Send + Sync + 'static,
-    F: Fn(&crate::sources::ros::Received<M>) -> Result<(i64, T), crate::window::WindowError>
+    T: StreamValue,
+    F: Fn(&crate::sources::ros::Received<M>) -> (i64, Result<T, crate::window::WindowError>)
         + Send
         + 'static,
 {
     tokio::spawn(async move {
+        let mut poll = tokio::time::interval(std::time::Duration::from_millis(500));
+        let mut undecodable = 0;
         loop {
             tokio::select! {
                 changed = rx.changed() => {
@@ -293,14 +297,20 @@ where
                         return;
                     }
                 }
+                _ = poll.tick() => {
+                    let n = (dds.1)(&dds.0).load(Ordering::Relaxed);
+                    if n != undecodable {
+                        undecodable = n;
+                        feed.stats().set_external(n, vec![("dds_undecodable".into(), n.to_string())]);
+                    }
+                    continue;
+                }
                 () = shutdown.recv() => return,
             }
             let latest = rx.borrow_and_update().clone();
             let Some(received) = latest else { continue };
-            match convert(&received) {
-                Ok((stamp_ns, value)) => feed.send(stamp_ns, value),
-                Err(e) => feed.error("bad message", &e),
-            }
+            let (stamp_ns, value) = convert(&received);
+            let _ = feed.offer(stamp_ns, value.map_err(|e| Rejection::from_window(&e)));
         }
     })
 }

@@ -272,7 +272,8 @@ pub fn start(
                         feed.error("incomplete read", &format_args!("{missing} joints not read this cycle"));
                     }
                     let positions: Vec<f32> = reading.positions_rad.iter().map(|p| p.unwrap_or(f32::NAN)).collect();
-                    feed.send(reading.stamp_ns, positions);
+                    // NaN: a joint not read this cycle (the tick names it).
+                    let _ = feed.offer(reading.stamp_ns, Ok(positions));
                 }
                 _ = refresh.tick() => {
                     let snapshot = source.stats.snapshot();

@@ -209,7 +209,7 @@ mod capture {
 
     /// The capture loop; `convert(width, height, buffer, stamp_ns)` makes
     /// the stream's value of each buffer.
-    fn spawn_capture<T: Send + Sync + 'static>(
+    fn spawn_capture<T: crate::sources::input::StreamValue>(
         config: CameraConfig,
         feed: StreamFeed<T>,
         shutdown: Shutdown,
@@ -246,10 +246,9 @@ mod capture {
                         };
                         let stamp_ns = crate::tick::unix_now_ns();
                         let res = buffer.resolution();
-                        match convert(res.width(), res.height(), buffer.buffer(), stamp_ns) {
-                            Ok(value) => feed.send(stamp_ns, value),
-                            Err(e) => feed.error("decode", &e),
-                        }
+                        let value = convert(res.width(), res.height(), buffer.buffer(), stamp_ns)
+                            .map_err(|e| crate::sources::input::Rejection::from_frame(&e));
+                        let _ = feed.offer(stamp_ns, value);
                     }
                     let _ = camera.stop_stream();
                 }

@@ -1,9 +1,13 @@
 //! Input streams, each behind one small interface: a source (servo bus,
 //! ROS 2 subscription, camera, replay) turns an outside stream into
-//! timestamped [`Stamped`] values and hands over only its **latest** one through a
-//! [`StreamFeed`] (a `tokio::sync::watch` channel, never a queue), counting
-//! samples and errors in shared [`StreamStats`]. The tick reads the other end,
-//! a [`StreamTap`], once per tick.
+//! timestamped model-form values and offers each to its stream's
+//! [`input::Gate`] (the input boundary, `sources/input.rs`: the one place
+//! where stamps and values are checked and sequence numbers given). An
+//! admitted sample becomes the stream's latest [`Stamped`] value in a
+//! [`StreamFeed`] (a `tokio::sync::watch` channel, never a queue); samples,
+//! rejections and source errors are counted in shared [`StreamStats`]. The
+//! tick reads the other end, a [`StreamTap`], once per tick, and takes a
+//! sample as new by its `seq`.
 //!
 //! Time: `stamp_ns` is on the clock that drives the ticks: UNIX time in ns
 //! when live (ROS `header.stamp` where the message has one), the recording's
@@ -27,7 +31,10 @@ use crate::outputs::DeviceDiagnostics;
 
 pub mod camera;
 pub mod dynamixel;
+pub mod input;
 pub mod replay;
+
+use input::{Gate, InputLimits, Rejection, Seq, StreamValue};
 
 /// The three input streams of the model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -54,15 +61,72 @@ impl StreamKind {
     }
 }
 
+/// One value per stream, indexed by [`StreamKind`] (instead of arrays
+/// indexed 0/1/2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct PerStream<T> {
+    pub joints: T,
+    pub camera: T,
+    pub plan: T,
+}
+
+impl<T> PerStream<T> {
+    /// `f(kind)` for every stream.
+    pub fn from_fn(mut f: impl FnMut(StreamKind) -> T) -> PerStream<T> {
+        PerStream {
+            joints: f(StreamKind::Joints),
+            camera: f(StreamKind::Camera),
+            plan: f(StreamKind::Plan),
+        }
+    }
+
+    pub fn map<U>(self, mut f: impl FnMut(StreamKind, T) -> U) -> PerStream<U> {
+        PerStream {
+            joints: f(StreamKind::Joints, self.joints),
+            camera: f(StreamKind::Camera, self.camera),
+            plan: f(StreamKind::Plan, self.plan),
+        }
+    }
+
+    /// Every stream with its value, in diagnostics order.
+    pub fn iter(&self) -> impl Iterator<Item = (StreamKind, &T)> {
+        StreamKind::ALL.into_iter().map(move |k| (k, &self[k]))
+    }
+}
+
+impl<T> std::ops::Index<StreamKind> for PerStream<T> {
+    type Output = T;
+    fn index(&self, kind: StreamKind) -> &T {
+        match kind {
+            StreamKind::Joints => &self.joints,
+            StreamKind::Camera => &self.camera,
+            StreamKind::Plan => &self.plan,
+        }
+    }
+}
+
+impl<T> std::ops::IndexMut<StreamKind> for PerStream<T> {
+    fn index_mut(&mut self, kind: StreamKind) -> &mut T {
+        match kind {
+            StreamKind::Joints => &mut self.joints,
+            StreamKind::Camera => &mut self.camera,
+            StreamKind::Plan => &mut self.plan,
+        }
+    }
+}
+
 impl fmt::Display for StreamKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.as_str())
     }
 }
 
-/// One value of a stream with its time.
+/// One admitted value of a stream with its time.
 #[derive(Debug, Clone)]
 pub struct Stamped<T> {
+    /// Its number on its stream (1, 2, ...), given at the boundary: the
+    /// tick takes a sample as new when this is above the last one it took.
+    pub seq: Seq,
     /// Time the value applies to, on the tick clock (see module docs).
     pub stamp_ns: i64,
     /// When the daemon received it (for sensor-to-publish latency).
@@ -75,6 +139,11 @@ pub struct Stamped<T> {
 pub struct StreamStats {
     samples: AtomicU64,
     errors: AtomicU64,
+    /// Samples the boundary rejected, per reason (first-seen order), and
+    /// the latest rejection.
+    rejected: AtomicU64,
+    rejections: Mutex<Vec<(&'static str, u64)>>,
+    last_rejection: Mutex<String>,
     /// Errors per kind ("timeout", "bad checksum", "decode"...), in first-seen order.
     error_kinds: Mutex<Vec<(String, u64)>>,
     /// Free-form state of the source ("connected", "reopening /dev/ttyACM0").
@@ -89,8 +158,13 @@ pub struct StreamStats {
 /// A copy of [`StreamStats`] at one instant.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct StreamStatsSnapshot {
+    /// Admitted samples.
     pub samples: u64,
     pub errors: u64,
+    /// Rejected samples, per [`Rejection::key`], and the latest one.
+    pub rejected: u64,
+    pub rejections: Vec<(&'static str, u64)>,
+    pub last_rejection: String,
     pub error_kinds: Vec<(String, u64)>,
     pub state: String,
     /// Source-kept counters, as diagnostic key-values.
@@ -116,6 +190,27 @@ impl StreamStats {
             }
             None => {
                 kinds.push((kind.to_string(), 1));
+                true
+            }
+        }
+    }
+
+    /// Count one rejected sample. Returns true the first time its reason
+    /// is seen (the caller logs each reason once).
+    pub fn record_rejection(&self, r: &Rejection) -> bool {
+        self.rejected.fetch_add(1, Ordering::Relaxed);
+        *self
+            .last_rejection
+            .lock()
+            .unwrap_or_else(|e| e.into_inner()) = r.to_string();
+        let mut kinds = self.rejections.lock().unwrap_or_else(|e| e.into_inner());
+        match kinds.iter_mut().find(|(k, _)| *k == r.key()) {
+            Some((_, n)) => {
+                *n += 1;
+                false
+            }
+            None => {
+                kinds.push((r.key(), 1));
                 true
             }
         }
@@ -148,6 +243,17 @@ impl StreamStats {
                 .unwrap_or_else(|e| e.into_inner())
                 .clone(),
             samples: self.samples.load(Ordering::Relaxed),
+            rejected: self.rejected.load(Ordering::Relaxed),
+            rejections: self
+                .rejections
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
+            last_rejection: self
+                .last_rejection
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
             errors: self.errors.load(Ordering::Relaxed)
                 + self.external_errors.load(Ordering::Relaxed),
             details: self
@@ -165,11 +271,13 @@ impl StreamStats {
     }
 }
 
-/// The source's end of a stream: publish the latest sample, count errors.
+/// The source's end of a stream: offer samples through the stream's
+/// [`Gate`], count errors.
 #[derive(Debug)]
 pub struct StreamFeed<T> {
     kind: StreamKind,
     sender: Arc<watch::Sender<Option<Arc<Stamped<T>>>>>,
+    gate: Arc<Gate>,
     stats: Arc<StreamStats>,
 }
 
@@ -186,6 +294,7 @@ impl<T> Clone for StreamFeed<T> {
         StreamFeed {
             kind: self.kind,
             sender: Arc::clone(&self.sender),
+            gate: Arc::clone(&self.gate),
             stats: Arc::clone(&self.stats),
         }
     }
@@ -201,14 +310,15 @@ impl<T> Clone for StreamTap<T> {
     }
 }
 
-/// A new, empty stream of `kind`.
-pub fn stream<T>(kind: StreamKind) -> (StreamFeed<T>, StreamTap<T>) {
+/// A new, empty stream of `kind`, whose samples are checked against `limits`.
+pub fn stream<T>(kind: StreamKind, limits: InputLimits) -> (StreamFeed<T>, StreamTap<T>) {
     let (sender, receiver) = watch::channel(None);
     let stats = Arc::new(StreamStats::default());
     (
         StreamFeed {
             kind,
             sender: Arc::new(sender),
+            gate: Arc::new(Gate::new(kind, limits, Arc::clone(&stats))),
             stats: Arc::clone(&stats),
         },
         StreamTap {
@@ -219,27 +329,40 @@ pub fn stream<T>(kind: StreamKind) -> (StreamFeed<T>, StreamTap<T>) {
     )
 }
 
-impl<T> StreamFeed<T> {
+impl<T: StreamValue> StreamFeed<T> {
     pub fn kind(&self) -> StreamKind {
         self.kind
     }
 
-    /// Hand over a new latest value (replaces the previous one).
-    pub fn send(&self, stamp_ns: i64, value: T) {
-        self.send_sample(Stamped {
-            stamp_ns,
-            received: Instant::now(),
-            value,
-        });
+    /// Offer a value stamped `stamp_ns` (or the source's conversion error)
+    /// at the boundary, now on the live tick clock: admitted, it becomes the
+    /// stream's latest sample (replacing the previous one) and its sequence
+    /// number is returned; rejected, it is counted and goes no further.
+    pub fn offer(&self, stamp_ns: i64, value: Result<T, Rejection>) -> Result<Seq, Rejection> {
+        self.offer_at(crate::tick::unix_now_ns(), stamp_ns, value)
     }
 
-    /// Hand over a sample built by the caller (replay sets `received` itself).
-    pub fn send_sample(&self, sample: Stamped<T>) {
-        self.stats.record_sample();
-        // `send_replace` never fails, even with no receiver left.
-        self.sender.send_replace(Some(Arc::new(sample)));
+    /// [`offer`](Self::offer) with the tick clock at `now_ns`.
+    pub fn offer_at(
+        &self,
+        now_ns: i64,
+        stamp_ns: i64,
+        value: Result<T, Rejection>,
+    ) -> Result<Seq, Rejection> {
+        let received = Instant::now();
+        self.gate.pass(now_ns, stamp_ns, value, |seq, value| {
+            // `send_replace` never fails, even with no receiver left.
+            self.sender.send_replace(Some(Arc::new(Stamped {
+                seq,
+                stamp_ns,
+                received,
+                value,
+            })));
+        })
     }
+}
 
+impl<T> StreamFeed<T> {
     /// Count an error of `kind`; logs a warning the first time each kind is seen.
     pub fn error(&self, kind: &str, detail: &dyn fmt::Display) {
         if self.stats.record_error(kind) {
@@ -281,14 +404,37 @@ mod tests {
     use super::*;
 
     #[test]
-    fn tap_sees_only_the_latest_sample_and_counts_all() {
-        let (feed, tap) = stream::<Vec<f32>>(StreamKind::Joints);
+    fn tap_sees_only_the_latest_admitted_sample_and_counts_all() {
+        let now = 1_000_000_000_000;
+        let (feed, tap) = stream::<Vec<f32>>(StreamKind::Joints, InputLimits::shapes(1, 4));
         assert!(tap.latest().is_none());
-        feed.send(10, vec![1.0]);
-        feed.send(20, vec![2.0]);
+        assert_eq!(feed.offer_at(now, now + 10, Ok(vec![1.0])), Ok(1));
+        assert_eq!(feed.offer_at(now, now + 20, Ok(vec![2.0])), Ok(2));
+        // Rejected: neither the latest nor numbered.
+        assert!(feed
+            .offer_at(now, now + 30, Ok(vec![f32::INFINITY]))
+            .is_err());
+        assert!(feed.offer_at(now, now + 30, Ok(vec![1.0, 2.0])).is_err());
         let latest = tap.latest().expect("a sample");
-        assert_eq!((latest.stamp_ns, latest.value.clone()), (20, vec![2.0]));
-        assert_eq!(tap.stats().snapshot().samples, 2);
+        assert_eq!(
+            (latest.seq, latest.stamp_ns, latest.value.clone()),
+            (2, now + 20, vec![2.0])
+        );
+        let snap = tap.stats().snapshot();
+        assert_eq!((snap.samples, snap.rejected), (2, 2));
+        assert_eq!(
+            snap.rejections,
+            vec![("non_finite", 1), ("wrong_joints", 1)]
+        );
+    }
+
+    #[test]
+    fn per_stream_is_indexed_by_kind() {
+        let mut p = PerStream::from_fn(|k| k.as_str().len());
+        p[StreamKind::Plan] += 10;
+        assert_eq!((p.joints, p.camera, p.plan), (6, 6, 14));
+        let kinds: Vec<StreamKind> = p.iter().map(|(k, _)| k).collect();
+        assert_eq!(kinds, StreamKind::ALL);
     }
 
     #[test]

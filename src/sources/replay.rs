@@ -17,7 +17,8 @@ use thiserror::Error;
 
 use crate::recording::{Recording, RecordingError};
 use crate::shutdown::Shutdown;
-use crate::sources::StreamStats;
+use crate::sources::input::Gate;
+use crate::sources::PerStream;
 use crate::tick::TickLoop;
 use crate::window::{samples_from_recording, Plan, Sample, WindowError, WindowSpec};
 
@@ -106,14 +107,6 @@ pub struct ReplaySummary {
     pub inference_failed: bool,
 }
 
-fn stream_index(sample: &Sample) -> usize {
-    match sample {
-        Sample::Joints { .. } => 0,
-        Sample::Frame { .. } => 1,
-        Sample::Plan { .. } => 2,
-    }
-}
-
 /// Sleeps until `due`; false when a shutdown came first.
 async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> bool {
     tokio::select! {
@@ -123,13 +116,15 @@ async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> b
 }
 
 /// Push `samples` (sorted by stamp) through `tick_loop` with recorded time,
-/// then advance to `end_ns`. `stats` (joints, camera, plan) count samples.
+/// then advance to `end_ns`. Each sample passes its stream's `gates` (the
+/// input boundary, with the recorded time as the tick clock) as a live one
+/// does: a rejected one is counted there and not pushed.
 pub async fn replay_samples<I>(
     tick_loop: &mut TickLoop,
     samples: I,
     end_ns: i64,
     pacing: Pacing,
-    stats: &[Arc<StreamStats>; 3],
+    gates: &PerStream<Gate>,
     shutdown: &mut Shutdown,
 ) -> ReplaySummary
 where
@@ -172,11 +167,16 @@ where
                 return summary;
             }
         }
-        stats[stream_index(&sample)].record_sample();
-        summary.samples += 1;
         let sensed_at = Instant::now();
-        last_sensed = sensed_at;
-        tick_loop.push_sample(sample);
+        let mut admitted = None;
+        let _ = gates[sample.kind()].pass(stamp_ns, stamp_ns, Ok(sample), |_, s| {
+            admitted = Some(s);
+        });
+        if let Some(sample) = admitted {
+            summary.samples += 1;
+            last_sensed = sensed_at;
+            tick_loop.push_sample(sample);
+        }
         // Every sample at this stamp is in: the tick at this stamp is final.
         if samples.peek().is_none_or(|next| next.stamp_ns() > stamp_ns) {
             tick_loop.advance_to(stamp_ns);

@@ -108,13 +108,13 @@ pub fn needs_of(ablation: Option<Ablation>, trajectory: TrajectoryInput) -> Stre
         Some(a) => Streams {
             joints: true,
             plan: a.uses_plan() && trajectory.reads_plan(),
-            frames: a.uses_vision(),
+            camera: a.uses_vision(),
         },
         // logreg: joints + plan
         None => Streams {
             joints: true,
             plan: true,
-            frames: false,
+            camera: false,
         },
     }
 }

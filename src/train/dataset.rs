@@ -202,7 +202,7 @@ pub fn load_episode(
     if needs.plan {
         rec.require_topic(topics::PLANNED_TRAJECTORY)?;
     }
-    if needs.frames {
+    if needs.camera {
         rec.require_topic(topics::HEAD_CAMERA)?;
     }
     Ok(EpisodeTicks::from_recording(&rec, spec)?)

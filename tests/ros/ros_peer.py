@@ -227,7 +227,24 @@ def sway(names, t):
     return [0.05 * math.sin(0.8 * t + 0.3 * j) for j in range(len(names))]
 
 
+def current_fault(path):
+    """The fault named in the file at `path` (empty: none, or no file)."""
+    if not path:
+        return ""
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except FileNotFoundError:
+        return ""
+
+
 def walk(args):
+    """Joint states (30 Hz) and a plan (1 Hz) of a slow sway, stamped now;
+    with --camera and --jpeg, also that JPEG as the head camera. With
+    --fault-file, while that file names a fault, the input goes bad:
+    `future` stamps joint states 5 s ahead, `nan` makes a joint NaN,
+    `empty_plan` publishes trajectories with no points, `bad_jpeg` sends
+    image bytes that are not a JPEG."""
     from sensor_msgs.msg import CompressedImage, JointState
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -236,18 +253,29 @@ def walk(args):
     joints = node.create_publisher(JointState, args.joint_states, QOS["sensor_data"])
     plans = node.create_publisher(JointTrajectory, args.planned_trajectory, QOS["latched"])
     images = None
-    if args.camera_jpeg:
-        # Camera frames: the given file's bytes, as a camera driver sends them.
-        with open(args.camera_jpeg, "rb") as f:
-            jpeg = f.read()
+    jpeg = b""
+    if args.camera and args.jpeg:
         images = node.create_publisher(CompressedImage, args.camera, QOS["sensor_data"])
+        with open(args.jpeg, "rb") as f:
+            jpeg = f.read()
     start = time.time()
     deadline = time.monotonic() + args.timeout
     i = 0
     next_plan = 0.0
+    last_fault = ""
     while time.monotonic() < deadline:
         now = time.time()
         now_ns = time.time_ns()
+        fault = current_fault(args.fault_file)
+        if fault != last_fault:
+            emit({"event": "fault", "fault": fault, "t": time.monotonic()})
+            last_fault = fault
+        if now >= next_plan and fault == "empty_plan":
+            plan = JointTrajectory()
+            stamp(plan.header.stamp, now_ns)
+            plan.joint_names = names
+            plans.publish(plan)
+            next_plan = now + 1.0
         if now >= next_plan:
             plan = JointTrajectory()
             stamp(plan.header.stamp, now_ns)
@@ -264,16 +292,18 @@ def walk(args):
             next_plan = now + 1.0
         i += 1
         js = JointState()
-        stamp(js.header.stamp, now_ns)
+        stamp(js.header.stamp, now_ns + (5_000_000_000 if fault == "future" else 0))
         js.name = names
         js.position = sway(names, now - start)
+        if fault == "nan":
+            js.position[0] = float("nan")
         joints.publish(js)
         if images is not None:
             img = CompressedImage()
             stamp(img.header.stamp, now_ns)
             img.header.frame_id = "head_camera"
             img.format = "jpeg"
-            img.data = jpeg
+            img.data = b"not a JPEG at all" if fault == "bad_jpeg" else jpeg
             images.publish(img)
         if i == 1 or i % 30 == 0:
             emit({"event": "published", "topic": args.joint_states, "n": i})
@@ -304,10 +334,13 @@ def main():
     wp.add_argument("--joints", required=True, help="joint names, comma-separated")
     wp.add_argument("--joint-states", default="/joint_states")
     wp.add_argument("--planned-trajectory", default="/planned_trajectory")
-    wp.add_argument("--camera", default="/head_camera/image_raw/compressed")
-    wp.add_argument("--camera-jpeg", default=None, help="publish this file as camera frames")
     wp.add_argument("--period", type=float, default=0.033)
     wp.add_argument("--timeout", type=float, default=60.0)
+    wp.add_argument("--camera", default="/head_camera/image_raw/compressed", help="topic of the --jpeg frames")
+    wp.add_argument(
+        "--jpeg", "--camera-jpeg", dest="jpeg", default="", help="publish this JPEG file's bytes as camera frames"
+    )
+    wp.add_argument("--fault-file", default="", help="a file naming the fault to inject (see walk)")
     args = parser.parse_args()
     rclpy.init()
     try:
