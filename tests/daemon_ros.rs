@@ -34,6 +34,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
+/// The two emulated-bus tests run one at a time: each has a daemon reading
+/// two pty buses with 20 ms timeouts, and on a 2-core machine running both
+/// beside the other tests' daemons starved the reads (timeouts counted as
+/// bus errors, so the levels never returned to OK within the wait).
+static SERVO_BUSES: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 use serde_json::Value;
 use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
@@ -680,6 +686,7 @@ fn servo_config(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
+    let _one_at_a_time = SERVO_BUSES.lock().await;
     use fall_guard::robot::JointTable;
     use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
 
@@ -880,6 +887,7 @@ async fn wait_diagnostics(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
+    let _one_at_a_time = SERVO_BUSES.lock().await;
     use fall_guard::robot::JointTable;
     use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
 
