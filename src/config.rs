@@ -573,17 +573,7 @@ impl Config {
         facts: &ModelFacts,
         robot_joints: &[String],
     ) -> Result<(), ConfigError> {
-        if !facts.horizons_ms.contains(&self.model.horizon_ms) {
-            let list: Vec<String> = facts.horizons_ms.iter().map(u32::to_string).collect();
-            return Err(self.value_error(
-                "[model].horizon_ms",
-                format!(
-                    "expected one of the model's horizons {}, got {}",
-                    list.join(", "),
-                    self.model.horizon_ms
-                ),
-            ));
-        }
+        self.latch_horizon_index(&facts.horizons_ms)?;
         if (facts.rate_hz - self.robot.tick_rate_hz).abs() > 1e-9 {
             return Err(self.value_error(
                 "[robot].tick_rate_hz",
@@ -629,6 +619,77 @@ impl Config {
         }
         self.ros.namespace = namespace.to_string();
         Ok(())
+    }
+
+    /// The index of `[model].horizon_ms` among the model's horizons (the
+    /// horizon the safety latch watches).
+    pub fn latch_horizon_index(&self, horizons_ms: &[u32]) -> Result<usize, ConfigError> {
+        horizons_ms
+            .iter()
+            .position(|&h| h == self.model.horizon_ms)
+            .ok_or_else(|| {
+                let list: Vec<String> = horizons_ms.iter().map(u32::to_string).collect();
+                self.value_error(
+                    "[model].horizon_ms",
+                    format!(
+                        "expected one of the model's horizons {}, got {}",
+                        list.join(", "),
+                        self.model.horizon_ms
+                    ),
+                )
+            })
+    }
+
+    /// Checks of `run` and `record`, which read the live sources of
+    /// `[streams]` (`replay` takes every stream from the recording): a
+    /// stream read from ROS 2 needs `[ros].enabled`.
+    pub fn check_live_sources(&self) -> Result<(), ConfigError> {
+        let s = &self.streams;
+        let from_ros = s.joints == JointsSource::Ros
+            || s.camera == CameraSource::Ros
+            || s.plan == PlanSource::Ros;
+        if from_ros && !self.ros.enabled {
+            return Err(self.value_error("[streams]", "reads from ROS 2 but [ros].enabled = false"));
+        }
+        Ok(())
+    }
+
+    /// The recording to replay: `arg` (`--recording`), else
+    /// `[replay].recording`.
+    pub fn replay_recording(&self, arg: Option<&Path>) -> Result<PathBuf, ConfigError> {
+        match (arg, &self.replay) {
+            (Some(p), _) => Ok(p.to_path_buf()),
+            (None, Some(r)) => Ok(self.resolve(&r.recording)),
+            (None, None) => Err(self.value_error(
+                "[replay].recording",
+                "no recording: pass --recording PATH or set [replay].recording",
+            )),
+        }
+    }
+
+    /// How fast a replay runs: `--max-speed` (`max_speed`), else `--speed`
+    /// (`speed`), else `[replay]` (`max_speed`, then `speed`), else real
+    /// time. `--speed` must be a positive factor (`[replay].speed` is
+    /// checked at load).
+    pub fn replay_pacing(
+        &self,
+        speed: Option<f64>,
+        max_speed: bool,
+    ) -> Result<crate::sources::replay::Pacing, ConfigError> {
+        use crate::sources::replay::Pacing;
+        let defaults = self.replay.as_ref();
+        if max_speed || defaults.is_some_and(|r| r.max_speed) && speed.is_none() {
+            return Ok(Pacing::MaxSpeed);
+        }
+        let speed = speed.or(defaults.map(|r| r.speed)).unwrap_or(1.0);
+        if !(speed.is_finite() && speed > 0.0) {
+            return Err(ConfigError::Value {
+                file: "--speed".to_string(),
+                key: "[replay].speed".to_string(),
+                message: format!("expected a positive factor, got {speed}"),
+            });
+        }
+        Ok(Pacing::Speed(speed))
     }
 
     /// A path from the config, resolved against the config's directory.
@@ -762,6 +823,69 @@ mod tests {
             .check_against_model(&facts, &["a".to_string()])
             .expect_err("rate mismatch");
         assert_eq!(err.key(), Some("[robot].tick_rate_hz"), "{err}");
+    }
+
+    #[test]
+    fn live_sources_from_ros_need_ros_enabled() {
+        let mut config = parse(EMBEDDED_REPLAY_CONFIG).expect("parses");
+        config.check_live_sources().expect("ros enabled");
+        config.ros.enabled = false;
+        let err = config.check_live_sources().expect_err("ros off");
+        assert_eq!(err.key(), Some("[streams]"), "{err}");
+        assert!(err.to_string().contains("[ros].enabled = false"), "{err}");
+        config.streams.joints = JointsSource::Dynamixel;
+        config.streams.plan = PlanSource::None;
+        config.check_live_sources().expect("nothing from ROS 2");
+    }
+
+    #[test]
+    fn replay_recording_and_pacing_come_from_the_arguments_then_the_config() {
+        use crate::sources::replay::Pacing;
+        let mut config = parse(EMBEDDED_REPLAY_CONFIG).expect("parses");
+        assert_eq!(
+            config.replay_recording(Some(Path::new("x.mcap"))).ok(),
+            Some(PathBuf::from("x.mcap"))
+        );
+        assert_eq!(
+            config.replay_recording(None).ok(),
+            Some(PathBuf::from("/cfg/tests/fixtures/gen1/episode_00005.mcap"))
+        );
+        assert_eq!(
+            config.replay_pacing(None, false).ok(),
+            Some(Pacing::Speed(1.0))
+        );
+        assert_eq!(
+            config.replay_pacing(Some(4.0), false).ok(),
+            Some(Pacing::Speed(4.0))
+        );
+        assert_eq!(
+            config.replay_pacing(Some(4.0), true).ok(),
+            Some(Pacing::MaxSpeed)
+        );
+        for bad in [0.0, -1.0, f64::NAN] {
+            let err = config
+                .replay_pacing(Some(bad), false)
+                .expect_err("bad speed");
+            assert!(err.to_string().starts_with("--speed: "), "{err}");
+        }
+        if let Some(r) = config.replay.as_mut() {
+            r.max_speed = true;
+        }
+        assert_eq!(
+            config.replay_pacing(None, false).ok(),
+            Some(Pacing::MaxSpeed)
+        );
+        assert_eq!(
+            config.replay_pacing(Some(2.0), false).ok(),
+            Some(Pacing::Speed(2.0))
+        );
+        config.replay = None;
+        let err = config.replay_recording(None).expect_err("no recording");
+        assert_eq!(err.key(), Some("[replay].recording"), "{err}");
+        assert_eq!(
+            config.replay_pacing(None, false).ok(),
+            Some(Pacing::Speed(1.0))
+        );
     }
 
     #[test]

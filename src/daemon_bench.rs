@@ -5,7 +5,9 @@
 //! newest sample entered the daemon to the moment a publisher had the
 //! forecast: the ROS 2 publisher when `[ros].enabled`, else a bus subscriber
 //! standing in for it), inference latency, and resident memory (RSS from
-//! `/proc/self/statm`) once a second, to show it does not grow.
+//! `/proc/self/statm`) once a second, to show it does not grow. It runs on
+//! the daemon's one lifecycle (`service::lifecycle`), as `replay` does:
+//! SIGINT / SIGTERM end the run early, with a report.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -14,9 +16,8 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 use crate::forecast::percentiles_ms;
-use crate::service::{load_config, ReplaySetup, ServiceError};
-use crate::shutdown::ShutdownTrigger;
-use crate::sources::replay::{replay_samples, shifted, Pacing};
+use crate::service::{load_config, Inputs, Running, ServiceError, What};
+use crate::sources::replay::{replay_samples, shifted};
 
 /// `fall-guard bench-daemon`.
 #[derive(Debug, Clone)]
@@ -76,19 +77,19 @@ pub fn rss_mb() -> f64 {
 pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> {
     let mut config = load_config(args.config.as_deref())?;
     config.output.print_forecasts = false;
-    let recording = match (&args.recording, &config.replay) {
-        (Some(p), _) => p.clone(),
-        (None, Some(r)) => config.resolve(&r.recording),
-        (None, None) => return Err(ServiceError::Usage("bench-daemon: pass --recording".into())),
-    };
+    let recording = config.replay_recording(args.recording.as_deref())?;
+    // Maximum speed unless `--speed` says otherwise.
+    let pacing = config.replay_pacing(args.speed, args.speed.is_none())?;
     let ros = config.ros.enabled;
-    let mut setup = ReplaySetup::new(config, &recording, false)?;
-    let trigger = Arc::new(ShutdownTrigger::new().0);
-    let mut shutdown = trigger.subscribe();
-    let (bridge, publisher) = setup.start_ros(&trigger)?;
+    let mut daemon = Running::start(config, What::Replay(recording.clone()))?;
+    let mut shutdown = daemon.shutdown();
+    let bus = match &daemon.forecasting {
+        Some(f) => f.bus.clone(),
+        None => unreachable!("a replay forecasts"),
+    };
     // Without ROS, a subscriber stands in for the publisher.
-    let mut stand_in = (!ros).then(|| setup.bus.subscribe());
-    let mut stop = trigger.subscribe();
+    let mut stand_in = (!ros).then(|| bus.subscribe());
+    let mut stop = daemon.shutdown();
     let stand_in_task = tokio::spawn(async move {
         let Some(sub) = stand_in.as_mut() else { return };
         loop {
@@ -102,12 +103,13 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
             }
         }
     });
-    let mut diagnostics = setup.bus.subscribe().diagnostics;
+    daemon.join_at_stop(stand_in_task);
+    let mut diagnostics = bus.subscribe().diagnostics;
     let started = Instant::now();
     let rss_first = rss_mb();
     let rss = Arc::new(std::sync::Mutex::new(Vec::<(f64, f64)>::new()));
     let rss_log = Arc::clone(&rss);
-    let mut rss_stop = trigger.subscribe();
+    let mut rss_stop = daemon.shutdown();
     let rss_task = tokio::spawn(async move {
         let mut every = tokio::time::interval(Duration::from_secs(1));
         loop {
@@ -119,30 +121,36 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
             }
         }
     });
-    let span = setup.recording.end_ns - setup.recording.start_ns
-        + (1e9 / setup.models.spec().rate_hz) as i64;
-    let pacing = match args.speed {
-        Some(x) if x.is_finite() && x > 0.0 => Pacing::Speed(x),
-        Some(x) => return Err(ServiceError::Usage(format!("--speed {x}: expected > 0"))),
-        None => Pacing::MaxSpeed,
+    daemon.join_at_stop(rss_task);
+    let (
+        Some(forecasting),
+        Inputs::Replay {
+            recording: replayed,
+            gates,
+        },
+    ) = (daemon.forecasting.as_mut(), &daemon.inputs)
+    else {
+        unreachable!("a replay forecasts from a recording")
     };
+    let span =
+        replayed.end_ns - replayed.start_ns + (1e9 / forecasting.models.spec().rate_hz) as i64;
     let mut passes = 0u64;
     let mut latencies: Vec<u32> = Vec::new();
     let (mut inf_p50, mut inf_p99) = (0.0f64, 0.0f64);
     while started.elapsed().as_secs_f64() < args.duration_s && !shutdown.is_shutdown() {
         let offset = passes as i64 * span;
-        let samples = setup.recording.samples.iter().map(|s| shifted(s, offset));
+        let samples = replayed.samples.iter().map(|s| shifted(s, offset));
         replay_samples(
-            &mut setup.tick_loop,
+            &mut forecasting.tick_loop,
             samples,
-            setup.recording.end_ns + offset,
+            replayed.end_ns + offset,
             pacing,
-            &setup.gates,
+            gates,
             &mut shutdown,
         )
         .await;
         passes += 1;
-        latencies.extend(setup.bus.latency().take_us());
+        latencies.extend(bus.latency().take_us());
         loop {
             use tokio::sync::broadcast::error::TryRecvError;
             match diagnostics.try_recv() {
@@ -157,15 +165,8 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
         }
     }
     let wall_s = started.elapsed().as_secs_f64();
-    let counters = setup.tick_loop.finish().await;
-    trigger.fire();
-    let _ = stand_in_task.await;
-    let _ = rss_task.await;
-    if let Some(p) = publisher {
-        let _ = p.await;
-    }
-    drop(bridge);
-    latencies.extend(setup.bus.latency().take_us());
+    let counters = daemon.stop().await.counters;
+    latencies.extend(bus.latency().take_us());
     let max = latencies.iter().copied().max().unwrap_or(0);
     let (p50, p99) = percentiles_ms(&mut latencies).unwrap_or((0.0, 0.0));
     let rss = rss.lock().map(|v| v.clone()).unwrap_or_default();

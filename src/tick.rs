@@ -32,7 +32,9 @@ use crate::sources::input::Seq;
 use crate::sources::{PerStream, Stamped, StreamKind, StreamStats, StreamTap};
 use crate::window::{Plan, Resampler, Ring, Sample, TickInput, WindowError};
 
-/// Now, in ns since the UNIX epoch (the live tick clock, as ROS stamps).
+/// Now, in ns since the UNIX epoch: the daemon's one clock (the live tick,
+/// the input boundary, the stamps of servo reads, camera frames and ROS 2
+/// receipts), as ROS stamps.
 pub fn unix_now_ns() -> i64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -619,15 +621,11 @@ pub struct LiveTaps {
     pub plan: StreamTap<Arc<Plan>>,
 }
 
-/// Drive `tick_loop` from the system clock until shutdown: at each grid
-/// tick, take the latest sample of each stream (new ones only, in stamp
-/// order) and run the ticks that became final.
-/// Returns the counters and whether the inference thread died.
-pub async fn run_live(
-    mut tick_loop: TickLoop,
-    taps: LiveTaps,
-    mut shutdown: Shutdown,
-) -> (TickCounters, bool) {
+/// Drive `tick_loop` from the system clock until shutdown or until the
+/// inference thread dies: at each grid tick, take the latest sample of each
+/// stream (new ones only, in stamp order) and run the ticks that became
+/// final. The caller finishes the loop (`service::lifecycle`).
+pub async fn run_live(tick_loop: &mut TickLoop, taps: LiveTaps, mut shutdown: Shutdown) {
     let grid = tick_loop.resampler.grid();
     // The last sequence number taken per stream: a sample is new when its
     // `seq` is above it (never by comparing pointers, which an allocator
@@ -692,8 +690,6 @@ pub async fn run_live(
             break;
         }
     }
-    let dead = tick_loop.inference().is_dead();
-    (tick_loop.finish().await, dead)
 }
 
 /// The tap's latest sample if its sequence number is above `seen` (which

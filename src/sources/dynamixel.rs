@@ -46,7 +46,7 @@ mod stats;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use serde::Deserialize;
 use thiserror::Error;
@@ -202,12 +202,10 @@ impl JointReading {
 /// The clock that stamps readings, in ns.
 pub type Clock = Arc<dyn Fn() -> i64 + Send + Sync>;
 
-/// Nanoseconds since the UNIX epoch (the stamp ROS 2 messages carry).
+/// Nanoseconds since the UNIX epoch (the stamp ROS 2 messages carry): the
+/// daemon's one clock, [`crate::tick::unix_now_ns`].
 pub fn system_clock_ns() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
-        .unwrap_or(0)
+    crate::tick::unix_now_ns()
 }
 
 /// Reads all buses, one cycle per call, on the caller's thread.

@@ -176,7 +176,7 @@ where
                     }
                     tx.send_replace(Some(Arc::new(Received {
                         msg,
-                        received_ns: now_ns(),
+                        received_ns: crate::tick::unix_now_ns(),
                         count,
                     })));
                 }
@@ -190,11 +190,4 @@ where
         tracing::warn!(topic = %topic, "ROS 2 subscription stream ended");
     });
     (rx, task)
-}
-
-fn now_ns() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
-        .unwrap_or(0)
 }
