@@ -306,6 +306,9 @@ impl ModelSet {
             &self.robot_joints,
             emp.as_ref().filter(|e| e.meta.ablation != ablation),
         )?;
+        // As at start: hand the load's transient heap back to the system,
+        // or the resident memory keeps the load's peak (README "Measured").
+        release_freed_memory();
         tracing::info!(key = slot.key, file = %slot.path.display(),
             load_ms = format!("{:.1}", started.elapsed().as_secs_f64() * 1e3),
             "fallback loaded at its first use");
