@@ -26,8 +26,11 @@
 //!   motor on the joints and the bus status; when it answers again, and
 //!   after garbage on the bus, every level returns to OK.
 
+#[path = "ros/heard.rs"]
+mod heard;
 #[path = "ros/support.rs"]
 mod support;
+use heard::{forecast_values, level, msgs, status_named, wait_diagnostics};
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -93,30 +96,6 @@ async fn listen(python: &PathBuf, domain: u16, args: &[&str]) -> Peer {
         listener.stderr()
     );
     listener
-}
-
-fn forecast_values(event: &Value) -> Vec<f32> {
-    event["msg"]["data"]
-        .as_array()
-        .expect("data")
-        .iter()
-        .map(|v| v.as_f64().map_or(f32::NAN, |x| x as f32))
-        .collect()
-}
-
-/// The `DiagnosticStatus` whose name ends with `suffix` (`": model"`,
-/// `": joints"`) in one received `/diagnostics` message event.
-fn status_named<'a>(diag: &'a Value, suffix: &str) -> Option<&'a Value> {
-    diag["msg"]["status"]
-        .as_array()?
-        .iter()
-        .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(suffix)))
-}
-
-fn msgs<'a>(events: &'a [Value], topic: &'a str) -> impl Iterator<Item = &'a Value> + 'a {
-    events
-        .iter()
-        .filter(move |e| e["event"] == "msg" && e["topic"] == topic)
 }
 
 /// An rclpy listener of `/fall_guard/forecast` (every message logged) and
@@ -836,19 +815,6 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
     );
 }
 
-/// The `level` byte of a `DiagnosticStatus` (rclpy gives a `byte` as bytes).
-fn level(status: &Value) -> u64 {
-    status["level"]
-        .as_u64()
-        .or_else(|| {
-            status["level"]
-                .as_array()
-                .and_then(|b| b.first())
-                .and_then(Value::as_u64)
-        })
-        .unwrap_or_else(|| panic!("level of {status}"))
-}
-
 /// Name, level and message of every status of the last `/diagnostics`
 /// message in `events`, for failure messages.
 fn last_statuses(events: &[Value]) -> String {
@@ -862,27 +828,6 @@ fn last_statuses(events: &[Value]) -> String {
                 .join("\n")
         })
         .unwrap_or_else(|| "no diagnostics".into())
-}
-
-/// Waits for a `/diagnostics` message that `want` accepts; returns it with
-/// every event seen meanwhile.
-async fn wait_diagnostics(
-    listener: &mut Peer,
-    timeout: Duration,
-    want: impl Fn(&Value) -> bool,
-) -> (Option<Value>, Vec<Value>) {
-    let deadline = std::time::Instant::now() + timeout;
-    let mut seen = Vec::new();
-    while let Some(e) = listener
-        .next_event(deadline.saturating_duration_since(std::time::Instant::now()))
-        .await
-    {
-        if e["event"] == "msg" && e["topic"] == "/diagnostics" && want(&e) {
-            return (Some(e), seen);
-        }
-        seen.push(e);
-    }
-    (None, seen)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

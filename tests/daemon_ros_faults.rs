@@ -19,8 +19,11 @@
 //! A separate test binary from `daemon_ros.rs`, so that its daemons do not
 //! run beside those on a 2-core machine.
 
+#[path = "ros/heard.rs"]
+mod heard;
 #[path = "ros/support.rs"]
 mod support;
+use heard::{forecast_values, level, msgs, status_named, wait_diagnostics};
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -105,41 +108,6 @@ impl Daemon {
     }
 }
 
-fn status_named<'a>(diag: &'a Value, suffix: &str) -> Option<&'a Value> {
-    diag["msg"]["status"]
-        .as_array()?
-        .iter()
-        .find(|s| s["name"].as_str().is_some_and(|n| n.ends_with(suffix)))
-}
-
-/// The `level` byte of a `DiagnosticStatus` (rclpy gives a `byte` as bytes).
-fn level(status: &Value) -> u64 {
-    status["level"]
-        .as_u64()
-        .or_else(|| {
-            status["level"]
-                .as_array()
-                .and_then(|b| b.first())
-                .and_then(Value::as_u64)
-        })
-        .unwrap_or_else(|| panic!("level of {status}"))
-}
-
-fn msgs<'a>(events: &'a [Value], topic: &'a str) -> impl Iterator<Item = &'a Value> + 'a {
-    events
-        .iter()
-        .filter(move |e| e["event"] == "msg" && e["topic"] == topic)
-}
-
-fn forecast_values(event: &Value) -> Vec<f32> {
-    event["msg"]["data"]
-        .as_array()
-        .expect("data")
-        .iter()
-        .map(|v| v.as_f64().map_or(f32::NAN, |x| x as f32))
-        .collect()
-}
-
 /// Name, level and message of every status of `diag`, for failures.
 fn statuses(diag: Option<&Value>) -> String {
     diag.and_then(|d| d["msg"]["status"].as_array())
@@ -154,27 +122,6 @@ fn statuses(diag: Option<&Value>) -> String {
 
 fn last_diag(events: &[Value]) -> Option<&Value> {
     msgs(events, "/diagnostics").last()
-}
-
-/// Waits for a `/diagnostics` message that `want` accepts; returns it with
-/// every event seen meanwhile.
-async fn wait_diagnostics(
-    listener: &mut Peer,
-    timeout: Duration,
-    want: impl Fn(&Value) -> bool,
-) -> (Option<Value>, Vec<Value>) {
-    let deadline = std::time::Instant::now() + timeout;
-    let mut seen = Vec::new();
-    while let Some(e) = listener
-        .next_event(deadline.saturating_duration_since(std::time::Instant::now()))
-        .await
-    {
-        if e["event"] == "msg" && e["topic"] == "/diagnostics" && want(&e) {
-            return (Some(e), seen);
-        }
-        seen.push(e);
-    }
-    (None, seen)
 }
 
 /// Waits for a forecast that `want` accepts; returns every event seen.
