@@ -30,7 +30,7 @@
 mod heard;
 #[path = "ros/support.rs"]
 mod support;
-use heard::{forecast_values, level, msgs, status_named, wait_diagnostics};
+use heard::{forecast_values, level, msgs, status_named, statuses, wait_diagnostics};
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -620,21 +620,14 @@ async fn wait_validity(
     want: bool,
     timeout: Duration,
 ) -> (Option<Value>, Vec<Value>) {
-    let deadline = std::time::Instant::now() + timeout;
-    let mut seen = Vec::new();
-    while let Some(e) = listener
-        .next_event(deadline.saturating_duration_since(std::time::Instant::now()))
-        .await
-    {
-        if e["event"] == "msg" && e["topic"] == "/diagnostics" {
-            let valid = status_named(&e, ": model").and_then(|m| kv(m, "valid"));
-            if valid.as_deref() == Some(if want { "true" } else { "false" }) {
-                return (Some(e), seen);
-            }
-        }
-        seen.push(e);
-    }
-    (None, seen)
+    let want = if want { "true" } else { "false" };
+    wait_diagnostics(listener, timeout, |e| {
+        status_named(e, ": model")
+            .and_then(|m| kv(m, "valid"))
+            .as_deref()
+            == Some(want)
+    })
+    .await
 }
 
 fn joints_status(diag: &Value) -> &Value {
@@ -818,16 +811,7 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
 /// Name, level and message of every status of the last `/diagnostics`
 /// message in `events`, for failure messages.
 fn last_statuses(events: &[Value]) -> String {
-    msgs(events, "/diagnostics")
-        .last()
-        .and_then(|d| d["msg"]["status"].as_array())
-        .map(|st| {
-            st.iter()
-                .map(|s| format!("{} [{}] {}", s["name"], level(s), s["message"]))
-                .collect::<Vec<_>>()
-                .join("\n")
-        })
-        .unwrap_or_else(|| "no diagnostics".into())
+    statuses(msgs(events, "/diagnostics").last())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

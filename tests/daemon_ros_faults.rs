@@ -23,7 +23,7 @@
 mod heard;
 #[path = "ros/support.rs"]
 mod support;
-use heard::{forecast_values, level, msgs, status_named, wait_diagnostics};
+use heard::{forecast_values, level, msgs, status_named, statuses, wait_diagnostics};
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -106,18 +106,6 @@ impl Daemon {
         let stderr = String::from_utf8_lossy(&texts.next().unwrap_or_default()).into_owned();
         (status.success(), stderr)
     }
-}
-
-/// Name, level and message of every status of `diag`, for failures.
-fn statuses(diag: Option<&Value>) -> String {
-    diag.and_then(|d| d["msg"]["status"].as_array())
-        .map(|st| {
-            st.iter()
-                .map(|s| format!("{} [{}] {}", s["name"], level(s), s["message"]))
-                .collect::<Vec<_>>()
-                .join("\n")
-        })
-        .unwrap_or_else(|| "no diagnostics".into())
 }
 
 fn last_diag(events: &[Value]) -> Option<&Value> {

@@ -68,3 +68,15 @@ pub async fn wait_diagnostics(
     }
     (None, seen)
 }
+
+/// Name, level and message of every status of `diag`, for failure messages.
+pub fn statuses(diag: Option<&Value>) -> String {
+    diag.and_then(|d| d["msg"]["status"].as_array())
+        .map(|st| {
+            st.iter()
+                .map(|s| format!("{} [{}] {}", s["name"], level(s), s["message"]))
+                .collect::<Vec<_>>()
+                .join("\n")
+        })
+        .unwrap_or_else(|| "no diagnostics".into())
+}
