@@ -609,6 +609,8 @@ fn inference_loop(
             forecasters.prepare(job.ablation, &job.ticks);
         } else {
             let started = Instant::now();
+            // A refused or failed network: logged once, counted as an error.
+            let mut error = None;
             match forecasters.forecast(models, job.ablation, &job.ticks) {
                 Ok(p) => {
                     latency_us =
@@ -623,21 +625,20 @@ fn inference_loop(
                     valid = false;
                     invalid_reason = e;
                 }
-                Err(failure @ (ForecastFailure::Model(_) | ForecastFailure::Unavailable(_))) => {
-                    let e = match failure {
-                        ForecastFailure::Model(e) => format!("inference failed: {e}"),
-                        ForecastFailure::Unavailable(e) => format!("network not loaded: {e}"),
-                        ForecastFailure::Input(e) => e,
-                    };
-                    if !logged_error {
-                        tracing::error!(tick = job.tick, error = %e, "no forecast (logged once, counted in /diagnostics)");
-                        logged_error = true;
-                    }
-                    valid = false;
-                    invalid_reason = e;
-                    if let Ok(mut s) = stats.lock() {
-                        s.errors += 1;
-                    }
+                Err(ForecastFailure::Model(e)) => error = Some(format!("inference failed: {e}")),
+                Err(ForecastFailure::Unavailable(e)) => {
+                    error = Some(format!("network not loaded: {e}"));
+                }
+            }
+            if let Some(e) = error {
+                if !logged_error {
+                    tracing::error!(tick = job.tick, error = %e, "no forecast (logged once, counted in /diagnostics)");
+                    logged_error = true;
+                }
+                valid = false;
+                invalid_reason = e;
+                if let Ok(mut s) = stats.lock() {
+                    s.errors += 1;
                 }
             }
         }
