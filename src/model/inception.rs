@@ -343,17 +343,4 @@ impl FusedConv<5> {
             ConvOptions::new([1, 1, 1], [p, p, p], [1, 1, 1], 1),
         )
     }
-
-    /// As [`forward`](Self::forward) but without padding in time ("valid"):
-    /// the streaming encoder inserts the zero slices itself, only where the
-    /// window really ends.
-    pub fn forward_valid_time(&self, x: Tensor<5>) -> Tensor<5> {
-        let p = self.kernel / 2;
-        conv3d(
-            x,
-            self.weight.clone(),
-            Some(self.bias.clone()),
-            ConvOptions::new([1, 1, 1], [0, p, p], [1, 1, 1], 1),
-        )
-    }
 }

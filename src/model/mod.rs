@@ -12,6 +12,7 @@ pub mod host_linear;
 pub mod inception;
 pub mod motion;
 pub mod plan;
+pub mod slice_conv;
 pub mod spectral;
 pub mod streaming;
 pub mod tick_input;

@@ -20,10 +20,9 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 
 use burn::prelude::*;
-use burn::tensor::activation::relu;
 
 use super::file::{host_logits, LoadedModel, ModelError};
-use super::vision::{lowpass_frames, spatial_pool};
+use super::vision::lowpass_frames;
 use super::EmpInput;
 
 /// One time slice of one vision layer: `[channels, h, w]` row-major.
@@ -319,7 +318,7 @@ impl StreamingForecaster {
         }
         let mut c_in = 3usize;
         let mut hw = cfg.lowpassed_size();
-        for (li, layer) in fused.layers.iter().enumerate() {
+        for li in 0..fused.slices.len() {
             let c_out = cfg.vision_channels[li];
             let t_len = slices.len();
             let (ho, wo) = (hw / 2, hw / 2);
@@ -350,41 +349,23 @@ impl StreamingForecaster {
                     j += 1;
                 }
                 let j1 = j - 1;
-                let lo = j0.saturating_sub(1);
-                let hi = (j1 + 1).min(t_len - 1);
-                // Zero slices stand for the "same" padding where the window ends
-                // (the kernel reaches one slice each way).
-                let (pad_lo, pad_hi) = ((j0 == 0) as usize, (j1 == t_len - 1) as usize);
-                let span = pad_lo + (hi - lo + 1) + pad_hi;
-                // Gather [1, C_in, span, hw, hw] from per-slice [C_in, hw, hw].
-                let plane = hw * hw;
-                let mut buf = vec![0.0f32; c_in * span * plane];
-                for (ti, s) in slices[lo..=hi].iter().enumerate() {
-                    let ti = ti + pad_lo;
-                    for ch in 0..c_in {
-                        buf[(ch * span + ti) * plane..(ch * span + ti + 1) * plane]
-                            .copy_from_slice(&s.data[ch * plane..(ch + 1) * plane]);
-                    }
-                }
-                let x =
-                    Tensor::<5>::from_data(TensorData::new(buf, [1, c_in, span, hw, hw]), &device);
-                let y = spatial_pool(relu(layer.forward_valid_time(x)));
+                // The kernel reaches one slice each way; `None` (zeros) stands
+                // for the "same" padding where the window really ends.
+                let k = fused.slices[li].kernel();
+                let half = k / 2;
                 let runs = j1 - j0 + 1;
                 self.slices_computed += runs as u64;
-                debug_assert_eq!(y.dims()[2], runs);
-                let y: Vec<f32> = y
-                    .into_data()
-                    .try_to_vec::<f32>()
-                    .map_err(|e| ModelError::Input(format!("vision output: {e:?}")))?;
-                let oplane = ho * wo;
-                for r in 0..runs {
-                    let pos = j0 + r;
-                    let mut d = vec![0.0f32; out_len];
-                    for ch in 0..c_out {
-                        d[ch * oplane..(ch + 1) * oplane].copy_from_slice(
-                            &y[(ch * runs + r) * oplane..(ch * runs + r + 1) * oplane],
-                        );
-                    }
+                for pos in j0..=j1 {
+                    let inputs: Vec<Option<&[f32]>> = (0..k)
+                        .map(|kt| {
+                            (pos + kt)
+                                .checked_sub(half)
+                                .and_then(|i| slices.get(i))
+                                .map(|s| s.data.as_slice())
+                        })
+                        .collect();
+                    let d = fused.slices[li].forward_pooled(&inputs, hw);
+                    debug_assert_eq!(d.len(), out_len);
                     let stable = pos >= 1
                         && pos + 1 < t_len
                         && slices[pos - 1..=pos + 1].iter().all(|s| s.stable);

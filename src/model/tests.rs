@@ -750,3 +750,33 @@ fn a_model_file_without_a_trajectory_setting_reads_as_planned() {
     assert_eq!(back.trajectory, TrajectoryInput::Planned);
     assert_eq!(back, cfg);
 }
+
+/// The host GELU of the trajectory encoder equals burn's (erf from libm)
+/// within 1e-6 · max(1, |x|) (a few f32 ulps of large x) over the range
+/// activations take, and saturates beyond it.
+#[test]
+fn host_gelu_equals_burn_gelu() {
+    let device = Default::default();
+    let xs: Vec<f32> = (0..40_001).map(|i| -20.0 + i as f32 * 1e-3).collect();
+    let want: Vec<f32> = burn::tensor::activation::gelu(Tensor::<1>::from_data(
+        TensorData::new(xs.clone(), [xs.len()]),
+        &device,
+    ))
+    .into_data()
+    .try_to_vec::<f32>()
+    .expect("f32");
+    let mut got = xs.clone();
+    plan::gelu_in_place(&mut got);
+    let worst = got
+        .iter()
+        .zip(&want)
+        .zip(&xs)
+        .map(|((g, w), x)| ((g - w).abs() / x.abs().max(1.0), *x))
+        .fold((0.0f32, 0.0f32), |a, b| if b.0 > a.0 { b } else { a });
+    assert!(
+        worst.0 < 1e-6,
+        "largest difference {} at x = {}",
+        worst.0,
+        worst.1
+    );
+}

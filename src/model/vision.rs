@@ -13,6 +13,7 @@ use burn::tensor::ops::MaxPoolOptions;
 
 use super::config::ModelConfig;
 use super::inception::{FusedConv, Inception3d};
+use super::slice_conv::SliceConv;
 use super::spectral::lowpass_matrix;
 
 /// The vision encoder.
@@ -27,6 +28,8 @@ pub struct VisionEncoder {
 pub struct VisionFused {
     /// One fused 3x3x3 convolution per layer.
     pub layers: Vec<FusedConv<5>>,
+    /// The same convolutions, one output time slice at a time (streaming).
+    pub slices: Vec<SliceConv>,
     /// Whether each layer's pool halves time.
     pub time_pool: Vec<bool>,
 }
@@ -57,8 +60,10 @@ impl VisionEncoder {
 
     /// Fuses every Inception block (inference).
     pub fn fuse(&self) -> VisionFused {
+        let layers: Vec<FusedConv<5>> = self.layers.iter().map(Inception3d::fuse).collect();
         VisionFused {
-            layers: self.layers.iter().map(Inception3d::fuse).collect(),
+            slices: layers.iter().map(SliceConv::from_fused).collect(),
+            layers,
             time_pool: self.time_pool.clone(),
         }
     }
