@@ -346,6 +346,18 @@ impl Default for TopicsConfig {
     }
 }
 
+impl TopicsConfig {
+    /// The topic of an input stream.
+    pub fn input(&self, kind: crate::sources::StreamKind) -> &str {
+        use crate::sources::StreamKind;
+        match kind {
+            StreamKind::Joints => &self.joint_states,
+            StreamKind::Camera => &self.camera,
+            StreamKind::Plan => &self.planned_trajectory,
+        }
+    }
+}
+
 /// `[output]`
 #[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]

@@ -27,6 +27,16 @@ pub mod topics {
     pub const PLANNED_TRAJECTORY: &str = "/planned_trajectory";
     pub const HEAD_CAMERA: &str = "/head_camera/image_raw/compressed";
     pub const GROUND_TRUTH_FALLEN: &str = "/ground_truth/fallen";
+
+    /// The topic of an input stream.
+    pub fn of_stream(kind: crate::sources::StreamKind) -> &'static str {
+        use crate::sources::StreamKind;
+        match kind {
+            StreamKind::Joints => JOINT_STATES,
+            StreamKind::Camera => HEAD_CAMERA,
+            StreamKind::Plan => PLANNED_TRAJECTORY,
+        }
+    }
 }
 
 /// Name of the metadata record that describes the episode.
@@ -209,11 +219,45 @@ pub struct Recording {
     pub topics: BTreeMap<String, TopicInfo>,
 }
 
+/// A message of a known topic whose bytes do not decode as its type (a
+/// replay rejects it as a live sample, [`Recording::open_for_replay`]).
+#[derive(Debug)]
+pub struct UndecodableMessage {
+    pub topic: String,
+    pub log_time_ns: i64,
+    /// Position among all messages of the file.
+    pub file_order: u64,
+    /// [`RecordingError::Decode`], naming the file, topic and byte offset.
+    pub error: RecordingError,
+}
+
 impl Recording {
-    /// Reads and decodes a whole recording.
+    /// Reads and decodes a whole recording; a message that does not decode
+    /// is an error.
     pub fn open(path: impl AsRef<Path>) -> Result<Recording, RecordingError> {
-        let path = path.as_ref();
+        let (rec, undecodable) = Recording::read(path.as_ref(), false)?;
+        debug_assert!(undecodable.is_empty());
+        Ok(rec)
+    }
+
+    /// Reads a whole recording as [`open`](Self::open) does, but keeps
+    /// going past a message whose bytes do not decode (bad CDR): each such
+    /// message is returned beside the recording, for the replay to reject
+    /// at its stream's input boundary. The file's structure (MCAP records,
+    /// chunks, schemas, channels, a topic's type, the metadata) must still
+    /// be sound.
+    pub fn open_for_replay(
+        path: impl AsRef<Path>,
+    ) -> Result<(Recording, Vec<UndecodableMessage>), RecordingError> {
+        Recording::read(path.as_ref(), true)
+    }
+
+    fn read(
+        path: &Path,
+        keep_going: bool,
+    ) -> Result<(Recording, Vec<UndecodableMessage>), RecordingError> {
         let raw = RawMcap::read(path)?;
+        let mut undecodable = Vec::new();
         let mut rec = Recording {
             path: path.to_path_buf(),
             metadata: raw.metadata.clone(),
@@ -245,22 +289,38 @@ impl Recording {
                 reason: format!("log time {} ns does not fit i64", m.log_time),
             })?;
             let order = order as u64;
+            let mut keep = |e: RecordingError| match e {
+                RecordingError::Decode { .. } if keep_going => {
+                    undecodable.push(UndecodableMessage {
+                        topic: channel.topic.clone(),
+                        log_time_ns,
+                        file_order: order,
+                        error: e,
+                    });
+                    Ok(())
+                }
+                e => Err(e),
+            };
             match channel.topic.as_str() {
-                topics::JOINT_STATES => {
-                    rec.joint_states
-                        .push(decode(path, &raw, channel, m, log_time_ns, order)?)
-                }
+                topics::JOINT_STATES => match decode(path, &raw, channel, m, log_time_ns, order) {
+                    Ok(s) => rec.joint_states.push(s),
+                    Err(e) => keep(e)?,
+                },
                 topics::PLANNED_TRAJECTORY => {
-                    rec.plans
-                        .push(decode(path, &raw, channel, m, log_time_ns, order)?)
+                    match decode(path, &raw, channel, m, log_time_ns, order) {
+                        Ok(s) => rec.plans.push(s),
+                        Err(e) => keep(e)?,
+                    }
                 }
-                topics::HEAD_CAMERA => {
-                    rec.images
-                        .push(decode(path, &raw, channel, m, log_time_ns, order)?)
-                }
+                topics::HEAD_CAMERA => match decode(path, &raw, channel, m, log_time_ns, order) {
+                    Ok(s) => rec.images.push(s),
+                    Err(e) => keep(e)?,
+                },
                 topics::GROUND_TRUTH_FALLEN => {
-                    rec.fallen
-                        .push(decode(path, &raw, channel, m, log_time_ns, order)?)
+                    match decode(path, &raw, channel, m, log_time_ns, order) {
+                        Ok(s) => rec.fallen.push(s),
+                        Err(e) => keep(e)?,
+                    }
                 }
                 _ => {}
             }
@@ -270,9 +330,10 @@ impl Recording {
             joint_states = rec.joint_states.len(),
             plans = rec.plans.len(),
             images = rec.images.len(),
+            undecodable = undecodable.len(),
             "recording read"
         );
-        Ok(rec)
+        Ok((rec, undecodable))
     }
 
     /// The episode metadata, or an error naming the file.

@@ -17,16 +17,15 @@ use thiserror::Error;
 
 use crate::config::{Config, ConfigError};
 use crate::forecast::{ablation_name, ForecastError, ModelSet};
-use crate::frame::Frame;
 use crate::outputs::latch::{LatchError, SafetyLatch};
 use crate::outputs::recorder::Recorder;
 use crate::recording::RecordingError;
 use crate::robot::JointTable;
 use crate::sources::input::InputLimits;
 use crate::sources::replay::{replay_samples, ReplayError};
-use crate::sources::{stream, PerStream, StreamFeed, StreamKind, StreamStats, StreamTap};
+use crate::sources::{stream, PerStream, StreamFeed, StreamStats, StreamTap};
 use crate::tick::{LiveTaps, StreamSlot, TickCounters, TickSettings};
-use crate::window::{Plan, Sample, WindowError};
+use crate::window::{Sample, WindowError};
 
 #[derive(Debug, Error)]
 pub enum ServiceError {
@@ -250,37 +249,23 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
 
 /// The live streams: the source ends (for the sources) and the tick ends.
 pub struct LiveStreams {
-    pub joints: StreamFeed<Vec<f32>>,
-    pub camera: StreamFeed<Arc<Frame>>,
-    pub plan: StreamFeed<Arc<Plan>>,
+    pub feeds: PerStream<StreamFeed<Sample>>,
     pub taps: LiveTaps,
 }
 
 impl LiveStreams {
-    /// The three streams, each behind its boundary with `limits`.
+    /// The streams, each behind its boundary with `limits`.
     pub fn new(limits: InputLimits) -> LiveStreams {
-        let (joints, joints_tap) = stream(StreamKind::Joints, limits);
-        let (camera, camera_tap) = stream(StreamKind::Camera, limits);
-        let (plan, plan_tap) = stream(StreamKind::Plan, limits);
+        let ends = PerStream::from_fn(|kind| stream::<Sample>(kind, limits));
         LiveStreams {
-            joints,
-            camera,
-            plan,
-            taps: LiveTaps {
-                joints: joints_tap,
-                camera: camera_tap,
-                plan: plan_tap,
-            },
+            feeds: ends.clone().map(|_, (feed, _)| feed),
+            taps: ends.map(|_, (_, tap)| tap),
         }
     }
 
     /// Each stream's counters.
     pub fn stats(&self) -> PerStream<Arc<StreamStats>> {
-        PerStream {
-            joints: Arc::clone(self.joints.stats()),
-            camera: Arc::clone(self.camera.stats()),
-            plan: Arc::clone(self.plan.stats()),
-        }
+        PerStream::from_fn(|kind| Arc::clone(self.feeds[kind].stats()))
     }
 }
 
@@ -347,11 +332,7 @@ pub async fn record(
     let Inputs::Record { streams, camera } = &daemon.inputs else {
         unreachable!("record reads the live streams")
     };
-    let LiveTaps {
-        mut joints,
-        camera: _,
-        mut plan,
-    } = streams.taps.clone();
+    let mut taps = streams.taps.clone();
     let mut camera = camera.clone();
     let result: Result<(), ServiceError> = loop {
         let written = tokio::select! {
@@ -359,12 +340,14 @@ pub async fn record(
             () = async { match deadline { Some(d) => tokio::time::sleep_until(d).await, None => std::future::pending().await } } => break Ok(()),
             // A servo read that lacks a motor (NaN) is not recorded: a
             // recording holds whole readings, which a replay can use.
-            Some(s) = changed(&mut joints) => {
-                if s.value.iter().any(|v| !v.is_finite()) { continue; }
-                recorder.record(&Sample::Joints { stamp_ns: s.stamp_ns, positions_rad: s.value.clone() })
+            Some(s) = changed(&mut taps.joints) => {
+                if let Sample::Joints { positions_rad, .. } = &s.value {
+                    if positions_rad.iter().any(|v| !v.is_finite()) { continue; }
+                }
+                recorder.record(&s.value)
             }
             Some(s) = changed(&mut camera) => recorder.record_image(s.stamp_ns, &s.value),
-            Some(s) = changed(&mut plan) => recorder.record(&Sample::Plan { stamp_ns: s.stamp_ns, plan: Arc::clone(&s.value) }),
+            Some(s) = changed(&mut taps.plan) => recorder.record(&s.value),
         };
         if let Err(e) = written {
             break Err(e.into());

@@ -21,7 +21,6 @@ use crate::forecast::{
     ablation_name, best_configured, percentiles_ms, Freshness, Inference, InferenceJob,
     ModelChoice, ModelSet,
 };
-use crate::frame::Frame;
 use crate::model::Ablation;
 use crate::outputs::{
     DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, OutputBus, StreamDiagnostics,
@@ -30,7 +29,7 @@ use crate::outputs::{
 use crate::shutdown::Shutdown;
 use crate::sources::input::Seq;
 use crate::sources::{PerStream, Stamped, StreamKind, StreamStats, StreamTap};
-use crate::window::{Plan, Resampler, Ring, Sample, TickInput, WindowError};
+use crate::window::{Resampler, Ring, Sample, TickInput, WindowError};
 
 /// Now, in ns since the UNIX epoch: the daemon's one clock (the live tick,
 /// the input boundary, the stamps of servo reads, camera frames and ROS 2
@@ -613,13 +612,8 @@ fn configured_streams(slots: &PerStream<StreamSlot>) -> String {
         .join(", ")
 }
 
-/// The live streams, in model form.
-#[derive(Debug, Clone)]
-pub struct LiveTaps {
-    pub joints: StreamTap<Vec<f32>>,
-    pub camera: StreamTap<Arc<Frame>>,
-    pub plan: StreamTap<Arc<Plan>>,
-}
+/// The live streams, in model form: the tick's end of each.
+pub type LiveTaps = PerStream<StreamTap<Sample>>;
 
 /// Drive `tick_loop` from the system clock until shutdown or until the
 /// inference thread dies: at each grid tick, take the latest sample of each
@@ -639,44 +633,21 @@ pub async fn run_live(tick_loop: &mut TickLoop, taps: LiveTaps, mut shutdown: Sh
             () = tokio::time::sleep(wait) => {}
             () = shutdown.recv() => break,
         }
-        let mut fresh: Vec<(i64, Sample)> = Vec::with_capacity(3);
+        let mut fresh: Vec<Sample> = Vec::with_capacity(StreamKind::ALL.len());
+        // When the newest sensor sample entered (a plan does not count).
         let mut sensed_at: Option<Instant> = None;
-        let mut sensed = |received: Instant| {
-            sensed_at = Some(sensed_at.map_or(received, |t| t.max(received)));
-        };
-        if let Some(s) = take_new(&taps.joints, &mut seen.joints) {
-            sensed(s.received);
-            fresh.push((
-                s.stamp_ns,
-                Sample::Joints {
-                    stamp_ns: s.stamp_ns,
-                    positions_rad: s.value.clone(),
-                },
-            ));
+        for (kind, tap) in taps.iter() {
+            let Some(s) = take_new(tap, &mut seen[kind]) else {
+                continue;
+            };
+            if kind.is_sensor() {
+                sensed_at = Some(sensed_at.map_or(s.received, |t| t.max(s.received)));
+            }
+            fresh.push(s.value.clone());
         }
-        if let Some(s) = take_new(&taps.camera, &mut seen.camera) {
-            sensed(s.received);
-            fresh.push((
-                s.stamp_ns,
-                Sample::Frame {
-                    stamp_ns: s.stamp_ns,
-                    frame: Arc::clone(&s.value),
-                },
-            ));
-        }
-        // A plan is not a sensor reading: it does not start the latency.
-        if let Some(s) = take_new(&taps.plan, &mut seen.plan) {
-            fresh.push((
-                s.stamp_ns,
-                Sample::Plan {
-                    stamp_ns: s.stamp_ns,
-                    plan: Arc::clone(&s.value),
-                },
-            ));
-        }
-        fresh.sort_by_key(|(stamp, _)| *stamp);
+        fresh.sort_by_key(Sample::stamp_ns);
         let now_ns = unix_now_ns();
-        for (_, sample) in fresh {
+        for sample in fresh {
             tick_loop.push_sample(sample);
         }
         tick_loop.advance_to(now_ns);

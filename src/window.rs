@@ -37,7 +37,7 @@ use std::sync::Arc;
 use crate::frame::{decode_compressed, Frame, FrameError};
 use crate::msgs::{CompressedImage, JointState, JointTrajectory};
 use crate::recording::{topics, Recording};
-use crate::sources::PerStream;
+use crate::sources::{PerStream, StreamKind};
 
 /// A resampler that sees no sample for longer than this restarts its grid at
 /// the next sample instead of emitting every tick of the gap.
@@ -830,7 +830,8 @@ impl EpisodeTicks {
 }
 
 /// A recording's messages as samples in model form, sorted by log time (ties
-/// keep file order). The daemon's replay and training both use this.
+/// keep file order). Training uses this: a message that does not convert is
+/// an error naming it (a replay rejects it instead, [`recorded_samples`]).
 pub fn samples_from_recording(
     rec: &Recording,
     spec: &WindowSpec,
@@ -841,54 +842,78 @@ pub fn samples_from_recording(
             topic: topics::JOINT_STATES,
         });
     }
-    let ctx = |topic: &'static str, log_time_ns: i64| {
-        let path = rec.path.clone();
-        move |e: WindowError| WindowError::InRecording {
-            path,
-            topic,
-            log_time_ns,
-            source: Box::new(e),
-        }
-    };
-    // (stamp, file order, sample)
-    let mut keyed: Vec<(i64, u64, Sample)> =
-        Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
+    recorded_samples(rec, spec)
+        .into_iter()
+        .map(|r| {
+            r.sample.map_err(|e| WindowError::InRecording {
+                path: rec.path.clone(),
+                topic: r.topic,
+                log_time_ns: r.stamp_ns,
+                source: Box::new(e),
+            })
+        })
+        .collect()
+}
+
+/// One recorded message of an input stream in model form, or why it is
+/// not one.
+#[derive(Debug)]
+pub struct RecordedSample {
+    pub kind: StreamKind,
+    pub topic: &'static str,
+    /// Its log time, ns.
+    pub stamp_ns: i64,
+    pub file_order: u64,
+    pub sample: Result<Sample, WindowError>,
+}
+
+/// Every message of the input streams of `rec`, converted one by one (as
+/// [`samples_from_recording`] does), in log-time order (ties in file
+/// order). A replay offers each to its stream's input boundary, which
+/// rejects the ones that did not convert.
+pub fn recorded_samples(rec: &Recording, spec: &WindowSpec) -> Vec<RecordedSample> {
+    let mut out = Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
     for m in &rec.joint_states {
-        let positions_rad = joints_from_msg(&m.msg, &spec.joint_names)
-            .map_err(ctx(topics::JOINT_STATES, m.log_time_ns))?;
-        keyed.push((
-            m.log_time_ns,
-            m.file_order,
-            Sample::Joints {
-                stamp_ns: m.log_time_ns,
-                positions_rad,
-            },
-        ));
+        let stamp_ns = m.log_time_ns;
+        out.push(RecordedSample {
+            kind: StreamKind::Joints,
+            topic: topics::JOINT_STATES,
+            stamp_ns,
+            file_order: m.file_order,
+            sample: joints_from_msg(&m.msg, &spec.joint_names).map(|positions_rad| {
+                Sample::Joints {
+                    stamp_ns,
+                    positions_rad,
+                }
+            }),
+        });
     }
     for m in &rec.images {
-        let frame = frame_from_msg(&m.msg, spec.frame_size)
-            .map_err(ctx(topics::HEAD_CAMERA, m.log_time_ns))?;
-        keyed.push((
-            m.log_time_ns,
-            m.file_order,
-            Sample::Frame {
-                stamp_ns: m.log_time_ns,
+        let stamp_ns = m.log_time_ns;
+        out.push(RecordedSample {
+            kind: StreamKind::Camera,
+            topic: topics::HEAD_CAMERA,
+            stamp_ns,
+            file_order: m.file_order,
+            sample: frame_from_msg(&m.msg, spec.frame_size).map(|frame| Sample::Frame {
+                stamp_ns,
                 frame: Arc::new(frame),
-            },
-        ));
+            }),
+        });
     }
     for m in &rec.plans {
-        let plan = Plan::from_msg(&m.msg, &spec.joint_names)
-            .map_err(ctx(topics::PLANNED_TRAJECTORY, m.log_time_ns))?;
-        keyed.push((
-            m.log_time_ns,
-            m.file_order,
-            Sample::Plan {
-                stamp_ns: m.log_time_ns,
+        let stamp_ns = m.log_time_ns;
+        out.push(RecordedSample {
+            kind: StreamKind::Plan,
+            topic: topics::PLANNED_TRAJECTORY,
+            stamp_ns,
+            file_order: m.file_order,
+            sample: Plan::from_msg(&m.msg, &spec.joint_names).map(|plan| Sample::Plan {
+                stamp_ns,
                 plan: Arc::new(plan),
-            },
-        ));
+            }),
+        });
     }
-    keyed.sort_by_key(|(stamp, order, _)| (*stamp, *order));
-    Ok(keyed.into_iter().map(|(_, _, s)| s).collect())
+    out.sort_by_key(|r| (r.stamp_ns, r.file_order));
+    out
 }

@@ -3,13 +3,16 @@
 //! pass over the same windows, the safety latch consistent with its
 //! thresholds, the model degrading and recovering when the camera
 //! stream disappears from the recording for a while, and forecasts not
-//! valid (the latch asserted) from a joints gap until the window refills.
+//! valid (the latch asserted) from a joints gap until the window refills,
+//! and a bad message inside a recording rejected at its stream's boundary
+//! while the replay goes on.
 
 mod daemon_common;
 
 use daemon_common::*;
 use fall_guard::model::LoadedModel;
-use fall_guard::recording::{topics, Recording};
+use fall_guard::msgs::DiagnosticArray;
+use fall_guard::recording::{read_topic, topics, Recording};
 use fall_guard::window::{EpisodeTicks, Streams, WindowSpec};
 
 fn spec() -> WindowSpec {
@@ -403,4 +406,98 @@ fn network_switches_do_not_make_the_latch_chatter() {
             );
         }
     }
+}
+
+#[test]
+fn a_bad_message_in_a_recording_is_rejected_and_the_replay_goes_on() {
+    let scene = Scene::new("bad_joints.mcap");
+    let clean = scene.path("clean.mcap");
+    write_recording(&clean, 9, false, 120);
+    // Joint state 40: CDR cut in half (does not decode); 45: a NaN angle
+    // (decodes, fails the boundary's check). The file itself is sound.
+    const CUT: usize = 40;
+    const NAN: usize = 45;
+    copy_with_joint_bytes(&clean, &scene.path("bad_joints.mcap"), |i, m| {
+        let mut m = m.clone();
+        if i == NAN {
+            m.position[3] = f64::NAN;
+        }
+        let mut bytes = fall_guard::msgs::encode_cdr(&m).expect("encode");
+        if i == CUT {
+            bytes.truncate(bytes.len() / 2);
+        }
+        bytes
+    });
+    let replay = |recording: &str| {
+        let out = scene.path(&format!("out_{recording}"));
+        let run = fall_guard(&[
+            "replay",
+            "--config",
+            scene.config.to_str().expect("utf8"),
+            "--recording",
+            scene.path(recording).to_str().expect("utf8"),
+            "--max-speed",
+            "--out",
+            out.to_str().expect("utf8"),
+        ]);
+        assert!(run.status.success(), "replay failed: {}", stderr(&run));
+        (parse_lines(&run.stdout), out)
+    };
+    let (want, _) = replay("clean.mcap");
+    let (got, out) = replay("bad_joints.mcap");
+
+    // The replay finishes: a forecast every tick, as many as the clean one.
+    assert_eq!(
+        got.iter().map(|l| l.tick).collect::<Vec<_>>(),
+        want.iter().map(|l| l.tick).collect::<Vec<_>>()
+    );
+    // The joints stream holds its previous sample for one tick (33 ms,
+    // under joints_stale_ms): every forecast stays valid. Only the windows
+    // that hold a tick with a held sample differ: from the tick of joint
+    // state CUT to the last window holding NAN's tick.
+    let same = |a: &Line, b: &Line| {
+        a.valid == b.valid
+            && a.probabilities
+                .iter()
+                .zip(&b.probabilities)
+                .all(|(x, y)| x == y || (x.is_nan() && y.is_nan()))
+    };
+    let differ: Vec<usize> = (0..want.len())
+        .filter(|&i| !same(&want[i], &got[i]))
+        .collect();
+    assert!(got.iter().zip(&want).all(|(a, b)| a.valid == b.valid));
+    let (first, last) = (differ[0], differ[differ.len() - 1]);
+    assert!(
+        first >= CUT - 1 && last < NAN + N_TICKS + 1,
+        "forecasts differ at line indices {differ:?}"
+    );
+    assert!(
+        last + 1 < want.len(),
+        "no tick after the bad ones to compare"
+    );
+
+    // Both were counted at the joints boundary, per reason, on /diagnostics.
+    let diagnostics = read_topic::<DiagnosticArray>(&out, "/diagnostics").expect("diagnostics");
+    let (_, last_array) = diagnostics.last().expect("a diagnostics message");
+    let joints = last_array
+        .status
+        .iter()
+        .find(|s| s.name.ends_with(": joints"))
+        .expect("joints status");
+    let value = |key: &str| {
+        joints
+            .values
+            .iter()
+            .find(|kv| kv.key == key)
+            .map(|kv| kv.value.clone())
+            .unwrap_or_else(|| panic!("no {key} in {:?}", joints.values))
+    };
+    assert_eq!(value("rejected"), "2");
+    assert_eq!(value("rejected_undecodable"), "1");
+    assert_eq!(value("rejected_non_finite"), "1");
+    assert!(
+        value("last_rejection").starts_with("non_finite"),
+        "{}",
+        value("last_rejection")
+    );
 }

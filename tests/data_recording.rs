@@ -179,6 +179,18 @@ fn bad_message_bytes_are_named_with_topic_and_offset() {
         text.contains("/joint_states") && text.contains("at byte") && text.contains("r.mcap"),
         "{text}"
     );
+    // A replay reads past it: the message comes back beside the recording.
+    let (rec, undecodable) = Recording::open_for_replay(&path).unwrap();
+    assert!(rec.joint_states.is_empty());
+    assert_eq!(undecodable.len(), 1);
+    assert_eq!(
+        (undecodable[0].topic.as_str(), undecodable[0].log_time_ns),
+        (topics::JOINT_STATES, 5)
+    );
+    assert!(matches!(
+        undecodable[0].error,
+        RecordingError::Decode { .. }
+    ));
 }
 
 #[test]

@@ -13,9 +13,10 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use fall_guard::msgs::Header;
+use fall_guard::msgs::{CompressedImage, Header, JointState};
 use fall_guard::ros::RosNode;
-use fall_guard::sources::ros::{InputTopics, Latest, Received, RosInputs};
+use fall_guard::sources::ros::{default_topics, InputMessage, Latest, RosInputs};
+use fall_guard::sources::Stamped;
 use support::{domain_id, localhost_settings, rclpy_python, Peer};
 
 // The scenario of `ros_peer.py publish` (same numbers there).
@@ -32,12 +33,30 @@ fn stamp_ns(header: &Header) -> i64 {
     i64::from(header.stamp.sec) * 1_000_000_000 + i64::from(header.stamp.nanosec)
 }
 
-/// Waits until the channel holds a message with `count >= n`.
-async fn wait_count<T>(rx: &mut Latest<T>, n: u64, timeout: Duration) -> Option<Arc<Received<T>>> {
-    let wait = rx.wait_for(|v| v.as_ref().is_some_and(|r| r.count >= n));
+/// Waits until the channel holds a message with `seq >= n`.
+async fn wait_count(
+    rx: &mut Latest,
+    n: u64,
+    timeout: Duration,
+) -> Option<Arc<Stamped<InputMessage>>> {
+    let wait = rx.wait_for(|v| v.as_ref().is_some_and(|r| r.seq >= n));
     match tokio::time::timeout(timeout, wait).await {
         Ok(Ok(v)) => v.clone(),
         _ => None,
+    }
+}
+
+fn joint_state(m: &Stamped<InputMessage>) -> &JointState {
+    match &m.value {
+        InputMessage::Joints(msg) => msg,
+        other => panic!("not a JointState: {other:?}"),
+    }
+}
+
+fn image(m: &Stamped<InputMessage>) -> &CompressedImage {
+    match &m.value {
+        InputMessage::Camera(msg) => msg,
+        other => panic!("not a CompressedImage: {other:?}"),
     }
 }
 
@@ -61,10 +80,10 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
 
     let started = Instant::now();
     let mut node = RosNode::start(&localhost_settings(domain, "/", "fall_guard")).expect("node");
-    let inputs = RosInputs::start(&mut node, &InputTopics::default()).expect("subscriptions");
-    let mut joints = inputs.joint_states.clone().expect("subscribed");
-    let mut plans = inputs.planned_trajectory.clone().expect("subscribed");
-    let mut camera = inputs.camera.clone().expect("subscribed");
+    let inputs = RosInputs::start(&mut node, &default_topics()).expect("subscriptions");
+    let mut joints = inputs.latest.joints.clone().expect("subscribed");
+    let mut plans = inputs.latest.plan.clone().expect("subscribed");
+    let mut camera = inputs.latest.camera.clone().expect("subscribed");
 
     let timeout = Duration::from_secs(30);
     let ((js_first, js_after), (plan, plan_after), (image_first, image_after)) = tokio::join!(
@@ -80,7 +99,9 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
         image_first.unwrap_or_else(|| panic!("no CompressedImage in 30 s; publisher: {stderr}"));
 
     // The plan, field by field.
-    let p = &plan.msg;
+    let InputMessage::Plan(p) = &plan.value else {
+        panic!("not a JointTrajectory: {plan:?}");
+    };
     assert_eq!(stamp_ns(&p.header), PLAN_STAMP_NS);
     assert_eq!(p.header.frame_id, "base_link");
     assert_eq!(p.joint_names, JOINTS);
@@ -93,14 +114,14 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
             + i64::from(point.time_from_start.nanosec);
         assert_eq!(t_ns, k as i64 * PLAN_STEP_NS);
     }
-    assert_eq!(plan.count, 1, "the plan was published once");
+    assert_eq!(plan.seq, 1, "the plan was published once");
 
     // Joint states keep streaming: wait for a few more, check first and latest.
-    let js_later = wait_count(&mut joints, js_first.count + 5, timeout)
+    let js_later = wait_count(&mut joints, js_first.seq + 5, timeout)
         .await
         .expect("joint states keep coming");
     for js in [&js_first, &js_later] {
-        let m = &js.msg;
+        let m = joint_state(js);
         let i = (stamp_ns(&m.header) - 1_000_000_000) / 33_000_000;
         assert_eq!(stamp_ns(&m.header), 1_000_000_000 + i * 33_000_000);
         assert_eq!(m.name, JOINTS);
@@ -108,15 +129,15 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
         assert_eq!(m.velocity, vec![0.5, 0.0, -0.5]);
         assert!(m.effort.is_empty());
     }
-    assert!(stamp_ns(&js_later.msg.header) > stamp_ns(&js_first.msg.header));
-    assert!(js_later.received_ns >= js_first.received_ns);
+    assert!(stamp_ns(&joint_state(&js_later).header) > stamp_ns(&joint_state(&js_first).header));
+    assert!(js_later.stamp_ns >= js_first.stamp_ns);
 
     // The image: format and bytes exactly as sent.
-    let image_later = wait_count(&mut camera, image_first.count + 3, timeout)
+    let image_later = wait_count(&mut camera, image_first.seq + 3, timeout)
         .await
         .expect("images keep coming");
     for img in [&image_first, &image_later] {
-        let m = &img.msg;
+        let m = image(img);
         let i = (stamp_ns(&m.header) - 1_000_000_000) / 33_000_000;
         assert_eq!(m.format, "jpeg");
         assert_eq!(m.header.frame_id, "head_camera");
@@ -125,12 +146,12 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
         assert_eq!(m.data, expected);
     }
 
-    assert_eq!(inputs.errors.joint_states.load(Ordering::Relaxed), 0);
-    assert_eq!(inputs.errors.planned_trajectory.load(Ordering::Relaxed), 0);
-    assert_eq!(inputs.errors.camera.load(Ordering::Relaxed), 0);
+    for (kind, undecodable) in inputs.errors.iter() {
+        assert_eq!(undecodable.load(Ordering::Relaxed), 0, "{kind}");
+    }
     let counts = (
-        joints.borrow().as_ref().map_or(0, |r| r.count),
-        camera.borrow().as_ref().map_or(0, |r| r.count),
+        joints.borrow().as_ref().map_or(0, |r| r.seq),
+        camera.borrow().as_ref().map_or(0, |r| r.seq),
     );
     eprintln!(
         "ros_inputs: domain {domain}: first JointState {js_after:?}, latched JointTrajectory \

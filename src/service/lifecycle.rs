@@ -35,7 +35,6 @@ use tokio::task::JoinHandle;
 
 use crate::config::{CameraSource, Config, JointsSource, PlanSource};
 use crate::forecast::{Inference, ModelSet};
-use crate::frame::Frame;
 use crate::msgs::CompressedImage;
 use crate::outputs::OutputBus;
 use crate::shutdown::{Shutdown, ShutdownTrigger};
@@ -43,7 +42,7 @@ use crate::sources::input::Gate;
 use crate::sources::replay::ReplayRecording;
 use crate::sources::{stream, PerStream, StreamFeed, StreamKind, StreamStats, StreamTap};
 use crate::tick::{TickCounters, TickLoop};
-use crate::window::WindowSpec;
+use crate::window::{Sample, WindowSpec};
 
 use super::ros_bridge::RosBridge;
 use super::{
@@ -392,7 +391,7 @@ fn source_names(config: &Config) -> PerStream<(String, bool)> {
 /// Start the configured live sources feeding `streams` (the ROS 2 ones on
 /// `ros`; `spec`: the joint names and frame size they convert to).
 /// `camera_raw` (`record`): the camera's frames as they come, not decoded,
-/// go to that feed instead of `streams.camera`.
+/// go to that feed instead of `streams.feeds.camera`.
 fn start_sources(
     config: &Config,
     spec: &WindowSpec,
@@ -405,7 +404,7 @@ fn start_sources(
     if config.streams.joints == JointsSource::Dynamixel {
         handles.push(servo_bridge::start(
             config,
-            streams.joints.clone(),
+            streams.feeds.joints.clone(),
             shutdown.subscribe(),
         )?);
     }
@@ -415,7 +414,7 @@ fn start_sources(
             None => start_camera(
                 config,
                 spec.frame_size,
-                streams.camera.clone(),
+                streams.feeds.camera.clone(),
                 shutdown.subscribe(),
             )?,
         });
@@ -471,7 +470,7 @@ impl SourceHandle {
 fn start_camera(
     config: &Config,
     frame_size: u32,
-    feed: StreamFeed<Arc<Frame>>,
+    feed: StreamFeed<Sample>,
     shutdown: Shutdown,
 ) -> Result<SourceHandle, ServiceError> {
     crate::sources::camera::spawn_camera(camera_section(config)?, frame_size, feed, shutdown)
@@ -503,7 +502,7 @@ fn camera_section(config: &Config) -> Result<crate::config::CameraConfig, Servic
 fn start_camera(
     config: &Config,
     _frame_size: u32,
-    _feed: StreamFeed<Arc<Frame>>,
+    _feed: StreamFeed<Sample>,
     _shutdown: Shutdown,
 ) -> Result<SourceHandle, ServiceError> {
     start_camera_unavailable(config)

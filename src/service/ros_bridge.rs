@@ -10,7 +10,7 @@
 //! (`ROS_LOCALHOST_ONLY`), unless `[ros].domain_id` / `[ros].localhost_only`
 //! set them in the config.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use tokio::sync::broadcast::error::RecvError;
@@ -26,9 +26,9 @@ use crate::service::LiveStreams;
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
 use crate::sources::input::{Rejection, StreamValue};
-use crate::sources::ros::{InputErrors, InputTopics, Latest, RosInputs};
-use crate::sources::{PerStream, StreamFeed, StreamTap};
-use crate::window::{frame_from_msg, joints_from_msg, Plan, WindowSpec};
+use crate::sources::ros::{InputErrors, InputMessage, InputTopics, Latest, RosInputs};
+use crate::sources::{PerStream, Stamped, StreamFeed, StreamKind, StreamTap};
+use crate::window::{frame_from_msg, joints_from_msg, Plan, Sample, WindowSpec};
 
 impl From<RosError> for ServiceError {
     fn from(e: RosError) -> Self {
@@ -89,7 +89,7 @@ impl RosBridge {
         models: &ModelSet,
         bus: &OutputBus,
         mut shutdown: Shutdown,
-        mut joints_out: Option<StreamTap<Vec<f32>>>,
+        mut joints_out: Option<StreamTap<Sample>>,
     ) -> Result<JoinHandle<()>, ServiceError> {
         let t = &config.ros.topics;
         let topics = OutputTopics {
@@ -127,8 +127,10 @@ impl RosBridge {
                         }
                     } => match j {
                         Some(s) => {
-                            if let Some(msg) = joint_state(&names, s.stamp_ns, &s.value) {
-                                let _ = outputs.publish_joint_states(msg);
+                            if let Sample::Joints { stamp_ns, positions_rad } = &s.value {
+                                if let Some(msg) = joint_state(&names, *stamp_ns, positions_rad) {
+                                    let _ = outputs.publish_joint_states(msg);
+                                }
                             }
                         }
                         None => joints_out = None,
@@ -158,50 +160,32 @@ impl RosBridge {
         shutdown: Shutdown,
     ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
         let t = &config.ros.topics;
-        let topics = InputTopics {
-            joint_states: from_ros.joints.then(|| t.joint_states.clone()),
-            planned_trajectory: from_ros.plan.then(|| t.planned_trajectory.clone()),
-            camera: (from_ros.camera || camera_raw.is_some()).then(|| t.camera.clone()),
-        };
-        let joints = from_ros.joints.then(|| streams.joints.clone());
-        let camera = from_ros.camera.then(|| streams.camera.clone());
-        let plan = from_ros.plan.then(|| streams.plan.clone());
+        // `record` reads the camera topic for its raw feed.
+        let topics: InputTopics = PerStream::from_fn(|kind| {
+            let raw = kind == StreamKind::Camera && camera_raw.is_some();
+            (from_ros[kind] || raw).then(|| t.input(kind).to_owned())
+        });
         let inputs = RosInputs::start(&mut self.node, &topics)?;
         let mut tasks = Vec::new();
-        let errors =
-            |counter: fn(&InputErrors) -> &AtomicU64| (Arc::clone(&inputs.errors), counter);
-        if let (Some(rx), Some(feed)) = (inputs.joint_states.clone(), joints) {
-            let names = spec.joint_names.clone();
-            let dds = errors(|e| &e.joint_states);
-            tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
-                let stamp = r.msg.header.stamp.to_ns();
-                let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                (stamp_ns, joints_from_msg(&r.msg, &names))
+        for (kind, latest) in inputs.latest.iter() {
+            let Some(rx) = latest.clone().filter(|_| from_ros[kind]) else {
+                continue;
+            };
+            let spec = spec.clone();
+            let feed = streams.feeds[kind].clone();
+            let errors = Arc::clone(&inputs.errors);
+            tasks.push(forward(rx, feed, errors, shutdown.clone(), move |m| {
+                model_sample(m, &spec)
             }));
         }
-        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), camera) {
-            let size = spec.frame_size;
-            let dds = errors(|e| &e.camera);
-            tasks.push(forward(rx, feed, dds, shutdown.clone(), move |r| {
-                let stamp = r.msg.header.stamp.to_ns();
-                let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                (stamp_ns, frame_from_msg(&r.msg, size).map(Arc::new))
-            }));
-        }
-        if let (Some(rx), Some(feed)) = (inputs.camera.clone(), camera_raw) {
-            let dds = errors(|e| &e.camera);
-            tasks.push(forward(rx, feed, dds, shutdown.clone(), |r| {
-                let stamp = r.msg.header.stamp.to_ns();
-                let stamp_ns = if stamp > 0 { stamp } else { r.received_ns };
-                (stamp_ns, Ok(Arc::new(r.msg.clone())))
-            }));
-        }
-        if let (Some(rx), Some(feed)) = (inputs.planned_trajectory.clone(), plan) {
-            let names = spec.joint_names.clone();
-            // A plan is known from the moment it arrives: stamped on receipt.
-            let dds = errors(|e| &e.planned_trajectory);
-            tasks.push(forward(rx, feed, dds, shutdown, move |r| {
-                (r.received_ns, Plan::from_msg(&r.msg, &names).map(Arc::new))
+        if let (Some(rx), Some(feed)) = (inputs.latest.camera.clone(), camera_raw) {
+            let errors = Arc::clone(&inputs.errors);
+            tasks.push(forward(rx, feed, errors, shutdown, |m| match &m.value {
+                InputMessage::Camera(image) => (
+                    header_stamp(&image.header, m.stamp_ns),
+                    Ok(Arc::new(image.clone())),
+                ),
+                other => (m.stamp_ns, Err(wrong_stream(other, StreamKind::Camera))),
             }));
         }
         self.inputs = Some(inputs);
@@ -268,23 +252,73 @@ pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
     }
 }
 
+/// A ROS 2 message in model form (the conversions a replay uses), with
+/// its stamp on the tick clock: a sensor reading's header stamp (its
+/// reception when the header has none); a plan's reception, since a plan
+/// is known from the moment it arrives.
+fn model_sample(m: &Stamped<InputMessage>, spec: &WindowSpec) -> (i64, Result<Sample, Rejection>) {
+    let (stamp_ns, sample) = match &m.value {
+        InputMessage::Joints(msg) => {
+            let stamp_ns = header_stamp(&msg.header, m.stamp_ns);
+            let sample =
+                joints_from_msg(msg, &spec.joint_names).map(|positions_rad| Sample::Joints {
+                    stamp_ns,
+                    positions_rad,
+                });
+            (stamp_ns, sample)
+        }
+        InputMessage::Camera(msg) => {
+            let stamp_ns = header_stamp(&msg.header, m.stamp_ns);
+            let sample = frame_from_msg(msg, spec.frame_size).map(|frame| Sample::Frame {
+                stamp_ns,
+                frame: Arc::new(frame),
+            });
+            (stamp_ns, sample)
+        }
+        InputMessage::Plan(msg) => {
+            let stamp_ns = m.stamp_ns;
+            let sample = Plan::from_msg(msg, &spec.joint_names).map(|plan| Sample::Plan {
+                stamp_ns,
+                plan: Arc::new(plan),
+            });
+            (stamp_ns, sample)
+        }
+    };
+    (stamp_ns, sample.map_err(|e| Rejection::from_window(&e)))
+}
+
+/// A header's stamp, or `received_ns` when the sender left it zero.
+fn header_stamp(header: &Header, received_ns: i64) -> i64 {
+    let stamp = header.stamp.to_ns();
+    if stamp > 0 {
+        stamp
+    } else {
+        received_ns
+    }
+}
+
+/// A message that arrived on another stream's subscription (never, by
+/// construction of [`RosInputs`]).
+fn wrong_stream(m: &InputMessage, expected: StreamKind) -> Rejection {
+    Rejection::BadMessage {
+        what: format!("a {} message on the {expected} stream", m.kind()),
+    }
+}
+
 /// Convert each new message of `rx` once and offer it to `feed`; the
-/// samples DDS could not deserialize (`dds`, counted by the subscription)
-/// go to the stream's errors (`dds_undecodable`), polled twice a second.
-fn forward<M, T, F>(
-    mut rx: Latest<M>,
+/// samples DDS could not deserialize (counted per stream by the
+/// subscription, `errors`) go to the stream's errors (`dds_undecodable`),
+/// polled twice a second.
+fn forward<T, F>(
+    mut rx: Latest,
     feed: StreamFeed<T>,
-    dds: (Arc<InputErrors>, fn(&InputErrors) -> &AtomicU64),
+    errors: Arc<InputErrors>,
     mut shutdown: Shutdown,
     convert: F,
 ) -> JoinHandle<()>
 where
-    M: Send + Sync + 'static,
-    T: Send + Sync + 'static,
     T: StreamValue,
-    F: Fn(&crate::sources::ros::Received<M>) -> (i64, Result<T, crate::window::WindowError>)
-        + Send
-        + 'static,
+    F: Fn(&Stamped<InputMessage>) -> (i64, Result<T, Rejection>) + Send + 'static,
 {
     tokio::spawn(async move {
         let mut poll = tokio::time::interval(std::time::Duration::from_millis(500));
@@ -298,7 +332,7 @@ where
                     }
                 }
                 _ = poll.tick() => {
-                    let n = (dds.1)(&dds.0).load(Ordering::Relaxed);
+                    let n = errors[feed.kind()].load(Ordering::Relaxed);
                     if n != undecodable {
                         undecodable = n;
                         feed.stats().set_external(n, vec![("dds_undecodable".into(), n.to_string())]);
@@ -310,7 +344,7 @@ where
             let latest = rx.borrow_and_update().clone();
             let Some(received) = latest else { continue };
             let (stamp_ns, value) = convert(&received);
-            let _ = feed.offer(stamp_ns, value.map_err(|e| Rejection::from_window(&e)));
+            let _ = feed.offer(stamp_ns, value);
         }
     })
 }

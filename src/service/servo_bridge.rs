@@ -24,6 +24,7 @@ use crate::service::{ServiceError, SourceHandle};
 use crate::shutdown::Shutdown;
 use crate::sources::dynamixel::{BusStatsSnapshot, DynamixelSource, ServoStatsSnapshot};
 use crate::sources::StreamFeed;
+use crate::window::Sample;
 
 /// Bus counters as the joints stream's key-values, and their error total
 /// (faults only: the probe that finds a plain adapter is not one).
@@ -247,7 +248,7 @@ impl ServoHealth {
 /// Start the servo reader; its readings feed `feed` until `shutdown`.
 pub fn start(
     config: &Config,
-    feed: StreamFeed<Vec<f32>>,
+    feed: StreamFeed<Sample>,
     mut shutdown: Shutdown,
 ) -> Result<SourceHandle, ServiceError> {
     let section = config
@@ -271,9 +272,10 @@ pub fn start(
                         let missing = reading.positions_rad.iter().filter(|p| p.is_none()).count();
                         feed.error("incomplete read", &format_args!("{missing} joints not read this cycle"));
                     }
-                    let positions: Vec<f32> = reading.positions_rad.iter().map(|p| p.unwrap_or(f32::NAN)).collect();
+                    let positions_rad: Vec<f32> = reading.positions_rad.iter().map(|p| p.unwrap_or(f32::NAN)).collect();
                     // NaN: a joint not read this cycle (the tick names it).
-                    let _ = feed.offer(reading.stamp_ns, Ok(positions));
+                    let stamp_ns = reading.stamp_ns;
+                    let _ = feed.offer(stamp_ns, Ok(Sample::Joints { stamp_ns, positions_rad }));
                 }
                 _ = refresh.tick() => {
                     let snapshot = source.stats.snapshot();

@@ -147,10 +147,10 @@ mod capture {
 
     use super::{compressed_raw, decode_raw, CameraError};
     use crate::config::{CameraConfig, PixelFormat};
-    use crate::frame::Frame;
     use crate::msgs::CompressedImage;
     use crate::shutdown::Shutdown;
     use crate::sources::StreamFeed;
+    use crate::window::Sample;
 
     /// The V4L2 index of `/dev/videoN` (nokhwa addresses cameras by index).
     fn index_of(device: &std::path::Path) -> CameraIndex {
@@ -184,12 +184,15 @@ mod capture {
     pub fn spawn_camera(
         config: CameraConfig,
         size: u32,
-        feed: StreamFeed<Arc<Frame>>,
+        feed: StreamFeed<Sample>,
         shutdown: Shutdown,
     ) -> std::io::Result<JoinHandle<()>> {
         let format = config.format;
-        spawn_capture(config, feed, shutdown, move |w, h, data, _| {
-            decode_raw(format, w, h, data, size).map(Arc::new)
+        spawn_capture(config, feed, shutdown, move |w, h, data, stamp_ns| {
+            decode_raw(format, w, h, data, size).map(|frame| Sample::Frame {
+                stamp_ns,
+                frame: Arc::new(frame),
+            })
         })
     }
 

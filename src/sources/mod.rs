@@ -13,10 +13,13 @@
 //! when live (ROS `header.stamp` where the message has one), the recording's
 //! log time in replay.
 //!
-//! Value types per stream (one per [`StreamKind`]):
-//! - joints: `Vec<f32>`, radians in the model's joint order (`robot.rs`);
-//! - camera: `crate::frame::Frame`, already S x S;
-//! - plan: `crate::window::Plan`.
+//! Value type: every live stream of the model carries a
+//! [`crate::window::Sample`], the one model-form sample of the tick (its
+//! variant is the stream's kind: joints in radians in the model's joint
+//! order, `robot.rs`; a camera `Frame` already S x S; a `Plan`), so that
+//! the tick takes new samples of every stream in one loop
+//! ([`PerStream`] of [`StreamTap`]s). `record` keeps one more stream, the
+//! camera as compressed (`Arc<msgs::CompressedImage>`).
 
 pub mod ros;
 
@@ -50,6 +53,16 @@ pub enum StreamKind {
 impl StreamKind {
     /// Every stream, in diagnostics order.
     pub const ALL: [StreamKind; 3] = [StreamKind::Joints, StreamKind::Camera, StreamKind::Plan];
+
+    /// Whether a new sample of this stream is a sensor reading, from which
+    /// the sensor-to-publish latency of a forecast is counted. A plan is
+    /// not: it says what the robot will do, not what it sensed.
+    pub fn is_sensor(self) -> bool {
+        match self {
+            StreamKind::Joints | StreamKind::Camera => true,
+            StreamKind::Plan => false,
+        }
+    }
 
     /// Short name used in logs, diagnostics and config keys.
     pub fn as_str(self) -> &'static str {

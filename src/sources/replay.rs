@@ -1,13 +1,23 @@
 //! Replay of an MCAP recording through the daemon, with recorded time.
 //!
-//! The recording is read once ([`Recording::open`]; errors name the file and
-//! byte offset), its messages become model-form samples with the same
-//! conversion training uses ([`samples_from_recording`]), and each sample is
-//! pushed into the [`TickLoop`] at its log time: paced at `speed` times real
-//! time, or as fast as inference allows ([`Pacing::MaxSpeed`], lock-step: no
-//! tick skipped). After the samples the tick loop is identical to live.
-//! Counters of each replayed stream go to the same [`StreamStats`] the
-//! diagnostics read for live sources.
+//! The recording is read once ([`Recording::open_for_replay`]; errors name
+//! the file and byte offset), its messages become model-form samples with
+//! the same conversion training uses ([`recorded_samples`]), and each
+//! sample is offered to its stream's input boundary and pushed into the
+//! [`TickLoop`] at its log time: paced at `speed` times real time, or as
+//! fast as inference allows ([`Pacing::MaxSpeed`], lock-step: no tick
+//! skipped). After the samples the tick loop is identical to live.
+//!
+//! A bad message inside a sound file (bytes that do not decode as its
+//! type, a value that does not convert, such as a NaN joint angle) fails
+//! only itself: it reaches its stream's boundary as a [`Recorded`] whose
+//! sample is the [`Rejection`], is counted there as a live one is
+//! (`rejected_<reason>`, `last_rejection` on `/diagnostics`), and the replay
+//! goes on, the stream holding its previous sample. A file whose structure
+//! is broken (not MCAP, truncated, a corrupt chunk, a topic of the wrong
+//! type) is an error at load. Counters of each replayed stream go to the
+//! same [`StreamStats`](crate::sources::StreamStats) the diagnostics read
+//! for live sources.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -15,12 +25,12 @@ use std::time::{Duration, Instant};
 
 use thiserror::Error;
 
-use crate::recording::{Recording, RecordingError};
+use crate::recording::{topics, Recording, RecordingError};
 use crate::shutdown::Shutdown;
-use crate::sources::input::Gate;
-use crate::sources::PerStream;
+use crate::sources::input::{Gate, Rejection};
+use crate::sources::{PerStream, StreamKind};
 use crate::tick::TickLoop;
-use crate::window::{samples_from_recording, Plan, Sample, WindowError, WindowSpec};
+use crate::window::{recorded_samples, Plan, Sample, WindowError, WindowSpec};
 
 #[derive(Debug, Error)]
 pub enum ReplayError {
@@ -41,11 +51,33 @@ pub enum Pacing {
     MaxSpeed,
 }
 
+/// One recorded message on its way to its stream's input boundary: a
+/// model-form sample, or why its message is not one (it did not decode or
+/// did not convert), which the boundary rejects as it would a live one.
+#[derive(Debug, Clone)]
+pub struct Recorded {
+    pub kind: StreamKind,
+    /// Log time, ns.
+    pub stamp_ns: i64,
+    pub sample: Result<Sample, Rejection>,
+}
+
+impl From<Sample> for Recorded {
+    fn from(sample: Sample) -> Recorded {
+        Recorded {
+            kind: sample.kind(),
+            stamp_ns: sample.stamp_ns(),
+            sample: Ok(sample),
+        }
+    }
+}
+
 /// A recording, read and converted, ready to replay (possibly many times).
 #[derive(Debug, Clone)]
 pub struct ReplayRecording {
     pub path: PathBuf,
-    pub samples: Vec<Sample>,
+    /// Every message of the input streams, in log-time order.
+    pub samples: Vec<Recorded>,
     /// Log time of the last message, ns.
     pub end_ns: i64,
     pub start_ns: i64,
@@ -55,12 +87,51 @@ pub struct ReplayRecording {
 
 impl ReplayRecording {
     pub fn open(path: &Path, spec: &WindowSpec) -> Result<ReplayRecording, ReplayError> {
-        let rec = Recording::open(path)?;
-        let samples = samples_from_recording(&rec, spec)?;
+        let (rec, undecodable) = Recording::open_for_replay(path)?;
+        if rec.joint_states.is_empty() {
+            return Err(WindowError::NoSamples {
+                path: path.to_path_buf(),
+                topic: topics::JOINT_STATES,
+            }
+            .into());
+        }
+        // (log time, file order, message)
+        let mut keyed: Vec<(i64, u64, Recorded)> = recorded_samples(&rec, spec)
+            .into_iter()
+            .map(|r| {
+                let recorded = Recorded {
+                    kind: r.kind,
+                    stamp_ns: r.stamp_ns,
+                    sample: r.sample.map_err(|e| Rejection::from_window(&e)),
+                };
+                (r.stamp_ns, r.file_order, recorded)
+            })
+            .collect();
+        for m in &undecodable {
+            let Some(kind) = StreamKind::ALL
+                .into_iter()
+                .find(|&k| topics::of_stream(k) == m.topic)
+            else {
+                tracing::warn!(error = %m.error, "undecodable message skipped (not an input stream)");
+                continue;
+            };
+            let rejection = Rejection::Undecodable {
+                what: m.error.to_string(),
+            };
+            let recorded = Recorded {
+                kind,
+                stamp_ns: m.log_time_ns,
+                sample: Err(rejection),
+            };
+            keyed.push((m.log_time_ns, m.file_order, recorded));
+        }
+        keyed.sort_by_key(|(stamp, order, _)| (*stamp, *order));
+        let samples: Vec<Recorded> = keyed.into_iter().map(|(_, _, r)| r).collect();
         let (Some(start_ns), Some(end_ns)) = (rec.start_ns(), rec.end_ns()) else {
             return Err(ReplayError::Empty(path.to_path_buf()));
         };
-        tracing::info!(recording = %path.display(), samples = samples.len(),
+        let bad = samples.iter().filter(|r| r.sample.is_err()).count();
+        tracing::info!(recording = %path.display(), samples = samples.len(), bad,
             duration_s = (end_ns - start_ns) as f64 / 1e9, "recording loaded for replay");
         Ok(ReplayRecording {
             path: path.to_path_buf(),
@@ -72,8 +143,21 @@ impl ReplayRecording {
     }
 }
 
-/// A sample moved `offset_ns` later in time (plans move every point).
-pub fn shifted(sample: &Sample, offset_ns: i64) -> Sample {
+/// A recorded message moved `offset_ns` later in time (plans move every
+/// point).
+pub fn shifted(recorded: &Recorded, offset_ns: i64) -> Recorded {
+    Recorded {
+        kind: recorded.kind,
+        stamp_ns: recorded.stamp_ns + offset_ns,
+        sample: recorded
+            .sample
+            .as_ref()
+            .map(|s| shifted_sample(s, offset_ns))
+            .map_err(Clone::clone),
+    }
+}
+
+fn shifted_sample(sample: &Sample, offset_ns: i64) -> Sample {
     match sample {
         Sample::Joints {
             stamp_ns,
@@ -118,7 +202,8 @@ async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> b
 /// Push `samples` (sorted by stamp) through `tick_loop` with recorded time,
 /// then advance to `end_ns`. Each sample passes its stream's `gates` (the
 /// input boundary, with the recorded time as the tick clock) as a live one
-/// does: a rejected one is counted there and not pushed.
+/// does: a rejected one (or a message that was not a sample) is counted
+/// there and not pushed.
 pub async fn replay_samples<I>(
     tick_loop: &mut TickLoop,
     samples: I,
@@ -128,7 +213,7 @@ pub async fn replay_samples<I>(
     shutdown: &mut Shutdown,
 ) -> ReplaySummary
 where
-    I: IntoIterator<Item = Sample>,
+    I: IntoIterator<Item = Recorded>,
 {
     let lockstep = pacing == Pacing::MaxSpeed;
     let wall_start = Instant::now();
@@ -142,7 +227,7 @@ where
             summary.interrupted = true;
             return summary;
         }
-        let stamp_ns = sample.stamp_ns();
+        let stamp_ns = sample.stamp_ns;
         if let Pacing::Speed(speed) = pacing {
             let t0 = *first_ns.get_or_insert(stamp_ns);
             let due = |ns: i64| {
@@ -169,7 +254,7 @@ where
         }
         let sensed_at = Instant::now();
         let mut admitted = None;
-        let _ = gates[sample.kind()].pass(stamp_ns, stamp_ns, Ok(sample), |_, s| {
+        let _ = gates[sample.kind].pass(stamp_ns, stamp_ns, sample.sample, |_, s| {
             admitted = Some(s);
         });
         if let Some(sample) = admitted {
@@ -178,7 +263,7 @@ where
             tick_loop.push_sample(sample);
         }
         // Every sample at this stamp is in: the tick at this stamp is final.
-        if samples.peek().is_none_or(|next| next.stamp_ns() > stamp_ns) {
+        if samples.peek().is_none_or(|next| next.stamp_ns > stamp_ns) {
             tick_loop.advance_to(stamp_ns);
         }
         if tick_loop.pending_ticks() > 0 {

@@ -6,11 +6,16 @@
 //! Messages enter from DDS on one tokio task per topic; they leave unchanged
 //! (the same `msgs.rs` structs a replay reads from MCAP, so one conversion
 //! serves live and replay: the service's bridge converts them into the
-//! tick's streams) wrapped in [`Received`] with the reception time and a
-//! running count. Undecodable samples are counted per stream and logged once.
+//! tick's streams) as an [`InputMessage`] in a [`Stamped`], with the
+//! reception time as its stamp and a running count as its `seq`.
+//! Undecodable samples are counted per stream and logged once.
+//!
+//! Per stream ([`StreamKind`]): its topic ([`InputTopics`]), its type and
+//! QoS ([`subscribe`]), its undecodable count ([`InputErrors`]).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::time::Instant;
 
 use futures::{pin_mut, StreamExt};
 use ros2_client::Subscription;
@@ -18,58 +23,53 @@ use tokio::sync::watch;
 
 use crate::msgs::{CompressedImage, JointState, JointTrajectory};
 use crate::ros::{qos, RosError, RosNode};
+use crate::sources::{PerStream, Stamped, StreamKind};
 
 pub const JOINT_STATE: &str = "sensor_msgs/msg/JointState";
 pub const JOINT_TRAJECTORY: &str = "trajectory_msgs/msg/JointTrajectory";
 pub const COMPRESSED_IMAGE: &str = "sensor_msgs/msg/CompressedImage";
 
-/// One message as it arrived.
+/// One message of an input stream as it arrived; the variant is the stream.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Received<T> {
-    pub msg: T,
-    /// System clock at reception, ns since the Unix epoch (the clock of ROS
-    /// header stamps).
-    pub received_ns: i64,
-    /// 1 for the first message on this stream, then counting up.
-    pub count: u64,
+pub enum InputMessage {
+    Joints(JointState),
+    Camera(CompressedImage),
+    Plan(JointTrajectory),
 }
 
-/// The latest message of a stream; `None` until the first one arrives.
-pub type Latest<T> = watch::Receiver<Option<Arc<Received<T>>>>;
-
-/// Which topics to subscribe to (ROS names: relative ones resolve under the
-/// node namespace); `None` leaves that stream to another source (the servo
-/// bus, the V4L2 camera).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct InputTopics {
-    pub joint_states: Option<String>,
-    pub planned_trajectory: Option<String>,
-    pub camera: Option<String>,
-}
-
-impl Default for InputTopics {
-    fn default() -> Self {
-        InputTopics {
-            joint_states: Some("joint_states".to_owned()),
-            planned_trajectory: Some("planned_trajectory".to_owned()),
-            camera: Some("head_camera/image_raw/compressed".to_owned()),
+impl InputMessage {
+    pub fn kind(&self) -> StreamKind {
+        match self {
+            InputMessage::Joints(_) => StreamKind::Joints,
+            InputMessage::Camera(_) => StreamKind::Camera,
+            InputMessage::Plan(_) => StreamKind::Plan,
         }
     }
 }
 
-/// Samples per stream that arrived but could not be decoded.
-#[derive(Debug, Default)]
-pub struct InputErrors {
-    pub joint_states: AtomicU64,
-    pub planned_trajectory: AtomicU64,
-    pub camera: AtomicU64,
+/// The latest message of a stream, stamped at reception (system clock, ns
+/// since the Unix epoch: the clock of ROS header stamps) and numbered from
+/// 1 (`seq`); `None` until the first one arrives.
+pub type Latest = watch::Receiver<Option<Arc<Stamped<InputMessage>>>>;
+
+/// Which topic each stream subscribes to (ROS names: relative ones resolve
+/// under the node namespace); `None` leaves that stream to another source
+/// (the servo bus, the V4L2 camera).
+pub type InputTopics = PerStream<Option<String>>;
+
+/// Every stream on its default topic (`[ros.topics]`, see `docs/ros.md`).
+pub fn default_topics() -> InputTopics {
+    let topics = crate::config::TopicsConfig::default();
+    PerStream::from_fn(|kind| Some(topics.input(kind).to_owned()))
 }
+
+/// Samples per stream that arrived but could not be decoded.
+pub type InputErrors = PerStream<AtomicU64>;
 
 /// The running subscriptions. Dropping it stops them.
 pub struct RosInputs {
-    pub joint_states: Option<Latest<JointState>>,
-    pub planned_trajectory: Option<Latest<JointTrajectory>>,
-    pub camera: Option<Latest<CompressedImage>>,
+    /// The latest message of each subscribed stream.
+    pub latest: PerStream<Option<Latest>>,
     pub errors: Arc<InputErrors>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
 }
@@ -81,47 +81,45 @@ impl RosInputs {
         let runtime = tokio::runtime::Handle::try_current().map_err(|_| RosError::NoRuntime)?;
         let errors = Arc::new(InputErrors::default());
         let mut tasks = Vec::new();
-        let joint_states = match &topics.joint_states {
-            Some(topic) => {
-                let sub = subscription(node, topic, JOINT_STATE, qos::sensor_data())?;
-                let (rx, task) = forward(&runtime, sub, node.resolve(topic), errors.clone(), |e| {
-                    &e.joint_states
-                });
-                tasks.push(task);
-                Some(rx)
-            }
-            None => None,
-        };
-        let planned_trajectory = match &topics.planned_trajectory {
-            Some(topic) => {
-                let sub = subscription(node, topic, JOINT_TRAJECTORY, qos::planned_trajectory())?;
-                let (rx, task) = forward(&runtime, sub, node.resolve(topic), errors.clone(), |e| {
-                    &e.planned_trajectory
-                });
-                tasks.push(task);
-                Some(rx)
-            }
-            None => None,
-        };
-        let camera = match &topics.camera {
-            Some(topic) => {
-                let sub = subscription(node, topic, COMPRESSED_IMAGE, qos::sensor_data())?;
-                let (rx, task) = forward(&runtime, sub, node.resolve(topic), errors.clone(), |e| {
-                    &e.camera
-                });
-                tasks.push(task);
-                Some(rx)
-            }
-            None => None,
-        };
+        let mut latest = PerStream::default();
+        for (kind, topic) in topics.iter() {
+            let Some(topic) = topic else { continue };
+            let (rx, task) = subscribe(node, &runtime, kind, topic, Arc::clone(&errors))?;
+            tasks.push(task);
+            latest[kind] = Some(rx);
+        }
         Ok(RosInputs {
-            joint_states,
-            planned_trajectory,
-            camera,
+            latest,
             errors,
             tasks,
         })
     }
+}
+
+/// Subscribe stream `kind` on `topic` with its message type and QoS, and
+/// forward what arrives.
+fn subscribe(
+    node: &mut RosNode,
+    runtime: &tokio::runtime::Handle,
+    kind: StreamKind,
+    topic: &str,
+    errors: Arc<InputErrors>,
+) -> Result<(Latest, tokio::task::JoinHandle<()>), RosError> {
+    let resolved = node.resolve(topic);
+    Ok(match kind {
+        StreamKind::Joints => {
+            let sub = subscription(node, topic, JOINT_STATE, qos::sensor_data())?;
+            forward(runtime, sub, resolved, kind, errors, InputMessage::Joints)
+        }
+        StreamKind::Camera => {
+            let sub = subscription(node, topic, COMPRESSED_IMAGE, qos::sensor_data())?;
+            forward(runtime, sub, resolved, kind, errors, InputMessage::Camera)
+        }
+        StreamKind::Plan => {
+            let sub = subscription(node, topic, JOINT_TRAJECTORY, qos::planned_trajectory())?;
+            forward(runtime, sub, resolved, kind, errors, InputMessage::Plan)
+        }
+    })
 }
 
 impl Drop for RosInputs {
@@ -156,9 +154,10 @@ fn forward<T>(
     runtime: &tokio::runtime::Handle,
     sub: Subscription<T>,
     topic: String,
+    kind: StreamKind,
     errors: Arc<InputErrors>,
-    counter: fn(&InputErrors) -> &AtomicU64,
-) -> (Latest<T>, tokio::task::JoinHandle<()>)
+    message: fn(T) -> InputMessage,
+) -> (Latest, tokio::task::JoinHandle<()>)
 where
     T: serde::de::DeserializeOwned + Send + Sync + 'static,
 {
@@ -166,22 +165,23 @@ where
     let task = runtime.spawn(async move {
         let stream = sub.async_stream();
         pin_mut!(stream);
-        let mut count = 0u64;
+        let mut seq = 0u64;
         while let Some(sample) = stream.next().await {
             match sample {
                 Ok((msg, _info)) => {
-                    count += 1;
-                    if count == 1 {
+                    seq += 1;
+                    if seq == 1 {
                         tracing::info!(topic = %topic, "first ROS 2 message received");
                     }
-                    tx.send_replace(Some(Arc::new(Received {
-                        msg,
-                        received_ns: crate::tick::unix_now_ns(),
-                        count,
+                    tx.send_replace(Some(Arc::new(Stamped {
+                        seq,
+                        stamp_ns: crate::tick::unix_now_ns(),
+                        received: Instant::now(),
+                        value: message(msg),
                     })));
                 }
                 Err(e) => {
-                    if counter(&errors).fetch_add(1, Ordering::Relaxed) == 0 {
+                    if errors[kind].fetch_add(1, Ordering::Relaxed) == 0 {
                         tracing::warn!(topic = %topic, error = %e, "undecodable ROS 2 message (further ones are only counted)");
                     }
                 }

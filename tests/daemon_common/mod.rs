@@ -213,7 +213,23 @@ pub fn write_joints_gap_recording(scene: &Scene) -> PathBuf {
 /// lost for a while, the others going on.
 pub fn copy_without(src: &Path, dst: &Path, topic: &str, from_ns: i64, to_ns: i64) {
     let keep = |t: &str, log_time_ns: i64| t != topic || !(from_ns..to_ns).contains(&log_time_ns);
-    copy_edited(src, dst, keep, Clone::clone);
+    copy_edited(src, dst, keep, Clone::clone, joint_cdr);
+}
+
+/// A joint state as recorded: its CDR bytes.
+pub fn joint_cdr(_index: usize, m: &fall_guard::msgs::JointState) -> Vec<u8> {
+    fall_guard::msgs::encode_cdr(m).expect("encode")
+}
+
+/// Copies `src` to `dst` with the bytes of the `index`th joint state
+/// message replaced by `bytes(index, message)` (a bad message inside a
+/// sound file), the rest unchanged.
+pub fn copy_with_joint_bytes(
+    src: &Path,
+    dst: &Path,
+    bytes: impl Fn(usize, &fall_guard::msgs::JointState) -> Vec<u8>,
+) {
+    copy_edited(src, dst, |_, _| true, Clone::clone, bytes);
 }
 
 /// Copies `src` to `dst` with every camera message replaced by
@@ -223,7 +239,7 @@ pub fn copy_with_images(
     dst: &Path,
     image: impl Fn(&fall_guard::msgs::CompressedImage) -> fall_guard::msgs::CompressedImage,
 ) {
-    copy_edited(src, dst, |_, _| true, image);
+    copy_edited(src, dst, |_, _| true, image, joint_cdr);
 }
 
 fn copy_edited(
@@ -231,6 +247,7 @@ fn copy_edited(
     dst: &Path,
     keep: impl Fn(&str, i64) -> bool,
     image: impl Fn(&fall_guard::msgs::CompressedImage) -> fall_guard::msgs::CompressedImage,
+    joints: impl Fn(usize, &fall_guard::msgs::JointState) -> Vec<u8>,
 ) {
     let rec = Recording::open(src).expect("read");
     let mut w = RecordingWriter::create(dst).expect("create");
@@ -249,8 +266,13 @@ fn copy_edited(
             Some((_, 0)) => {
                 let m = &rec.joint_states[i.0];
                 if keep(topics::JOINT_STATES, m.log_time_ns) {
-                    w.write(topics::JOINT_STATES, m.log_time_ns, &m.msg)
-                        .expect("write");
+                    let bytes = joints(i.0, &m.msg);
+                    w.write_cdr::<fall_guard::msgs::JointState>(
+                        topics::JOINT_STATES,
+                        m.log_time_ns,
+                        &bytes,
+                    )
+                    .expect("write");
                 }
                 i.0 += 1;
             }
