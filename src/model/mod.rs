@@ -8,6 +8,7 @@ pub mod config;
 pub mod emp;
 pub mod file;
 pub mod grid_conv;
+pub mod host_conv;
 pub mod host_linear;
 pub mod inception;
 pub mod motion;

@@ -13,7 +13,7 @@ use burn::prelude::*;
 use burn::tensor::activation::{gelu, softmax};
 
 use super::config::ModelConfig;
-use super::grid_conv::GridConv;
+use super::host_conv::HostConv;
 use super::inception::{FusedConv, Inception2d};
 use super::spectral::dft_matrices;
 
@@ -37,7 +37,7 @@ pub struct PlanEncoder {
 /// matrices of the plan length, made on the first forward (not every tick).
 #[derive(Debug, Clone)]
 pub struct PlanFused {
-    blocks: Vec<[GridConv; 2]>,
+    blocks: Vec<[HostConv; 2]>,
     dft: OnceLock<Dft>,
 }
 
@@ -95,8 +95,8 @@ impl PlanEncoder {
                 .iter()
                 .map(|b| {
                     [
-                        GridConv::from_fused(&b.conv_in.fuse()),
-                        GridConv::from_fused(&b.conv_out.fuse()),
+                        HostConv::from_fused(&b.conv_in.fuse()),
+                        HostConv::from_fused(&b.conv_out.fuse()),
                     ]
                 })
                 .collect(),
@@ -188,12 +188,12 @@ impl PlanEncoder {
 }
 
 /// The period branches of one block with the fused convolutions as im2col +
-/// GEMM on the host ([`GridConv`]): `x` `[B, L, d]`, each sample's periods
+/// GEMM on the host ([`HostConv::forward_grid`]): `x` `[B, L, d]`, each sample's periods
 /// and softmax weights `[B, 1, k]` -> `Σ_i w_i · conv_out(gelu(conv_in(grid_i)))`,
 /// `[B, L, d]`. The same operations as the tensor path, without building
 /// the padded, permuted grids.
 fn fused_periods(
-    convs: &[GridConv; 2],
+    convs: &[HostConv; 2],
     x: Tensor<3>,
     periods: &[Vec<usize>],
     weights: Tensor<3>,
@@ -219,10 +219,10 @@ fn fused_periods(
         for (i, &p) in sample_periods.iter().enumerate() {
             let rows = l.div_ceil(p);
             let lp = rows * p;
-            let mut h = convs[0].forward(xs, rows, p, lp);
+            let mut h = convs[0].forward_grid(xs, rows, p, lp);
             debug_assert_eq!(h.len(), lp * mid);
             gelu_in_place(&mut h);
-            let y = convs[1].forward(&h, rows, p, l);
+            let y = convs[1].forward_grid(&h, rows, p, l);
             let w = ws[s * k + i];
             if i == 0 {
                 acc.iter_mut().zip(&y).for_each(|(a, v)| *a = v * w);

@@ -351,7 +351,7 @@ impl StreamingForecaster {
                 let j1 = j - 1;
                 // The kernel reaches one slice each way; `None` (zeros) stands
                 // for the "same" padding where the window really ends.
-                let k = fused.slices[li].kernel();
+                let k = fused.slices[li].k();
                 let half = k / 2;
                 let runs = j1 - j0 + 1;
                 self.slices_computed += runs as u64;
@@ -364,7 +364,7 @@ impl StreamingForecaster {
                                 .map(|s| s.data.as_slice())
                         })
                         .collect();
-                    let d = fused.slices[li].forward_pooled(&inputs, hw);
+                    let d = fused.slices[li].forward_slice_pooled(&inputs, hw);
                     debug_assert_eq!(d.len(), out_len);
                     let stable = pos >= 1
                         && pos + 1 < t_len

@@ -780,3 +780,72 @@ fn host_gelu_equals_burn_gelu() {
         worst.1
     );
 }
+
+/// Every output slice of a short sequence through [`host_conv::HostConv::forward_slice_pooled`]
+/// equals `conv3d` ("same" padding), ReLU and the spatial pool, the
+/// window's ends included.
+#[test]
+fn slice_conv_equals_conv3d_same_padding() {
+    use burn::tensor::activation::relu;
+    use burn::tensor::module::conv3d;
+    use burn::tensor::ops::ConvOptions;
+    let device = Default::default();
+    let (c_in, c_out, k, hw, t) = (3, 5, 3, 8, 4);
+    let signed = |n, seed| {
+        noise(n, seed)
+            .iter()
+            .map(|v| 2.0 * v - 1.0)
+            .collect::<Vec<f32>>()
+    };
+    let weight = Tensor::<5>::from_data(
+        TensorData::new(signed(c_out * c_in * k * k * k, 1), [c_out, c_in, k, k, k]),
+        &device,
+    );
+    let bias = Tensor::<1>::from_data(TensorData::new(signed(c_out, 2), [c_out]), &device);
+    let conv = inception::FusedConv {
+        weight: weight.clone(),
+        bias: bias.clone(),
+        kernel: k,
+    };
+    let x = signed(c_in * t * hw * hw, 3);
+    let xt = Tensor::<5>::from_data(TensorData::new(x.clone(), [1, c_in, t, hw, hw]), &device);
+    let want = vision::spatial_pool(relu(conv3d(
+        xt,
+        weight,
+        Some(bias),
+        ConvOptions::new([1, 1, 1], [1, 1, 1], [1, 1, 1], 1),
+    )));
+    let want: Vec<f32> = want.into_data().try_to_vec::<f32>().expect("f32");
+    // Per-slice inputs [C_in, hw, hw].
+    let plane = hw * hw;
+    let slices: Vec<Vec<f32>> = (0..t)
+        .map(|ti| {
+            (0..c_in)
+                .flat_map(|ci| x[(ci * t + ti) * plane..(ci * t + ti + 1) * plane].to_vec())
+                .collect()
+        })
+        .collect();
+    let sc = host_conv::HostConv::from_fused(&conv);
+    let ho = hw / 2;
+    for j in 0..t {
+        let inputs: Vec<Option<&[f32]>> = (0..k)
+            .map(|kt| {
+                (j + kt)
+                    .checked_sub(1)
+                    .and_then(|i| slices.get(i))
+                    .map(Vec::as_slice)
+            })
+            .collect();
+        let got = sc.forward_slice_pooled(&inputs, hw);
+        for co in 0..c_out {
+            for m in 0..ho * ho {
+                let w = want[(co * t + j) * ho * ho + m];
+                let g = got[co * ho * ho + m];
+                assert!(
+                    (g - w).abs() < 1e-5,
+                    "slice {j} ch {co} pos {m}: {g} vs {w}"
+                );
+            }
+        }
+    }
+}

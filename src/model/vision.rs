@@ -12,8 +12,8 @@ use burn::tensor::module::max_pool2d;
 use burn::tensor::ops::MaxPoolOptions;
 
 use super::config::ModelConfig;
+use super::host_conv::HostConv;
 use super::inception::{FusedConv, Inception3d};
-use super::slice_conv::SliceConv;
 use super::spectral::lowpass_matrix;
 
 /// The vision encoder.
@@ -29,7 +29,7 @@ pub struct VisionFused {
     /// One fused 3x3x3 convolution per layer.
     pub layers: Vec<FusedConv<5>>,
     /// The same convolutions, one output time slice at a time (streaming).
-    pub slices: Vec<SliceConv>,
+    pub slices: Vec<HostConv>,
     /// Whether each layer's pool halves time.
     pub time_pool: Vec<bool>,
 }
@@ -62,7 +62,7 @@ impl VisionEncoder {
     pub fn fuse(&self) -> VisionFused {
         let layers: Vec<FusedConv<5>> = self.layers.iter().map(Inception3d::fuse).collect();
         VisionFused {
-            slices: layers.iter().map(SliceConv::from_fused).collect(),
+            slices: layers.iter().map(HostConv::from_fused).collect(),
             layers,
             time_pool: self.time_pool.clone(),
         }

@@ -1,0 +1,135 @@
+//! A fused convolution run on the host as im2col + GEMM (inference): its
+//! weights laid out once as the GEMM's right-hand side, one scratch
+//! buffer per thread for the im2col matrix, and one safe entry to the
+//! `gemm` crate (the kernels Flex itself uses). Two shapes of input use it:
+//! the trajectory encoder's folded sequences (`grid_conv`) and the vision
+//! encoder's single time slices (`slice_conv`).
+
+use std::cell::RefCell;
+use std::sync::Arc;
+
+use super::inception::FusedConv;
+
+thread_local! {
+    /// The im2col matrix, reused between calls (no allocation per tick).
+    static SCRATCH: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
+}
+
+/// One fused convolution (odd square or cubic kernel) for the host paths.
+#[derive(Debug, Clone)]
+pub struct HostConv {
+    k: usize,
+    c_in: usize,
+    c_out: usize,
+    /// `[taps·C_in, C_out]` row-major, row `tap·C_in + ci`, the kernel
+    /// offsets (`(kt,) ky, kx`) numbered row-major.
+    weight: Arc<[f32]>,
+    /// `[C_out]`.
+    bias: Arc<[f32]>,
+}
+
+/// Where element `(i, j)` of a matrix is: `i·row + j·col`.
+#[derive(Debug, Clone, Copy)]
+pub struct Strides {
+    pub row: usize,
+    pub col: usize,
+}
+
+impl HostConv {
+    /// From a fused 2-D (`[C_out, C_in, k, k]`) or 3-D
+    /// (`[C_out, C_in, k, k, k]`) convolution.
+    pub fn from_fused<const D: usize>(conv: &FusedConv<D>) -> HostConv {
+        let dims = conv.weight.dims();
+        let (c_out, c_in, k) = (dims[0], dims[1], dims[2]);
+        assert!(dims[2..].iter().all(|&d| d == k), "square or cubic kernel");
+        let taps = k.pow(D as u32 - 2);
+        let host = |d: burn::tensor::TensorData, what: &str| -> Vec<f32> {
+            d.convert::<f32>()
+                .try_into_vec()
+                .unwrap_or_else(|e| panic!("f32 {what}: {e:?}"))
+        };
+        let w = host(conv.weight.clone().into_data(), "weights");
+        let bias = host(conv.bias.clone().into_data(), "bias");
+        let mut weight = vec![0.0f32; taps * c_in * c_out];
+        for co in 0..c_out {
+            for ci in 0..c_in {
+                for tap in 0..taps {
+                    weight[(tap * c_in + ci) * c_out + co] = w[(co * c_in + ci) * taps + tap];
+                }
+            }
+        }
+        HostConv {
+            k,
+            c_in,
+            c_out,
+            weight: weight.into(),
+            bias: bias.into(),
+        }
+    }
+
+    /// Kernel side.
+    pub fn k(&self) -> usize {
+        self.k
+    }
+
+    pub fn c_in(&self) -> usize {
+        self.c_in
+    }
+
+    pub fn c_out(&self) -> usize {
+        self.c_out
+    }
+
+    pub fn bias(&self) -> &[f32] {
+        &self.bias
+    }
+
+    /// Runs `f` with this thread's im2col scratch, at least `len` long.
+    pub fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
+        SCRATCH.with(|s| {
+            let mut a = s.borrow_mut();
+            if a.len() < len {
+                a.resize(len, 0.0);
+            }
+            f(&mut a[..len])
+        })
+    }
+
+    /// `dst += a · weight`, one thread: `a` is the `m x taps·C_in` im2col
+    /// matrix, `dst` the `m x C_out` output, each stored with its strides.
+    pub fn accumulate(&self, m: usize, dst: &mut [f32], dst_s: Strides, a: &[f32], a_s: Strides) {
+        let (kk, n) = (self.weight.len() / self.c_out, self.c_out);
+        if m == 0 {
+            return;
+        }
+        let last = |s: Strides, cols: usize| (m - 1) * s.row + (cols - 1) * s.col;
+        assert!(last(dst_s, n) < dst.len(), "output inside its buffer");
+        assert!(last(a_s, kk) < a.len(), "im2col inside its buffer");
+        // SAFETY: the largest index each matrix is read or written at was
+        // checked above against its slice; `weight` is `kk x n` row-major,
+        // allocated so; `dst` is borrowed mutably, so no input overlaps it.
+        unsafe {
+            gemm::gemm(
+                m,
+                n,
+                kk,
+                dst.as_mut_ptr(),
+                dst_s.col as isize,
+                dst_s.row as isize,
+                true,
+                a.as_ptr(),
+                a_s.col as isize,
+                a_s.row as isize,
+                self.weight.as_ptr(),
+                1,
+                n as isize,
+                1.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+    }
+}
