@@ -11,8 +11,25 @@
 #   4. forecasts a bundled recording tick by tick with each shipped network
 #      (`fall-guard eval --recording`), on aarch64 under qemu and natively,
 #      and fails when a probability differs by more than $TOLERANCE.
+#
+# CROSS_CI=1 is the lean variant sized for CI (a cold build on 2 cores; not
+# in .ci/run yet: README "On the robot's computer" has its time): the same
+# steps, but
+#   - profile `cross-ci` (Cargo.toml: dependencies at opt-level 1 except
+#     burn's Flex backend, gemm and pulp at 3; no debug info, no incremental);
+#   - without the V4L2 camera (`--no-default-features --features
+#     flex,jazzy,test-kits`: no nokhwa, bindgen or libclang); the
+#     full-feature cross build stays here, without CROSS_CI;
+#   - the per-tick comparison for EMP and P only (all four streams, and
+#     proprioception alone), same recording and tolerance;
+#   - the native side is the binary scripts/test.sh built
+#     ($CARGO_TARGET_DIR/debug/fall-guard), not a second native build.
+# $NETWORKS overrides the networks compared, $NATIVE_BIN the native binary.
+#
 # The aarch64 build goes to $AARCH64_TARGET_DIR (default target-aarch64),
-# outputs to $OUT_DIR (default out/cross).
+# outputs to $OUT_DIR (default out/cross). The binary is
+# $AARCH64_TARGET_DIR/aarch64-unknown-linux-gnu/<debug|cross-ci>/fall-guard,
+# where scripts/test-deb.sh (with the same CROSS_CI) packages it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -27,6 +44,18 @@ tolerance="${TOLERANCE:-1e-4}"
 recording=tests/fixtures/gen1/episode_00005.mcap
 mkdir -p "$out"
 
+if [ "${CROSS_CI:-0}" = 1 ]; then
+  build=(--profile cross-ci --no-default-features --features flex,jazzy,test-kits)
+  profile_dir=cross-ci
+  networks=(${NETWORKS:-emp p})
+  native_bin="${NATIVE_BIN:-$native_dir/debug/fall-guard}"
+else
+  build=(--features test-kits)
+  profile_dir=debug
+  networks=(${NETWORKS:-emp mp ep p})
+  native_bin="${NATIVE_BIN:-}"
+fi
+
 # Debian's rustc-web has the aarch64 standard library; the linker and the
 # qemu runner are in .cargo/config.toml.
 xcargo() { RUSTC=/usr/bin/rustc CARGO_TARGET_DIR="$aarch64_dir" cargo "$@"; }
@@ -35,28 +64,32 @@ echo "== aarch64 build: test harnesses and the binary"
 # The integration test makes cargo build the binary too, with the same
 # (test-unified) dependency features: the dependencies compile once. A
 # separate `cargo build --bin` would compile burn again with other features.
-xcargo test --target "$target" --features test-kits --no-run --lib --test data_window
+xcargo test --target "$target" "${build[@]}" --no-run --lib --test data_window
 
 echo "== aarch64 tests under qemu-user"
-xcargo test --target "$target" --features test-kits --lib -- model:: frame::
-xcargo test --target "$target" --features test-kits --test data_window
+timed() { local t0=$SECONDS; "$@"; echo "($((SECONDS - t0)) s: $*)"; }
+timed xcargo test --target "$target" "${build[@]}" --lib -- model:: frame::
+timed xcargo test --target "$target" "${build[@]}" --test data_window
 
-arm_bin="$aarch64_dir/$target/debug/fall-guard"
+arm_bin="$aarch64_dir/$target/$profile_dir/fall-guard"
 # -L /: Debian's libc6:arm64 loader and libc, one glibc build (.cargo/config.toml).
 run_arm() { qemu-aarch64 -L / "$arm_bin" "$@"; }
 file_machine() { readelf -h "$1" | sed -n 's/^ *Machine: *//p'; }
 echo "fall-guard binary: $(file_machine "$arm_bin")"
 
 echo "== fall-guard bench under qemu-user (timings under emulation mean nothing)"
-run_arm bench --ticks 5 --train-steps 1 --json "$out/bench-aarch64.json"
+timed run_arm bench --ticks 5 --train-steps 1 --json "$out/bench-aarch64.json"
 
-echo "== per-tick forecasts of $recording: aarch64 (qemu) vs native"
-cargo build --bin fall-guard
-native_bin="$native_dir/debug/fall-guard"
-for m in emp mp ep p; do
-  run_arm eval --model "models/$m.bpk" --recording "$recording" \
+echo "== per-tick forecasts of $recording (${networks[*]}): aarch64 (qemu) vs native"
+if [ -z "$native_bin" ] || [ ! -x "$native_bin" ]; then
+  cargo build --bin fall-guard
+  native_bin="$native_dir/debug/fall-guard"
+fi
+for m in "${networks[@]}"; do
+  timed run_arm eval --model "models/$m.bpk" --recording "$recording" \
     --per-tick-out "$out/$m-aarch64.jsonl"
   "$native_bin" eval --model "models/$m.bpk" --recording "$recording" \
     --per-tick-out "$out/$m-native.jsonl"
 done
-python3 scripts/compare_forecasts.py --tolerance "$tolerance" "$out" emp mp ep p
+python3 scripts/compare_forecasts.py --tolerance "$tolerance" "$out" "${networks[@]}"
+echo "cross-test: done in $SECONDS s ($(uptime | sed 's/.*load/load/'))"

@@ -1,18 +1,23 @@
 #!/usr/bin/env bash
 # The Debian packages as CI builds and checks them: amd64 from the native
 # binary the tests built, and arm64 from the aarch64 binary
-# scripts/cross-test.sh built when there is one (both dev profile,
-# dependencies at opt-level 3: a release build of each would add two more
-# full builds to CI; `scripts/deb.sh` alone builds release binaries). CI
-# has no aarch64 build (scripts/cross-test.sh cannot run on its qemu-user:
-# README "Cross build"), so it packages and checks amd64 only. Each package
-# goes through scripts/check-deb.sh; with FALL_GUARD_DEB_INSTALL=1 (CI) the
-# amd64 one is also installed, checked and purged, which changes this system.
+# scripts/cross-test.sh built when there is one (a release build of each
+# would add two more full builds to CI; `scripts/deb.sh` alone builds
+# release binaries). The aarch64 binary is the dev-profile one
+# (target-aarch64/aarch64-unknown-linux-gnu/debug/fall-guard), or with
+# CROSS_CI=1 the one of the lean cross build (`CROSS_CI=1
+# scripts/cross-test.sh`: profile cross-ci, no V4L2 camera, so that arm64
+# package checks the packaging; it is not one to ship). Each package goes
+# through scripts/check-deb.sh; with FALL_GUARD_DEB_INSTALL=1 (CI) the
+# amd64 one is also installed, checked and purged, which changes this
+# system.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 native="${CARGO_TARGET_DIR:-target}/debug/fall-guard"
-aarch64="${AARCH64_TARGET_DIR:-target-aarch64}/aarch64-unknown-linux-gnu/debug/fall-guard"
+aarch64_profile=debug
+[ "${CROSS_CI:-0}" = 1 ] && aarch64_profile=cross-ci
+aarch64="${AARCH64_TARGET_DIR:-target-aarch64}/aarch64-unknown-linux-gnu/$aarch64_profile/fall-guard"
 [ -x "$native" ] || { echo "no $native: run scripts/test.sh first" >&2; exit 1; }
 out="${OUT_DIR:-out/deb}"
 
