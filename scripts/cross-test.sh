@@ -48,11 +48,13 @@ if [ "${CROSS_CI:-0}" = 1 ]; then
   build=(--profile cross-ci --no-default-features --features flex,jazzy,test-kits)
   profile_dir=cross-ci
   networks=(${NETWORKS:-emp p})
+  bench_networks=(--ablation EMP --ablation P)
   native_bin="${NATIVE_BIN:-$native_dir/debug/fall-guard}"
 else
   build=(--features test-kits)
   profile_dir=debug
   networks=(${NETWORKS:-emp mp ep p})
+  bench_networks=()
   native_bin="${NATIVE_BIN:-}"
 fi
 
@@ -78,7 +80,7 @@ file_machine() { readelf -h "$1" | sed -n 's/^ *Machine: *//p'; }
 echo "fall-guard binary: $(file_machine "$arm_bin")"
 
 echo "== fall-guard bench under qemu-user (timings under emulation mean nothing)"
-timed run_arm bench --ticks 5 --train-steps 1 --json "$out/bench-aarch64.json"
+timed run_arm bench "${bench_networks[@]}" --ticks 5 --train-steps 1 --json "$out/bench-aarch64.json"
 
 echo "== per-tick forecasts of $recording (${networks[*]}): aarch64 (qemu) vs native"
 if [ -z "$native_bin" ] || [ ! -x "$native_bin" ]; then
