@@ -243,8 +243,27 @@ fn training_fusion_has_the_branches_outputs_and_gradients() {
     }
 }
 
+/// The conv3d reference and [`inception::conv3d_over_slices`] (time-major
+/// in and out) of the same `x` `[B, C, T, H, W]`, kernel and bias.
+fn conv3d_both_ways(
+    x: Tensor<5>,
+    w: Tensor<5>,
+    bias: Tensor<1>,
+) -> (Tensor<5>, Tensor<5>) {
+    let k = w.dims()[2];
+    let want = burn::tensor::module::conv3d(
+        x.clone(),
+        w.clone(),
+        Some(bias.clone()),
+        burn::tensor::ops::ConvOptions::new([1, 1, 1], [k / 2; 3], [1, 1, 1], 1),
+    );
+    let got = inception::conv3d_over_slices(x.permute([0, 2, 1, 3, 4]), w, bias)
+        .permute([0, 2, 1, 3, 4]);
+    (want, got)
+}
+
 #[test]
-fn conv3d_by_time_offsets_is_a_3d_convolution() {
+fn conv3d_over_slices_is_a_3d_convolution() {
     let device = cpu_device();
     for (k, t) in [(3, 5), (1, 4), (5, 7), (3, 1)] {
         let x = Tensor::<5>::from_data(
@@ -257,22 +276,64 @@ fn conv3d_by_time_offsets_is_a_3d_convolution() {
         )
         .sub_scalar(0.5);
         let bias = Tensor::<1>::from_data(TensorData::new(noise(4, 13), [4]), &device);
-        let want: Vec<f32> = burn::tensor::module::conv3d(
-            x.clone(),
-            w.clone(),
-            Some(bias.clone()),
-            burn::tensor::ops::ConvOptions::new([1, 1, 1], [k / 2; 3], [1, 1, 1], 1),
-        )
-        .into_data()
-        .try_to_vec::<f32>()
-        .unwrap();
-        let got = inception::conv3d_by_time_offsets(x, w, bias);
+        let (want, got) = conv3d_both_ways(x, w, bias);
         assert_eq!(got.dims(), [2, 4, t, 6, 5]);
+        let want: Vec<f32> = want.into_data().try_to_vec::<f32>().unwrap();
         let got: Vec<f32> = got.into_data().try_to_vec::<f32>().unwrap();
         assert!(
             got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-4),
             "k {k}, t {t}"
         );
+    }
+}
+
+/// The gather + matmul form trains like `conv3d`: the same gradients reach
+/// the input, the weight and the bias (a vision layer past the first, whose
+/// input is itself trained, needs all three).
+#[test]
+fn conv3d_over_slices_has_the_convolution_gradients() {
+    fn vec_of<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_to_vec::<f32>().unwrap()
+    }
+    let device = cpu_device().autodiff();
+    for (k, t) in [(3, 5), (3, 1), (1, 3)] {
+        let x = Tensor::<5>::from_data(
+            TensorData::new(noise(2 * 3 * t * 6 * 5, 21), [2, 3, t, 6, 5]),
+            &device,
+        );
+        let w = Tensor::<5>::from_data(
+            TensorData::new(noise(4 * 3 * k * k * k, 22), [4, 3, k, k, k]),
+            &device,
+        )
+        .sub_scalar(0.5);
+        let bias = Tensor::<1>::from_data(TensorData::new(noise(4, 23), [4]), &device);
+        let target = Tensor::<5>::from_data(
+            TensorData::new(noise(2 * 4 * t * 6 * 5, 24), [2, 4, t, 6, 5]),
+            &device,
+        );
+        let grads = |use_slices: bool| -> Vec<Vec<f32>> {
+            let (x, w, bias) = (
+                x.clone().require_grad(),
+                w.clone().require_grad(),
+                bias.clone().require_grad(),
+            );
+            let (want, got) = conv3d_both_ways(x.clone(), w.clone(), bias.clone());
+            let y = if use_slices { got } else { want };
+            let g = (y * target.clone()).sum().backward();
+            vec![
+                vec_of(x.grad(&g).expect("input gradient")),
+                vec_of(w.grad(&g).expect("weight gradient")),
+                vec_of(bias.grad(&g).expect("bias gradient")),
+            ]
+        };
+        for (a, b) in grads(true).iter().zip(&grads(false)) {
+            assert_eq!(a.len(), b.len());
+            let scale = b.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+            assert!(
+                a.iter().zip(b).all(|(p, q)| (p - q).abs() <= 1e-5 * scale),
+                "k {k}, t {t}: {a:?} vs {b:?}"
+            );
+        }
     }
 }
 
