@@ -14,6 +14,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig, Conv3d, Conv3dConfig};
 use burn::prelude::*;
 use burn::tensor::module::{conv2d, conv3d};
 use burn::tensor::ops::{ConvOptions, PadMode};
+use burn::tensor::IndexingUpdateOp;
 
 /// Mean of `num_kernels` 2-D convolutions, square kernels `1, 3, 5, ...`.
 #[derive(Module, Debug)]
@@ -111,12 +112,19 @@ impl Inception3d {
     }
 
     /// `[B, C_in, T, H, W]` -> `[B, C_out, T, H, W]`, "same" padding
-    /// everywhere: the fused kernel, built from the branches with
-    /// differentiable tensor ops, applied as [`conv3d_by_time_offsets`]
-    /// (training).
+    /// everywhere (training): [`Inception3d::forward_slices`] between two
+    /// layout permutations.
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
+        self.forward_slices(x.permute([0, 2, 1, 3, 4]))
+            .permute([0, 2, 1, 3, 4])
+    }
+
+    /// Time-major `[B, T, C_in, H, W]` -> `[B, T, C_out, H, W]` (training):
+    /// the fused kernel, built from the branches with differentiable tensor
+    /// ops, applied as [`conv3d_over_slices`].
+    pub fn forward_slices(&self, x: Tensor<5>) -> Tensor<5> {
         let f = self.fuse_differentiable();
-        conv3d_by_time_offsets(x, f.weight, f.bias)
+        conv3d_over_slices(x, f.weight, f.bias)
     }
 
     /// As [`Inception2d::fuse_differentiable`].
@@ -177,55 +185,89 @@ pub struct FusedConv<const D: usize> {
     pub kernel: usize,
 }
 
-/// A "same"-padded 3-D convolution with an odd cubic kernel `k`, computed as
-/// one 2-D convolution over every time slice (`[B·T, C_in, H, W]`) with the
-/// `k` time slices of the kernel stacked as output channels, then the `k`
-/// partial outputs summed with their time shifts (zero beyond the ends).
-/// The same linear map as `conv3d`, differentiable, and on the CPU backend
-/// cheaper to train: its im2col buffers (forward and the weight gradient)
-/// are `k` times smaller than a 3-D convolution's.
-/// `x` `[B, C_in, T, H, W]`, `weight` `[C_out, C_in, k, k, k]` -> `[B, C_out, T, H, W]`.
-pub fn conv3d_by_time_offsets(x: Tensor<5>, weight: Tensor<5>, bias: Tensor<1>) -> Tensor<5> {
-    let [b, c_in, t, h, w] = x.dims();
+/// A "same"-padded 3-D convolution with an odd cubic kernel `k` on
+/// activations kept time-major (`[B, T, C, H, W]`, every time slice a
+/// contiguous `[C, H, W]` block), written as plain tensor ops whose
+/// gradients are plain GEMMs and gathers:
+/// 1. the `kh·kw` spatial taps of every slice gathered by one `select`
+///    (im2col: `[B·T, C_in·kh·kw, H·W]`, rows in the weight's `(c, dy, dx)`
+///    order);
+/// 2. one batched matmul by the `k` time slices of the kernel stacked as
+///    output channels (`[k·C_out, C_in·kh·kw]`, broadcast over the slices):
+///    `[B·T, k·C_out, H·W]`;
+/// 3. output time `s` sums kernel slice `j` applied at input time
+///    `s + j − k/2` (zero beyond the ends): one scatter-add of the rows.
+///
+/// The same linear map as `conv3d`. On the CPU backend its backward is a
+/// matmul for the weight (not a convolution whose kernel is the whole
+/// output gradient), a scatter-add for the input and a gather for the time
+/// offsets, instead of Flex's per-element im2col iterators and a
+/// zero-filled copy per sliced time offset.
+/// `x` `[B, T, C_in, H, W]`, `weight` `[C_out, C_in, k, kh, kw]` -> `[B, T, C_out, H, W]`.
+pub fn conv3d_over_slices(x: Tensor<5>, weight: Tensor<5>, bias: Tensor<1>) -> Tensor<5> {
+    let [b, t, c_in, h, w] = x.dims();
     let [c_out, _, k, kh, kw] = weight.dims();
-    let p = k / 2;
-    // [C_out, C_in, k, kh, kw] -> [k·C_out, C_in, kh, kw], time offset major.
+    let (p, ph, pw) = (k / 2, kh / 2, kw / 2);
+    let (hp, wp) = (h + 2 * ph, w + 2 * pw);
+    let device = x.device();
+    let index = |v: Vec<i64>| {
+        let n = v.len();
+        Tensor::<1, Int>::from_data(TensorData::new(v, [n]), &device)
+    };
+    // 1. Spatial taps: pixel (i, j) of tap (dy, dx) reads padded (i + dy, j + dx).
+    let planes = x.reshape([b * t * c_in, h, w]);
+    let planes = if ph + pw > 0 {
+        planes.pad(vec![(ph, ph), (pw, pw)], PadMode::Constant(0.0))
+    } else {
+        planes
+    };
+    let mut taps = Vec::with_capacity(kh * kw * h * w);
+    for dy in 0..kh {
+        for dx in 0..kw {
+            for i in 0..h {
+                for j in 0..w {
+                    taps.push(((i + dy) * wp + j + dx) as i64);
+                }
+            }
+        }
+    }
+    let cols = planes
+        .reshape([b * t * c_in, hp * wp])
+        .select(1, index(taps))
+        .reshape([b * t, c_in * kh * kw, h * w]);
+    // 2. [C_out, C_in, k, kh, kw] -> [k·C_out, C_in·kh·kw], time offset major.
     let w2 = weight
         .permute([2, 0, 1, 3, 4])
-        .reshape([k * c_out, c_in, kh, kw]);
-    let slices = x.permute([0, 2, 1, 3, 4]).reshape([b * t, c_in, h, w]);
-    let z = conv2d(
-        slices,
-        w2,
-        None,
-        ConvOptions::new([1, 1], [kh / 2, kw / 2], [1, 1], 1),
-    )
-    .reshape([b, t, k, c_out, h, w]);
-    // Output time s reads input time s + j - p through kernel slice j.
-    let z = if p > 0 {
-        z.pad(
-            vec![(p, p), (0, 0), (0, 0), (0, 0), (0, 0)],
-            PadMode::Constant(0.0),
-        )
+        .reshape([1, k * c_out, c_in * kh * kw]);
+    let z = w2.matmul(cols); // [B·T, k·C_out, H·W]: rows (b, t, j)
+    let r = c_out * h * w;
+    let y = if k == 1 {
+        z.reshape([b, t, r])
     } else {
-        z
+        // 3. Row (b, u, j) of z feeds output (b, u + p − j): one scatter-add
+        // of every row; rows that would land beyond the ends go to one
+        // extra row, dropped.
+        let dropped = (b * t) as i64;
+        let mut dst = Vec::with_capacity(b * t * k);
+        for bi in 0..b {
+            for u in 0..t {
+                for j in 0..k {
+                    let s = (u + p).checked_sub(j).filter(|&s| s < t);
+                    dst.push(s.map_or(dropped, |s| (bi * t + s) as i64));
+                }
+            }
+        }
+        Tensor::<2>::zeros([b * t + 1, r], &device)
+            .select_assign(
+                0,
+                index(dst),
+                z.reshape([b * t * k, r]),
+                IndexingUpdateOp::Add,
+            )
+            .slice([0..b * t, 0..r])
+            .reshape([b, t, r])
     };
-    let mut y: Option<Tensor<6>> = None;
-    for j in 0..k {
-        // z index (s + j - p) + p = s + j.
-        let part = z
-            .clone()
-            .slice([0..b, j..j + t, j..j + 1, 0..c_out, 0..h, 0..w]);
-        y = Some(match y {
-            None => part,
-            Some(acc) => acc + part,
-        });
-    }
-    let y = y
-        .expect("an odd kernel has at least one time slice")
-        .reshape([b, t, c_out, h, w])
-        + bias.reshape([1, 1, c_out, 1, 1]);
-    y.permute([0, 2, 1, 3, 4])
+    y.reshape([b, t, c_out, h, w]) + bias.reshape([1, 1, c_out, 1, 1])
 }
 
 /// [`fuse_branches`] with tensor ops on the device (differentiable): each

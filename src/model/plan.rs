@@ -11,6 +11,7 @@ use std::sync::OnceLock;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
 use burn::tensor::activation::{gelu, softmax};
+use burn::tensor::IndexingUpdateOp;
 
 use super::config::ModelConfig;
 use super::host_conv::HostConv;
@@ -267,12 +268,15 @@ pub fn gelu_in_place(x: &mut [f32]) {
 }
 
 /// Training: the `(sample, period)` pairs of the whole batch through one
-/// block's convolutions, one batch per distinct period (pairs sharing a
-/// period share a grid shape), instead of one convolution per pair. The same
-/// function as the per-sample loop of [`PlanEncoder::forward`]: each grid is
-/// still its own batch element, and each sample sums its periods' outputs in
-/// the same order. `x` `[B, L, d]`, `weights` `[B, 1, k]` -> `[B, L, d]`.
-fn grouped_periods(
+/// block's convolutions, one batch per distinct period, each convolution a
+/// gather of its taps' rows and one matmul on channels-last rows (the
+/// gradients: a GEMM for the kernel, a scatter-add for the input; no grid
+/// permutation, no padded copy, no per-element im2col). The same function
+/// as the per-sample loop of [`fused_periods`]: each grid is padded with
+/// zeros past the plan and around its edges ("same" convolutions), and each
+/// sample sums its periods' weighted outputs (in increasing period, not
+/// top-k, order). `x` `[B, L, d]`, `weights` `[B, 1, k]` -> `[B, L, d]`.
+pub(super) fn grouped_periods(
     x: &Tensor<3>,
     periods: &[Vec<usize>],
     weights: Tensor<3>,
@@ -286,6 +290,29 @@ fn grouped_periods(
         let n = v.len();
         Tensor::<1, Int>::from_data(TensorData::new(v, [n]), &device)
     };
+    // Kernel `[C_out, C_in, kh, kw]` as a `[kh·kw·C_in, C_out]` matrix, rows
+    // in the gathered taps' (dy, dx, c) order.
+    let as_matrix = |c: &FusedConv<4>| {
+        let [c_out, c_in, kh, kw] = c.weight.dims();
+        (
+            c.weight
+                .clone()
+                .permute([2, 3, 1, 0])
+                .reshape([kh * kw * c_in, c_out]),
+            c.bias.clone().reshape([1, c_out]),
+        )
+    };
+    let (w_in, b_in) = as_matrix(&convs[0]);
+    let (w_out, b_out) = as_matrix(&convs[1]);
+    let (kernel, mid) = (convs[0].kernel, w_in.dims()[1]);
+    // The plan's rows, then one zero row: what a tap outside a grid reads.
+    let rows_x = Tensor::cat(
+        vec![
+            x.clone().reshape([b * l, d]),
+            Tensor::zeros([1, d], &device),
+        ],
+        0,
+    );
     // Pairs by period, in increasing period (a deterministic order).
     let mut by_period: std::collections::BTreeMap<usize, Vec<(usize, usize)>> =
         std::collections::BTreeMap::new();
@@ -294,48 +321,93 @@ fn grouped_periods(
             by_period.entry(p).or_default().push((s, i));
         }
     }
-    let mut pieces: Vec<Vec<Option<Tensor<3>>>> = vec![vec![None; k]; b];
+    let mut res = Tensor::<2>::zeros([b * l, d], &device);
     for (p, pairs) in by_period {
         let g = pairs.len();
-        let rows = l.div_ceil(p);
-        let lp = rows * p;
-        let xs = x
+        let grid = GridTaps::new(l.div_ceil(p), p, kernel);
+        let lp = grid.cells();
+        // conv_in on every cell of each grid (cells past the plan read zeros).
+        let taps = grid.rows(
+            lp,
+            |gi, cell| (cell < l).then(|| pairs[gi].0 * l + cell),
+            g,
+            b * l,
+        );
+        let h = rows_x
             .clone()
-            .select(0, index(pairs.iter().map(|&(s, _)| s as i64).collect())); // [g, L, d]
-        let padded = if lp > l {
-            Tensor::cat(vec![xs, Tensor::zeros([g, lp - l, d], &device)], 1)
-        } else {
-            xs
-        };
-        let grid = padded.reshape([g, rows, p, d]).permute([0, 3, 1, 2]); // [g, d, rows, p]
-        let y = convs[1].forward(gelu(convs[0].forward(grid)));
-        let w = weights
-            .clone()
-            .select(
-                0,
-                index(pairs.iter().map(|&(s, i)| (s * k + i) as i64).collect()),
-            )
-            .reshape([g, 1, 1]);
-        let y = y
-            .permute([0, 2, 3, 1])
-            .reshape([g, lp, d])
-            .slice([0..g, 0..l, 0..d])
-            * w;
-        for (j, &(s, i)) in pairs.iter().enumerate() {
-            pieces[s][i] = Some(y.clone().slice([j..j + 1, 0..l, 0..d]));
-        }
+            .select(0, index(taps))
+            .reshape([g * lp, kernel * kernel * d])
+            .matmul(w_in.clone())
+            + b_in.clone();
+        let h = Tensor::cat(vec![gelu(h), Tensor::zeros([1, mid], &device)], 0);
+        // conv_out on the cells that are plan ticks.
+        let taps = grid.rows(l, |gi, cell| Some(gi * lp + cell), g, g * lp);
+        let y = h
+            .select(0, index(taps))
+            .reshape([g * l, kernel * kernel * mid])
+            .matmul(w_out.clone())
+            + b_out.clone();
+        let w = weights.clone().select(
+            0,
+            index(pairs.iter().map(|&(s, i)| (s * k + i) as i64).collect()),
+        );
+        let y = (y.reshape([g, l * d]) * w.reshape([g, 1])).reshape([g * l, d]);
+        let dst = pairs
+            .iter()
+            .flat_map(|&(s, _)| (0..l).map(move |c| (s * l + c) as i64))
+            .collect();
+        res = res.select_assign(0, index(dst), y, IndexingUpdateOp::Add);
     }
-    let outs = pieces
-        .into_iter()
-        .map(|sample| {
-            sample
-                .into_iter()
-                .map(|y| y.expect("every period of every sample"))
-                .reduce(|a, y| a + y)
-                .expect("top_k >= 1")
-        })
-        .collect();
-    Tensor::cat(outs, 0)
+    res.reshape([b, l, d])
+}
+
+/// The taps of a "same" square convolution over `rows x cols` grids laid
+/// out as cells `r·cols + c`: which input row each (output cell, tap)
+/// reads, for [`grouped_periods`]' gathers.
+struct GridTaps {
+    rows: usize,
+    cols: usize,
+    kernel: usize,
+}
+
+impl GridTaps {
+    fn new(rows: usize, cols: usize, kernel: usize) -> GridTaps {
+        GridTaps { rows, cols, kernel }
+    }
+
+    fn cells(&self) -> usize {
+        self.rows * self.cols
+    }
+
+    /// For `grids` grids, their first `out_cells` cells, each tap in
+    /// `(dy, dx)` order: `source(grid, cell)`'s row, or `zero` beyond the
+    /// grid's edges or where `source` has none.
+    fn rows(
+        &self,
+        out_cells: usize,
+        source: impl Fn(usize, usize) -> Option<usize>,
+        grids: usize,
+        zero: usize,
+    ) -> Vec<i64> {
+        let (kernel, half) = (self.kernel, self.kernel / 2);
+        let mut taps = Vec::with_capacity(grids * out_cells * kernel * kernel);
+        for gi in 0..grids {
+            for cell in 0..out_cells {
+                let (r, c) = (cell / self.cols, cell % self.cols);
+                for dy in 0..kernel {
+                    for dx in 0..kernel {
+                        let rr = (r + dy).checked_sub(half).filter(|&v| v < self.rows);
+                        let cc = (c + dx).checked_sub(half).filter(|&v| v < self.cols);
+                        let row = rr
+                            .zip(cc)
+                            .and_then(|(rr, cc)| source(gi, rr * self.cols + cc));
+                        taps.push(row.unwrap_or(zero) as i64);
+                    }
+                }
+            }
+        }
+        taps
+    }
 }
 
 /// Indices (>= 1, DC dropped) of the `k` largest amplitudes, largest first;

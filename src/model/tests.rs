@@ -243,8 +243,23 @@ fn training_fusion_has_the_branches_outputs_and_gradients() {
     }
 }
 
+/// The conv3d reference and [`inception::conv3d_over_slices`] (time-major
+/// in and out) of the same `x` `[B, C, T, H, W]`, kernel and bias.
+fn conv3d_both_ways(x: Tensor<5>, w: Tensor<5>, bias: Tensor<1>) -> (Tensor<5>, Tensor<5>) {
+    let k = w.dims()[2];
+    let want = burn::tensor::module::conv3d(
+        x.clone(),
+        w.clone(),
+        Some(bias.clone()),
+        burn::tensor::ops::ConvOptions::new([1, 1, 1], [k / 2; 3], [1, 1, 1], 1),
+    );
+    let got =
+        inception::conv3d_over_slices(x.permute([0, 2, 1, 3, 4]), w, bias).permute([0, 2, 1, 3, 4]);
+    (want, got)
+}
+
 #[test]
-fn conv3d_by_time_offsets_is_a_3d_convolution() {
+fn conv3d_over_slices_is_a_3d_convolution() {
     let device = cpu_device();
     for (k, t) in [(3, 5), (1, 4), (5, 7), (3, 1)] {
         let x = Tensor::<5>::from_data(
@@ -257,22 +272,64 @@ fn conv3d_by_time_offsets_is_a_3d_convolution() {
         )
         .sub_scalar(0.5);
         let bias = Tensor::<1>::from_data(TensorData::new(noise(4, 13), [4]), &device);
-        let want: Vec<f32> = burn::tensor::module::conv3d(
-            x.clone(),
-            w.clone(),
-            Some(bias.clone()),
-            burn::tensor::ops::ConvOptions::new([1, 1, 1], [k / 2; 3], [1, 1, 1], 1),
-        )
-        .into_data()
-        .try_to_vec::<f32>()
-        .unwrap();
-        let got = inception::conv3d_by_time_offsets(x, w, bias);
+        let (want, got) = conv3d_both_ways(x, w, bias);
         assert_eq!(got.dims(), [2, 4, t, 6, 5]);
+        let want: Vec<f32> = want.into_data().try_to_vec::<f32>().unwrap();
         let got: Vec<f32> = got.into_data().try_to_vec::<f32>().unwrap();
         assert!(
             got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-4),
             "k {k}, t {t}"
         );
+    }
+}
+
+/// The gather + matmul form trains like `conv3d`: the same gradients reach
+/// the input, the weight and the bias (a vision layer past the first, whose
+/// input is itself trained, needs all three).
+#[test]
+fn conv3d_over_slices_has_the_convolution_gradients() {
+    fn vec_of<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_to_vec::<f32>().unwrap()
+    }
+    let device = cpu_device().autodiff();
+    for (k, t) in [(3, 5), (3, 1), (1, 3)] {
+        let x = Tensor::<5>::from_data(
+            TensorData::new(noise(2 * 3 * t * 6 * 5, 21), [2, 3, t, 6, 5]),
+            &device,
+        );
+        let w = Tensor::<5>::from_data(
+            TensorData::new(noise(4 * 3 * k * k * k, 22), [4, 3, k, k, k]),
+            &device,
+        )
+        .sub_scalar(0.5);
+        let bias = Tensor::<1>::from_data(TensorData::new(noise(4, 23), [4]), &device);
+        let target = Tensor::<5>::from_data(
+            TensorData::new(noise(2 * 4 * t * 6 * 5, 24), [2, 4, t, 6, 5]),
+            &device,
+        );
+        let grads = |use_slices: bool| -> Vec<Vec<f32>> {
+            let (x, w, bias) = (
+                x.clone().require_grad(),
+                w.clone().require_grad(),
+                bias.clone().require_grad(),
+            );
+            let (want, got) = conv3d_both_ways(x.clone(), w.clone(), bias.clone());
+            let y = if use_slices { got } else { want };
+            let g = (y * target.clone()).sum().backward();
+            vec![
+                vec_of(x.grad(&g).expect("input gradient")),
+                vec_of(w.grad(&g).expect("weight gradient")),
+                vec_of(bias.grad(&g).expect("bias gradient")),
+            ]
+        };
+        for (a, b) in grads(true).iter().zip(&grads(false)) {
+            assert_eq!(a.len(), b.len());
+            let scale = b.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+            assert!(
+                a.iter().zip(b).all(|(p, q)| (p - q).abs() <= 1e-5 * scale),
+                "k {k}, t {t}: {a:?} vs {b:?}"
+            );
+        }
     }
 }
 
@@ -847,5 +904,83 @@ fn slice_conv_equals_conv3d_same_padding() {
                 );
             }
         }
+    }
+}
+
+/// The trajectory encoder's training path (period grids as tap gathers and
+/// matmuls, grouped by period) is the definition: per sample and period,
+/// the plan folded into a zero-padded grid, `conv2d` -> GELU -> `conv2d`,
+/// cut back to the plan, weighted and summed. Same outputs, and the same
+/// gradients reach the input, the softmax weights and both kernels.
+#[test]
+fn grouped_period_grids_are_the_per_sample_convolutions() {
+    use burn::tensor::activation::gelu;
+    fn vec_of<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_to_vec::<f32>().unwrap()
+    }
+    let device = cpu_device().autodiff();
+    let (b, l, d, k) = (3, 13, 4, 2);
+    // Shared and distinct periods, one longer than half the plan, one that
+    // divides it unevenly (the grid's last row is partly past the plan).
+    let periods = vec![vec![5, 13], vec![5, 3], vec![7, 1]];
+    let inc_in = inception::Inception2d::new(d, 6, 3, &device);
+    let inc_out = inception::Inception2d::new(6, d, 3, &device);
+    let x = Tensor::<3>::from_data(TensorData::new(noise(b * l * d, 31), [b, l, d]), &device);
+    let weights = Tensor::<3>::from_data(TensorData::new(noise(b * k, 32), [b, 1, k]), &device);
+    let target = Tensor::<3>::from_data(TensorData::new(noise(b * l * d, 33), [b, l, d]), &device);
+    let run = |grouped: bool| -> Vec<Vec<f32>> {
+        let (x, weights) = (x.clone().require_grad(), weights.clone().require_grad());
+        let convs = [inc_in.fuse_differentiable(), inc_out.fuse_differentiable()];
+        let y = if grouped {
+            plan::grouped_periods(&x, &periods, weights.clone(), &convs)
+        } else {
+            let samples = (0..b)
+                .map(|s| {
+                    let xs = x.clone().slice([s..s + 1, 0..l, 0..d]);
+                    periods[s]
+                        .iter()
+                        .enumerate()
+                        .map(|(i, &p)| {
+                            let rows = l.div_ceil(p);
+                            let grid = Tensor::cat(
+                                vec![xs.clone(), Tensor::zeros([1, rows * p - l, d], &device)],
+                                1,
+                            )
+                            .reshape([1, rows, p, d])
+                            .permute([0, 3, 1, 2]);
+                            let y = convs[1].forward(gelu(convs[0].forward(grid)));
+                            let y = y.permute([0, 2, 3, 1]).reshape([1, rows * p, d]).slice([
+                                0..1,
+                                0..l,
+                                0..d,
+                            ]);
+                            y * weights.clone().slice([s..s + 1, 0..1, i..i + 1])
+                        })
+                        .reduce(|a, y| a + y)
+                        .unwrap()
+                })
+                .collect();
+            Tensor::cat(samples, 0)
+        };
+        let g = (y.clone() * target.clone()).sum().backward();
+        let mut out = vec![
+            vec_of(y),
+            vec_of(x.grad(&g).expect("input gradient")),
+            vec_of(weights.grad(&g).expect("weights gradient")),
+        ];
+        for c in inc_in.branches().iter().chain(inc_out.branches()) {
+            out.push(vec_of(c.weight.val().grad(&g).expect("kernel gradient")));
+        }
+        out
+    };
+    let (got, want) = (run(true), run(false));
+    assert_eq!(got.len(), 9);
+    for (a, b) in got.iter().zip(&want) {
+        assert_eq!(a.len(), b.len());
+        let scale = b.iter().fold(1.0f32, |m, v| m.max(v.abs()));
+        assert!(
+            a.iter().zip(b).all(|(p, q)| (p - q).abs() <= 1e-5 * scale),
+            "{a:?} vs {b:?}"
+        );
     }
 }
