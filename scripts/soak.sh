@@ -5,16 +5,17 @@
 # beside the load average, so that growth can be told from warm-up and from
 # the page cache. A benchmark, not a test: run it on an otherwise idle
 # machine.
-#   scripts/soak.sh [SECONDS] [OUT_PREFIX]
+#   scripts/soak.sh [SECONDS] [OUT_PREFIX] [bench-daemon options, e.g. --config C]
 # Writes OUT_PREFIX.json (bench-daemon's report) and OUT_PREFIX-rss-per-minute.txt.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 duration="${1:-3600}"
 prefix="${2:-out/soak-${duration}s}"
+shift $(($# < 2 ? $# : 2))
 bin="${FALL_GUARD_BIN:-${CARGO_TARGET_DIR:-target}/release/fall-guard}"
 mkdir -p "$(dirname "$prefix")"
 log="$prefix-rss-per-minute.txt"
-"$bin" bench-daemon --duration-s "$duration" --json "$prefix.json" &
+"$bin" bench-daemon --duration-s "$duration" --json "$prefix.json" "$@" &
 pid=$!
 echo "pid $pid start $(date +%H:%M:%S) binary $bin" >"$log"
 # One read of /proc/PID/status per sample, so the three figures agree.
