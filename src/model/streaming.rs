@@ -323,67 +323,40 @@ impl StreamingForecaster {
             let t_len = slices.len();
             let (ho, wo) = (hw / 2, hw / 2);
             let out_len = c_out * ho * wo;
-            let mut out: Vec<Option<Slice>> = vec![None; t_len];
-            for j in 0..t_len {
-                let stable =
-                    j >= 1 && j + 1 < t_len && slices[j - 1..=j + 1].iter().all(|s| s.stable);
-                if stable {
-                    if let Some(d) = self.cache[li].get(&slices[j].key) {
-                        out[j] = Some(Slice {
-                            key: slices[j].key,
-                            stable,
-                            data: d.clone(),
-                        });
+            let conv = &fused.slices[li];
+            // The kernel reaches one slice each way; `None` (zeros) stands
+            // for the "same" padding where the window really ends.
+            let half = conv.k() / 2;
+            let mut out: Vec<Slice> = Vec::with_capacity(t_len);
+            for pos in 0..t_len {
+                let key = slices[pos].key;
+                let stable = pos >= 1
+                    && pos + 1 < t_len
+                    && slices[pos - 1..=pos + 1].iter().all(|s| s.stable);
+                let cached = stable.then(|| self.cache[li].get(&key).cloned()).flatten();
+                let data = match cached {
+                    Some(d) => d,
+                    None => {
+                        let inputs: Vec<Option<&[f32]>> = (0..conv.k())
+                            .map(|kt| {
+                                (pos + kt)
+                                    .checked_sub(half)
+                                    .and_then(|i| slices.get(i))
+                                    .map(|s| s.data.as_slice())
+                            })
+                            .collect();
+                        let d = conv.forward_slice_pooled(&inputs, hw);
+                        debug_assert_eq!(d.len(), out_len);
+                        self.slices_computed += 1;
+                        let data = Arc::new(d);
+                        if stable {
+                            self.cache[li].insert(key, data.clone());
+                        }
+                        data
                     }
-                }
+                };
+                out.push(Slice { key, stable, data });
             }
-            // Compute the missing outputs in runs of consecutive positions.
-            let mut j = 0;
-            while j < t_len {
-                if out[j].is_some() {
-                    j += 1;
-                    continue;
-                }
-                let j0 = j;
-                while j < t_len && out[j].is_none() {
-                    j += 1;
-                }
-                let j1 = j - 1;
-                // The kernel reaches one slice each way; `None` (zeros) stands
-                // for the "same" padding where the window really ends.
-                let k = fused.slices[li].k();
-                let half = k / 2;
-                let runs = j1 - j0 + 1;
-                self.slices_computed += runs as u64;
-                for pos in j0..=j1 {
-                    let inputs: Vec<Option<&[f32]>> = (0..k)
-                        .map(|kt| {
-                            (pos + kt)
-                                .checked_sub(half)
-                                .and_then(|i| slices.get(i))
-                                .map(|s| s.data.as_slice())
-                        })
-                        .collect();
-                    let d = fused.slices[li].forward_slice_pooled(&inputs, hw);
-                    debug_assert_eq!(d.len(), out_len);
-                    let stable = pos >= 1
-                        && pos + 1 < t_len
-                        && slices[pos - 1..=pos + 1].iter().all(|s| s.stable);
-                    let data = Arc::new(d);
-                    if stable {
-                        self.cache[li].insert(slices[pos].key, data.clone());
-                    }
-                    out[pos] = Some(Slice {
-                        key: slices[pos].key,
-                        stable,
-                        data,
-                    });
-                }
-            }
-            let out: Vec<Slice> = out
-                .into_iter()
-                .map(|s| s.expect("every position computed"))
-                .collect();
             slices = if fused.time_pool[li] {
                 out.chunks_exact(2)
                     .map(|pair| Slice {
