@@ -15,7 +15,10 @@ use std::net::{IpAddr, Ipv4Addr};
 
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{Context, MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile};
-use rustdds::{DomainParticipant, DomainParticipantBuilder, Topic};
+use rustdds::{
+    DomainParticipant, DomainParticipantBuilder, QosPolicies, QosPolicyBuilder, Topic,
+    TopicDescription, TopicKind,
+};
 
 /// Environment variable with the DDS domain (0 when unset or empty).
 pub const DOMAIN_ID_ENV: &str = "ROS_DOMAIN_ID";
@@ -157,6 +160,21 @@ impl RosSettings {
             what: "node namespace/name",
             reason: format!("{e:?}"),
         })
+    }
+}
+
+/// The most samples a latched (transient-local) publisher keeps for late
+/// subscribers and for repair ([`RosNode::publisher_topic`]). Also its
+/// reliable send window: a reliable write fails (and is counted) only when
+/// this many samples are unacknowledged, far more than `fall_imminent`
+/// changes between two acknowledgements.
+pub const LATCHED_MAX_SAMPLES: i32 = 16;
+
+fn latched_limits() -> rustdds::policy::ResourceLimits {
+    rustdds::policy::ResourceLimits {
+        max_samples: LATCHED_MAX_SAMPLES,
+        max_instances: 1,
+        max_samples_per_instance: LATCHED_MAX_SAMPLES,
     }
 }
 
@@ -322,6 +340,46 @@ impl RosNode {
         let message_type = parse_type_name(type_name)?;
         self.node
             .create_topic(&name, message_type, qos)
+            .map_err(|e| RosError::Topic {
+                topic: self.resolve(topic),
+                type_name: type_name.to_owned(),
+                reason: e.to_string(),
+            })
+    }
+
+    /// Creates a topic for a publisher: [`RosNode::topic`], plus, for a
+    /// transient-local profile, a bound of [`LATCHED_MAX_SAMPLES`] on the
+    /// samples its writer keeps. RustDDS 0.15 keeps every sample of a
+    /// durable writer that no reader has acknowledged, up to 8,192, whatever
+    /// the history depth: with no subscriber, `fall_imminent` grew the
+    /// daemon's heap by its ~300 bytes per change for hours. The resource
+    /// limit is where RustDDS takes its bound from (`ResourceLimits`, which
+    /// ros2-client's `QosProfile` cannot express). A late subscriber gets at
+    /// most that many past values, the newest last; a matched one's
+    /// acknowledged samples are trimmed to the depth as before.
+    pub fn publisher_topic(
+        &mut self,
+        topic: &str,
+        type_name: &str,
+        qos: &QosProfile,
+    ) -> Result<Topic, RosError> {
+        let t = self.topic(topic, type_name, qos)?;
+        if qos.durability != Durability::TransientLocal {
+            return Ok(t);
+        }
+        let bounded = QosPolicies::from(qos).modify_by(
+            &QosPolicyBuilder::new()
+                .resource_limits(latched_limits())
+                .build(),
+        );
+        self.context
+            .domain_participant()
+            .create_topic(
+                t.name(),
+                t.get_type().name().to_owned(),
+                &bounded,
+                TopicKind::NoKey,
+            )
             .map_err(|e| RosError::Topic {
                 topic: self.resolve(topic),
                 type_name: type_name.to_owned(),

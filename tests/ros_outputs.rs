@@ -15,7 +15,9 @@ use fall_guard::outputs::ros::{OutputTopics, RosOutputs};
 use fall_guard::outputs::{
     DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, StreamDiagnostics,
 };
-use fall_guard::ros::RosNode;
+use fall_guard::ros::{qos, RosNode, LATCHED_MAX_SAMPLES};
+use rustdds::policy::ResourceLimits;
+use rustdds::dds::qos::HasQoSPolicy;
 use serde_json::Value;
 use support::{diag_value, domain_id, localhost_settings, rclpy_python, Peer};
 
@@ -438,4 +440,40 @@ async fn rclpy_receives_republished_joint_states() {
         "ros_outputs: domain {domain}: rclpy received {} republished joint states",
         events.len()
     );
+}
+
+/// RustDDS keeps every unacknowledged sample of a durable writer up to
+/// 8,192 when no reader is matched, whatever the history depth (with no
+/// subscriber, each `fall_imminent` change stayed in the heap). The
+/// latched publishers' topics carry the bound that RustDDS trims to; the
+/// per-tick ones, trimmed to their depth already, carry none.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn latched_publishers_bound_the_samples_they_keep() {
+    let mut node = RosNode::start(&localhost_settings(domain_id(5), "/poppy", "fall_guard"))
+        .expect("node");
+    let bound = ResourceLimits {
+        max_samples: LATCHED_MAX_SAMPLES,
+        max_instances: 1,
+        max_samples_per_instance: LATCHED_MAX_SAMPLES,
+    };
+    let latched = node
+        .publisher_topic("fall_guard/fall_imminent", "std_msgs/msg/Bool", &qos::fall_imminent())
+        .expect("topic");
+    assert_eq!(latched.qos().resource_limits(), Some(bound));
+    let per_tick = node
+        .publisher_topic(
+            "fall_guard/forecast",
+            "std_msgs/msg/Float32MultiArray",
+            &qos::forecast(),
+        )
+        .expect("topic");
+    assert_eq!(per_tick.qos().resource_limits(), None);
+    // Same DDS topic name and type as the plain topic (what subscribers match).
+    let plain = node
+        .topic("fall_guard/fall_imminent", "std_msgs/msg/Bool", &qos::fall_imminent())
+        .expect("topic");
+    use rustdds::TopicDescription;
+    assert_eq!(latched.name(), plain.name());
+    assert_eq!(latched.get_type().name(), plain.get_type().name());
+    node.shutdown().await;
 }

@@ -215,7 +215,7 @@ fn publisher<M: serde::Serialize>(
     type_name: &str,
     qos: ros2_client::QosProfile,
 ) -> Result<Publisher<M>, RosError> {
-    let t = node.topic(topic, type_name, &qos)?;
+    let t = node.publisher_topic(topic, type_name, &qos)?;
     let resolved = node.resolve(topic);
     node.node_mut()
         .create_publisher(&t, Some(qos))
