@@ -9,7 +9,11 @@
 //! where the tap leaves the grid or passes `L`. One GEMM with the weights as
 //! `[k·k·C_in, C_out]` gives the outputs position-major, which is the layout
 //! the next convolution reads; only the first `out_len` positions are
-//! computed (the block keeps `L` of them).
+//! computed (the block keeps `L` of them). The grid is taken a row at a
+//! time, and the kernel rows that fall wholly above or below the grid's
+//! data from that row are left out of the GEMM: a long period folds a plan
+//! into few rows (2 rows for half the plan), where most of a 5x5 kernel
+//! reads padding.
 //!
 //! Same arithmetic as `burn`'s `conv2d` (f32 products summed, bias added),
 //! in another order: equal to it within rounding (tested).
@@ -31,45 +35,70 @@ impl HostConv {
             len <= rows * p && out_len <= rows * p,
             "sequence fits the grid"
         );
-        let kk = k * k * c_in;
-        let half = (k / 2) as isize;
+        let half = k / 2;
+        // Rows of the grid holding any of the `len` positions; rows past
+        // them, like rows past the grid, are zero padding.
+        let data_rows = len.div_ceil(p);
         let mut out = vec![0.0f32; out_len * c_out];
         for row in out.chunks_exact_mut(c_out) {
             row.copy_from_slice(self.bias());
         }
-        HostConv::with_scratch(TILE * kk, |a| {
-            let mut m0 = 0;
-            while m0 < out_len {
-                let tile = TILE.min(out_len - m0);
-                for t in 0..tile {
-                    let m = m0 + t;
-                    let (r, c) = ((m / p) as isize, (m % p) as isize);
-                    let arow = &mut a[t * kk..(t + 1) * kk];
-                    for ky in 0..k {
-                        let rr = r + ky as isize - half;
-                        for kx in 0..k {
-                            let cc = c + kx as isize - half;
-                            let dst = &mut arow[(ky * k + kx) * c_in..(ky * k + kx + 1) * c_in];
-                            let inside =
-                                rr >= 0 && rr < rows as isize && cc >= 0 && cc < p as isize;
-                            let n = (rr * p as isize + cc) as usize;
-                            if inside && n < len {
-                                dst.copy_from_slice(&x[n * c_in..(n + 1) * c_in]);
-                            } else {
-                                dst.fill(0.0);
+        // The kernel rows that reach a data row from grid row `r`; the others
+        // read only zeros and are left out of the GEMM.
+        let kernel_rows = |r: usize| {
+            (
+                half.saturating_sub(r),
+                (data_rows + half).saturating_sub(r).min(k),
+            )
+        };
+        HostConv::with_scratch(TILE * k * k * c_in, |a| {
+            // Runs of grid rows that use the same kernel rows (the interior
+            // of the grid is one run), tiled by positions.
+            let mut r = 0;
+            while r * p < out_len {
+                let (ky_lo, ky_hi) = kernel_rows(r);
+                let mut r_end = r + 1;
+                while r_end * p < out_len && kernel_rows(r_end) == (ky_lo, ky_hi) {
+                    r_end += 1;
+                }
+                let run_end = (r_end * p).min(out_len);
+                if ky_lo < ky_hi {
+                    let kk = (ky_hi - ky_lo) * k * c_in;
+                    let mut m0 = r * p;
+                    while m0 < run_end {
+                        let tile = TILE.min(run_end - m0);
+                        for t in 0..tile {
+                            let m = m0 + t;
+                            let (rm, c) = (m / p, (m % p) as isize);
+                            let arow = &mut a[t * kk..(t + 1) * kk];
+                            for ky in ky_lo..ky_hi {
+                                let rr = rm + ky - half;
+                                for kx in 0..k {
+                                    let cc = c + kx as isize - half as isize;
+                                    let at = ((ky - ky_lo) * k + kx) * c_in;
+                                    let dst = &mut arow[at..at + c_in];
+                                    let n = rr * p + cc.max(0) as usize;
+                                    if cc >= 0 && cc < p as isize && n < len {
+                                        dst.copy_from_slice(&x[n * c_in..(n + 1) * c_in]);
+                                    } else {
+                                        dst.fill(0.0);
+                                    }
+                                }
                             }
                         }
+                        let row_major = |cols| Strides { row: cols, col: 1 };
+                        self.accumulate_taps(
+                            ky_lo * k..ky_hi * k,
+                            tile,
+                            &mut out[m0 * c_out..(m0 + tile) * c_out],
+                            row_major(c_out),
+                            &a[..tile * kk],
+                            row_major(kk),
+                        );
+                        m0 += tile;
                     }
                 }
-                let row_major = |cols| Strides { row: cols, col: 1 };
-                self.accumulate(
-                    tile,
-                    &mut out[m0 * c_out..(m0 + tile) * c_out],
-                    row_major(c_out),
-                    &a[..tile * kk],
-                    row_major(kk),
-                );
-                m0 += tile;
+                r = r_end;
             }
         });
         out

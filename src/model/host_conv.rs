@@ -98,7 +98,36 @@ impl HostConv {
     /// `dst += a · weight`, one thread: `a` is the `m x taps·C_in` im2col
     /// matrix, `dst` the `m x C_out` output, each stored with its strides.
     pub fn accumulate(&self, m: usize, dst: &mut [f32], dst_s: Strides, a: &[f32], a_s: Strides) {
-        let (kk, n) = (self.weight.len() / self.c_out, self.c_out);
+        self.accumulate_taps(
+            0..self.weight.len() / (self.c_in * self.c_out),
+            m,
+            dst,
+            dst_s,
+            a,
+            a_s,
+        );
+    }
+
+    /// [`accumulate`](Self::accumulate) over the kernel taps `taps` only:
+    /// `a` is `m x taps.len()·C_in` and multiplies those taps' rows of the
+    /// weights. For taps that read only zero padding, whose products are
+    /// all zero.
+    pub fn accumulate_taps(
+        &self,
+        taps: std::ops::Range<usize>,
+        m: usize,
+        dst: &mut [f32],
+        dst_s: Strides,
+        a: &[f32],
+        a_s: Strides,
+    ) {
+        let n = self.c_out;
+        assert!(
+            taps.start < taps.end && taps.end * self.c_in * n <= self.weight.len(),
+            "taps inside the kernel"
+        );
+        let kk = taps.len() * self.c_in;
+        let weight = &self.weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
         if m == 0 {
             return;
         }
@@ -107,7 +136,7 @@ impl HostConv {
         assert!(last(a_s, kk) < a.len(), "im2col inside its buffer");
         // SAFETY: the largest index each matrix is read or written at was
         // checked above against its slice; `weight` is `kk x n` row-major,
-        // allocated so; `dst` is borrowed mutably, so no input overlaps it.
+        // sliced so; `dst` is borrowed mutably, so no input overlaps it.
         unsafe {
             gemm::gemm(
                 m,
@@ -120,7 +149,7 @@ impl HostConv {
                 a.as_ptr(),
                 a_s.col as isize,
                 a_s.row as isize,
-                self.weight.as_ptr(),
+                weight.as_ptr(),
                 1,
                 n as isize,
                 1.0f32,
