@@ -16,8 +16,8 @@ use fall_guard::outputs::{
     DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, StreamDiagnostics,
 };
 use fall_guard::ros::{qos, RosNode, LATCHED_MAX_SAMPLES};
-use rustdds::policy::ResourceLimits;
 use rustdds::dds::qos::HasQoSPolicy;
+use rustdds::policy::ResourceLimits;
 use serde_json::Value;
 use support::{diag_value, domain_id, localhost_settings, rclpy_python, Peer};
 
@@ -449,15 +449,19 @@ async fn rclpy_receives_republished_joint_states() {
 /// per-tick ones, trimmed to their depth already, carry none.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn latched_publishers_bound_the_samples_they_keep() {
-    let mut node = RosNode::start(&localhost_settings(domain_id(5), "/poppy", "fall_guard"))
-        .expect("node");
+    let mut node =
+        RosNode::start(&localhost_settings(domain_id(5), "/poppy", "fall_guard")).expect("node");
     let bound = ResourceLimits {
         max_samples: LATCHED_MAX_SAMPLES,
         max_instances: 1,
         max_samples_per_instance: LATCHED_MAX_SAMPLES,
     };
     let latched = node
-        .publisher_topic("fall_guard/fall_imminent", "std_msgs/msg/Bool", &qos::fall_imminent())
+        .publisher_topic(
+            "fall_guard/fall_imminent",
+            "std_msgs/msg/Bool",
+            &qos::fall_imminent(),
+        )
         .expect("topic");
     assert_eq!(latched.qos().resource_limits(), Some(bound));
     let per_tick = node
@@ -470,7 +474,11 @@ async fn latched_publishers_bound_the_samples_they_keep() {
     assert_eq!(per_tick.qos().resource_limits(), None);
     // Same DDS topic name and type as the plain topic (what subscribers match).
     let plain = node
-        .topic("fall_guard/fall_imminent", "std_msgs/msg/Bool", &qos::fall_imminent())
+        .topic(
+            "fall_guard/fall_imminent",
+            "std_msgs/msg/Bool",
+            &qos::fall_imminent(),
+        )
         .expect("topic");
     use rustdds::TopicDescription;
     assert_eq!(latched.name(), plain.name());

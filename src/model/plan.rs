@@ -217,14 +217,24 @@ fn fused_periods(
     for (s, sample_periods) in periods.iter().enumerate() {
         let xs = &xs[s * l * d..(s + 1) * l * d];
         let acc = &mut res[s * l * d..(s + 1) * l * d];
+        // Distinct frequencies can fold to the same period (`ceil(L/f)`:
+        // 40, 41 and 39 all give 3 for L = 120); such branches are the same
+        // computation, done once with their weights summed.
+        let mut distinct: Vec<(usize, f32)> = Vec::with_capacity(sample_periods.len());
         for (i, &p) in sample_periods.iter().enumerate() {
+            let w = ws[s * k + i];
+            match distinct.iter_mut().find(|(q, _)| *q == p) {
+                Some((_, sum)) => *sum += w,
+                None => distinct.push((p, w)),
+            }
+        }
+        for (i, &(p, w)) in distinct.iter().enumerate() {
             let rows = l.div_ceil(p);
             let lp = rows * p;
             let mut h = convs[0].forward_grid(xs, rows, p, lp);
             debug_assert_eq!(h.len(), lp * mid);
             gelu_in_place(&mut h);
             let y = convs[1].forward_grid(&h, rows, p, l);
-            let w = ws[s * k + i];
             if i == 0 {
                 acc.iter_mut().zip(&y).for_each(|(a, v)| *a = v * w);
             } else {
@@ -417,4 +427,51 @@ fn top_frequencies(amp: &[f32], k: usize) -> Vec<usize> {
     idx.sort_by(|&a, &b| amp[b].total_cmp(&amp[a]).then(a.cmp(&b)));
     idx.truncate(k);
     idx
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::cpu_device;
+    use burn::tensor::Distribution;
+
+    /// A period that two or three frequencies fold to is computed once with
+    /// the weights summed: the same sum as the training path, which takes
+    /// every `(sample, period)` pair on its own.
+    #[test]
+    fn repeated_periods_equal_one_branch_each() {
+        let device = cpu_device();
+        let (d, mid, l) = (6usize, 8usize, 30usize);
+        let conv_in = Inception2d::new(d, mid, 3, &device);
+        let conv_out = Inception2d::new(mid, d, 3, &device);
+        let host = [
+            HostConv::from_fused(&conv_in.fuse()),
+            HostConv::from_fused(&conv_out.fuse()),
+        ];
+        let train = [
+            conv_in.fuse_differentiable(),
+            conv_out.fuse_differentiable(),
+        ];
+        let periods = vec![vec![3, 3, 3], vec![4, 7, 4], vec![5, 6, 2]];
+        let b = periods.len();
+        let x = Tensor::<3>::random([b, l, d], Distribution::Normal(0.0, 1.0), &device);
+        let weights = softmax(
+            Tensor::<3>::random([b, 1, 3], Distribution::Normal(0.0, 1.0), &device),
+            2,
+        );
+        let want: Vec<f32> = grouped_periods(&x, &periods, weights.clone(), &train)
+            .into_data()
+            .try_into_vec()
+            .unwrap();
+        let got: Vec<f32> = fused_periods(&host, x, &periods, weights)
+            .into_data()
+            .try_into_vec()
+            .unwrap();
+        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                (g - w).abs() < 1e-5 * w.abs().max(1.0),
+                "at {i}: {g} vs {w}"
+            );
+        }
+    }
 }
