@@ -237,6 +237,7 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
             "fall_guard: camera",
             "fall_guard: plan",
             "fall_guard: servo bus lower",
+            "fall_guard: publishers",
             "fall_guard: model"
         ]
     );
@@ -254,25 +255,38 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
     };
     assert_eq!(
         status.iter().map(level).collect::<Vec<_>>(),
-        [0, 3, 0, 2, 1]
+        [0, 3, 0, 2, 0, 1]
+    );
+    // No publish failed: the publishers' status is OK and says so per topic.
+    let publishers = &status[4];
+    assert_eq!(publishers["message"], "publishing");
+    let publisher_keys: Vec<&str> = publishers["values"]
+        .as_array()
+        .expect("values")
+        .iter()
+        .filter_map(|kv| kv["key"].as_str())
+        .collect();
+    assert!(
+        publisher_keys.contains(&"failures_in_window /fall_guard/fall_imminent"),
+        "{publisher_keys:?}"
     );
     assert_eq!(status[1]["hardware_id"], "poppy_humanoid");
     assert_eq!(status[1]["message"], "stale (test)");
     assert_eq!(status[3]["hardware_id"], "/dev/ttyACM0");
     assert_eq!(kv(&status[3], "missing_ids"), "[11, 12]");
-    assert_eq!(status[4]["message"], "camera lost: running MP");
+    assert_eq!(status[5]["message"], "camera lost: running MP");
     assert_eq!(kv(&status[0], "rate_hz"), "30.0");
     assert_eq!(kv(&status[1], "age_ms"), "1500.0");
     assert_eq!(kv(&status[1], "errors"), "7");
     assert_eq!(kv(&status[1], "errors_in_window"), "3");
     assert_eq!(kv(&status[2], "age_ms"), "never");
-    assert_eq!(kv(&status[4], "inference_p50_ms"), "2.500");
-    assert_eq!(kv(&status[4], "inference_p99_ms"), "6.250");
-    assert_eq!(kv(&status[4], "overruns"), "1");
-    assert_eq!(kv(&status[4], "active_model"), "MP");
-    assert_eq!(kv(&status[4], "valid"), "false");
+    assert_eq!(kv(&status[5], "inference_p50_ms"), "2.500");
+    assert_eq!(kv(&status[5], "inference_p99_ms"), "6.250");
+    assert_eq!(kv(&status[5], "overruns"), "1");
+    assert_eq!(kv(&status[5], "active_model"), "MP");
+    assert_eq!(kv(&status[5], "valid"), "false");
     assert_eq!(
-        kv(&status[4], "invalid_reason"),
+        kv(&status[5], "invalid_reason"),
         "camera stale (1500 ms old)"
     );
     let stamp = &d["header"]["stamp"];

@@ -19,7 +19,7 @@ use super::ros::{diagnostic_array, forecast_message, OutputTopics};
 use super::{DiagnosticsSnapshot, ForecastOutput, OutputBus};
 use crate::msgs::{Bool, DiagnosticArray, Float32MultiArray};
 use crate::recording::{copy_with, RecordingError, RecordingWriter};
-use crate::service::ros_bridge::{imminent_changed, published_probabilities};
+use crate::service::ros_bridge::{publish_imminent_change, published_probabilities};
 use crate::shutdown::Shutdown;
 
 /// One output message, in publish order.
@@ -90,10 +90,10 @@ pub fn collect(
         let mut take_forecast = |out: &mut Collected, f: &ForecastOutput| {
             let msg = forecast_message(&published_probabilities(f));
             out.messages.push((f.stamp_ns, Output::Forecast(msg)));
-            if imminent_changed(&mut imminent, f.imminent) {
-                out.messages
-                    .push((f.stamp_ns, Output::FallImminent(f.imminent)));
-            }
+            let _ = publish_imminent_change(&mut imminent, f.imminent, |v| {
+                out.messages.push((f.stamp_ns, Output::FallImminent(v)));
+                Ok::<(), std::convert::Infallible>(())
+            });
         };
         let take_diagnostics = |out: &mut Collected, d: &DiagnosticsSnapshot| {
             let msg = diagnostic_array(&status_prefix, d);

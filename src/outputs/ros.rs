@@ -17,7 +17,9 @@
 //! `data[k]` is horizon k in ms. A subscriber reads it once (it arrives even
 //! when the subscriber starts late) and then indexes the forecasts.
 
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
 
 use ros2_client::Publisher;
 
@@ -25,7 +27,7 @@ use crate::msgs::{
     Bool, DiagnosticArray, DiagnosticStatus, Float32MultiArray, Header, JointState, KeyValue,
     MultiArrayDimension, MultiArrayLayout, Time,
 };
-use crate::outputs::DiagnosticsSnapshot;
+use crate::outputs::{DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ERROR_WINDOW_S};
 use crate::ros::{qos, RosError, RosNode};
 
 /// `layout.dim[0].label` of the forecast and of the horizons topic.
@@ -84,6 +86,9 @@ pub struct RosOutputs {
     /// Name prefix of every DiagnosticStatus, ROS style `node: stream`.
     status_prefix: String,
     pub failures: PublishFailures,
+    /// Failure totals at past `/diagnostics` reports (tick time), for the
+    /// figures over the last [`ERROR_WINDOW_S`].
+    failure_history: Mutex<VecDeque<(i64, [u64; 4])>>,
 }
 
 #[derive(Debug, Clone)]
@@ -154,6 +159,7 @@ impl RosOutputs {
             topics: resolved,
             status_prefix: node.settings().node_name.clone(),
             failures: PublishFailures::default(),
+            failure_history: Mutex::new(VecDeque::new()),
         })
     }
 
@@ -190,10 +196,49 @@ impl RosOutputs {
 
     /// Publishes one `/diagnostics` report: the snapshot's statuses, names
     /// prefixed with the node name.
+    /// A `fall_guard: publishers` status is added after the devices: the
+    /// publish failures per topic, in the last [`ERROR_WINDOW_S`] and since
+    /// start.
     pub fn publish_diagnostics(&self, snapshot: &DiagnosticsSnapshot) -> Result<(), RosError> {
-        let msg = diagnostic_array(&self.status_prefix, snapshot);
+        let mut snapshot = snapshot.clone();
+        snapshot
+            .devices
+            .push(self.publishers_status(snapshot.stamp_ns, &snapshot.hardware_id));
+        let msg = diagnostic_array(&self.status_prefix, &snapshot);
         let result = self.diagnostics.publish(msg);
         count(result, &self.failures.diagnostics, &self.topics.diagnostics)
+    }
+
+    /// The publish failures as a device status, at tick time `stamp_ns`.
+    fn publishers_status(&self, stamp_ns: i64, hardware_id: &str) -> DeviceDiagnostics {
+        let f = &self.failures;
+        let now = [
+            &f.forecast,
+            &f.fall_imminent,
+            &f.diagnostics,
+            &f.joint_states,
+        ]
+        .map(|c| c.load(Ordering::Relaxed));
+        let window_ns = ERROR_WINDOW_S as i64 * 1_000_000_000;
+        let mut history = self
+            .failure_history
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        // Keep the newest report at least a window old as the base.
+        while history.len() > 1 && history[1].0 <= stamp_ns - window_ns {
+            history.pop_front();
+        }
+        let base = history.front().map_or([0; 4], |&(_, totals)| totals);
+        history.push_back((stamp_ns, now));
+        let recent: [u64; 4] = std::array::from_fn(|i| now[i].saturating_sub(base[i]));
+        let t = &self.topics;
+        let topics = [
+            t.forecast.as_str(),
+            t.fall_imminent.as_str(),
+            t.diagnostics.as_str(),
+            t.joint_states.as_str(),
+        ];
+        publishers_status(&topics, &now, &recent, hardware_id)
     }
 
     /// Republishes a servo read; a no-op when no `joint_states` topic was configured.
@@ -269,6 +314,50 @@ pub fn ros_time(stamp_ns: i64) -> Time {
     }
 }
 
+/// The `publishers` status: OK, or WARN while a publish failed in the last
+/// [`ERROR_WINDOW_S`] (a full reliable send window: a subscriber that does
+/// not acknowledge). `topics[i]` has `totals[i]` failures since start,
+/// `recent[i]` in the window; a topic with no name (no `/joint_states`
+/// output) is left out.
+pub fn publishers_status(
+    topics: &[&str],
+    totals: &[u64],
+    recent: &[u64],
+    hardware_id: &str,
+) -> DeviceDiagnostics {
+    let mut values = Vec::new();
+    let mut failing = Vec::new();
+    for ((topic, total), recent) in topics.iter().zip(totals).zip(recent) {
+        if topic.is_empty() {
+            continue;
+        }
+        values.push((format!("failures_in_window {topic}"), recent.to_string()));
+        values.push((format!("failures {topic}"), total.to_string()));
+        if *recent > 0 {
+            failing.push(format!("{topic}: {recent}"));
+        }
+    }
+    values.push(("error_window_s".to_string(), ERROR_WINDOW_S.to_string()));
+    let (level, message) = if failing.is_empty() {
+        (DiagnosticLevel::Ok, "publishing".to_string())
+    } else {
+        (
+            DiagnosticLevel::Warn,
+            format!(
+                "publish failed in the last {ERROR_WINDOW_S} s ({}): a subscriber is not acknowledging",
+                failing.join(", ")
+            ),
+        )
+    };
+    DeviceDiagnostics {
+        name: "publishers".to_string(),
+        hardware_id: hardware_id.to_string(),
+        level,
+        message,
+        values,
+    }
+}
+
 /// Builds the `/diagnostics` message from a snapshot: its
 /// [`DiagnosticsSnapshot::statuses`], named `<prefix>: <stream>`, stamped
 /// with the snapshot's tick time.
@@ -300,6 +389,24 @@ pub fn diagnostic_array(prefix: &str, snapshot: &DiagnosticsSnapshot) -> Diagnos
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn publish_failures_warn_while_recent_and_name_the_topic() {
+        let topics = ["/fall_guard/forecast", "/fall_guard/fall_imminent", ""];
+        let ok = publishers_status(&topics, &[3, 0, 9], &[0, 0, 9], "poppy");
+        assert_eq!(ok.level, DiagnosticLevel::Ok);
+        assert!(ok.values.iter().all(|(k, _)| !k.ends_with(' ')));
+        assert!(ok
+            .values
+            .contains(&("failures /fall_guard/forecast".to_string(), "3".to_string())));
+        let warn = publishers_status(&topics, &[3, 2, 0], &[0, 2, 0], "poppy");
+        assert_eq!(warn.level, DiagnosticLevel::Warn);
+        assert!(
+            warn.message.contains("/fall_guard/fall_imminent: 2"),
+            "{}",
+            warn.message
+        );
+    }
 
     #[test]
     fn forecast_layout_names_the_horizon_dimension() {

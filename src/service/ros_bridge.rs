@@ -219,20 +219,28 @@ pub fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> Option
 
 /// One tick's outputs: the forecast, and the safety signal when it changed
 /// (`imminent`: the last value published). Publish failures are counted by
-/// `RosOutputs`.
+/// `RosOutputs` and reported on `/diagnostics`.
 fn publish_tick(outputs: &RosOutputs, imminent: &mut Option<bool>, f: &ForecastOutput) {
     let _ = outputs.publish_forecast(&published_probabilities(f));
-    if imminent_changed(imminent, f.imminent) {
-        let _ = outputs.publish_fall_imminent(f.imminent);
-    }
+    let _ = publish_imminent_change(imminent, f.imminent, |v| outputs.publish_fall_imminent(v));
 }
 
-/// Whether `fall_imminent` is published this tick: on its first value and
-/// on every change (`last`: the value published last, updated here).
-pub fn imminent_changed(last: &mut Option<bool>, now: bool) -> bool {
-    let changed = *last != Some(now);
+/// Publishes `fall_imminent` on its first value and on every change
+/// (`last`: the value subscribers were last sent). `last` moves only when
+/// the publish succeeded, so a change that failed (a full send window) is
+/// sent again on the next tick instead of being lost: a safety node must
+/// not be left holding the old state.
+pub fn publish_imminent_change<E>(
+    last: &mut Option<bool>,
+    now: bool,
+    publish: impl FnOnce(bool) -> Result<(), E>,
+) -> Result<(), E> {
+    if *last == Some(now) {
+        return Ok(());
+    }
+    publish(now)?;
     *last = Some(now);
-    changed
+    Ok(())
 }
 
 /// What goes on `/fall_guard/forecast` for one tick: the probabilities of a
@@ -365,6 +373,28 @@ mod tests {
             invalid_reason: String::new(),
             sensed_at: std::time::Instant::now(),
         }
+    }
+
+    #[test]
+    fn a_failed_imminent_change_is_sent_again() {
+        let mut last = None;
+        let mut sent = Vec::new();
+        let mut publish = |v: bool, ok: bool| {
+            publish_imminent_change(&mut last, v, |v| {
+                sent.push(v);
+                if ok {
+                    Ok(())
+                } else {
+                    Err("window full")
+                }
+            })
+        };
+        assert!(publish(false, true).is_ok());
+        assert!(publish(false, true).is_ok()); // unchanged: not sent
+        assert!(publish(true, false).is_err()); // the change fails...
+        assert!(publish(true, true).is_ok()); // ...and is sent on the next tick
+        assert!(publish(true, true).is_ok());
+        assert_eq!(sent, [false, true, true]);
     }
 
     #[test]
