@@ -112,19 +112,19 @@ impl Inception3d {
     }
 
     /// `[B, C_in, T, H, W]` -> `[B, C_out, T, H, W]`, "same" padding
-    /// everywhere (training): [`Inception3d::forward_slices`] between two
-    /// layout permutations.
+    /// everywhere (training): [`Inception3d::forward_channel_major`] between
+    /// two layout permutations.
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        self.forward_slices(x.permute([0, 2, 1, 3, 4]))
-            .permute([0, 2, 1, 3, 4])
+        self.forward_channel_major(x.permute([1, 0, 2, 3, 4]))
+            .permute([1, 0, 2, 3, 4])
     }
 
-    /// Time-major `[B, T, C_in, H, W]` -> `[B, T, C_out, H, W]` (training):
-    /// the fused kernel, built from the branches with differentiable tensor
-    /// ops, applied as [`conv3d_over_slices`].
-    pub fn forward_slices(&self, x: Tensor<5>) -> Tensor<5> {
+    /// Channel-major `[C_in, B, T, H, W]` -> `[C_out, B, T, H, W]`
+    /// (training): the fused kernel, built from the branches with
+    /// differentiable tensor ops, applied as [`conv3d_channel_major`].
+    pub fn forward_channel_major(&self, x: Tensor<5>) -> Tensor<5> {
         let f = self.fuse_differentiable();
-        conv3d_over_slices(x, f.weight, f.bias)
+        conv3d_channel_major(x, f.weight, f.bias)
     }
 
     /// As [`Inception2d::fuse_differentiable`].
@@ -186,88 +186,94 @@ pub struct FusedConv<const D: usize> {
 }
 
 /// A "same"-padded 3-D convolution with an odd cubic kernel `k` on
-/// activations kept time-major (`[B, T, C, H, W]`, every time slice a
-/// contiguous `[C, H, W]` block), written as plain tensor ops whose
-/// gradients are plain GEMMs and gathers:
-/// 1. the `kh·kw` spatial taps of every slice gathered by one `select`
-///    (im2col: `[B·T, C_in·kh·kw, H·W]`, rows in the weight's `(c, dy, dx)`
-///    order);
-/// 2. one batched matmul by the `k` time slices of the kernel stacked as
-///    output channels (`[k·C_out, C_in·kh·kw]`, broadcast over the slices):
-///    `[B·T, k·C_out, H·W]`;
+/// activations kept channel-major (`[C, B, T, H, W]`: each channel's planes
+/// of every sample and time slice one after the other), written as plain
+/// tensor ops whose gradients are plain GEMMs and gathers, every one of
+/// them over the whole batch at once:
+/// 1. the `kh·kw` spatial taps of every plane gathered by one `select`
+///    (im2col: `[C_in·kh·kw, B·T·H·W]`, rows in the weight's `(c, dy, dx)`
+///    order, columns every pixel of every slice);
+/// 2. one GEMM by the `k` time slices of the kernel stacked as output
+///    channels (`[k·C_out, C_in·kh·kw]`): `[k·C_out, B·T·H·W]`;
 /// 3. output time `s` sums kernel slice `j` applied at input time
 ///    `s + j − k/2` (zero beyond the ends): one scatter-add of the rows.
 ///
-/// The same linear map as `conv3d`. On the CPU backend its backward is a
-/// matmul for the weight (not a convolution whose kernel is the whole
-/// output gradient), a scatter-add for the input and a gather for the time
-/// offsets, instead of Flex's per-element im2col iterators and a
-/// zero-filled copy per sliced time offset.
-/// `x` `[B, T, C_in, H, W]`, `weight` `[C_out, C_in, k, kh, kw]` -> `[B, T, C_out, H, W]`.
-pub fn conv3d_over_slices(x: Tensor<5>, weight: Tensor<5>, bias: Tensor<1>) -> Tensor<5> {
-    let [b, t, c_in, h, w] = x.dims();
+/// The same linear map as `conv3d`. On the CPU backend the forward is one
+/// GEMM and its backward two (the weight's with the whole batch as its
+/// inner dimension, the input's), plus a scatter-add for the input and a
+/// gather for the time offsets: not Flex's per-element im2col iterators,
+/// nor one small GEMM per time slice, whose packing cost as much as the
+/// multiply-adds in the weight gradient.
+/// `x` `[C_in, B, T, H, W]`, `weight` `[C_out, C_in, k, kh, kw]` -> `[C_out, B, T, H, W]`.
+pub fn conv3d_channel_major(x: Tensor<5>, weight: Tensor<5>, bias: Tensor<1>) -> Tensor<5> {
+    let [c_in, b, t, h, w] = x.dims();
     let [c_out, _, k, kh, kw] = weight.dims();
     let (p, ph, pw) = (k / 2, kh / 2, kw / 2);
     let (hp, wp) = (h + 2 * ph, w + 2 * pw);
+    let slices = b * t;
     let device = x.device();
     let index = |v: Vec<i64>| {
         let n = v.len();
         Tensor::<1, Int>::from_data(TensorData::new(v, [n]), &device)
     };
-    // 1. Spatial taps: pixel (i, j) of tap (dy, dx) reads padded (i + dy, j + dx).
-    let planes = x.reshape([b * t * c_in, h, w]);
+    // 1. Spatial taps: pixel (i, j) of tap (dy, dx) reads padded (i + dy, j + dx)
+    // of the same plane; columns (tap, slice, i, j) of each channel's row.
+    let planes = x.reshape([c_in * slices, h, w]);
     let planes = if ph + pw > 0 {
         planes.pad(vec![(ph, ph), (pw, pw)], PadMode::Constant(0.0))
     } else {
         planes
     };
-    let mut taps = Vec::with_capacity(kh * kw * h * w);
+    let mut taps = Vec::with_capacity(kh * kw * slices * h * w);
     for dy in 0..kh {
         for dx in 0..kw {
-            for i in 0..h {
-                for j in 0..w {
-                    taps.push(((i + dy) * wp + j + dx) as i64);
+            for s in 0..slices {
+                for i in 0..h {
+                    let row = (s * hp + i + dy) * wp + dx;
+                    taps.extend((row..row + w).map(|v| v as i64));
                 }
             }
         }
     }
     let cols = planes
-        .reshape([b * t * c_in, hp * wp])
+        .reshape([c_in, slices * hp * wp])
         .select(1, index(taps))
-        .reshape([b * t, c_in * kh * kw, h * w]);
+        .reshape([c_in * kh * kw, slices * h * w]);
     // 2. [C_out, C_in, k, kh, kw] -> [k·C_out, C_in·kh·kw], time offset major.
     let w2 = weight
         .permute([2, 0, 1, 3, 4])
-        .reshape([1, k * c_out, c_in * kh * kw]);
-    let z = w2.matmul(cols); // [B·T, k·C_out, H·W]: rows (b, t, j)
-    let r = c_out * h * w;
+        .reshape([k * c_out, c_in * kh * kw]);
+    let z = w2.matmul(cols); // [k·C_out, B·T·H·W]: rows (j, c), columns (b, u, i, j)
     let y = if k == 1 {
-        z.reshape([b, t, r])
+        z.reshape([c_out, b, t, h, w])
     } else {
-        // 3. Row (b, u, j) of z feeds output (b, u + p − j): one scatter-add
-        // of every row; rows that would land beyond the ends go to one
-        // extra row, dropped.
-        let dropped = (b * t) as i64;
-        let mut dst = Vec::with_capacity(b * t * k);
-        for bi in 0..b {
-            for u in 0..t {
-                for j in 0..k {
-                    let s = (u + p).checked_sub(j).filter(|&s| s < t);
-                    dst.push(s.map_or(dropped, |s| (bi * t + s) as i64));
+        // 3. Plane (j, c, b, u) of z feeds output (c, b, u + p − j): one
+        // scatter-add of every plane; planes that would land beyond the
+        // ends go to one extra plane, dropped.
+        let dropped = (c_out * slices) as i64;
+        let mut dst = Vec::with_capacity(k * c_out * slices);
+        for j in 0..k {
+            for c in 0..c_out {
+                for bi in 0..b {
+                    for u in 0..t {
+                        let s = (u + p).checked_sub(j).filter(|&s| s < t);
+                        dst.push(s.map_or(dropped, |s| ((c * b + bi) * t + s) as i64));
+                    }
                 }
             }
         }
-        Tensor::<2>::zeros([b * t + 1, r], &device)
+        let plane = h * w;
+        Tensor::<2>::zeros([c_out * slices + 1, plane], &device)
             .select_assign(
                 0,
                 index(dst),
-                z.reshape([b * t * k, r]),
+                z.reshape([k * c_out * slices, plane]),
                 IndexingUpdateOp::Add,
             )
-            .slice([0..b * t, 0..r])
-            .reshape([b, t, r])
+            .slice([0..c_out * slices, 0..plane])
+            .reshape([c_out, b, t, h, w])
     };
-    y.reshape([b, t, c_out, h, w]) + bias.reshape([1, 1, c_out, 1, 1])
+    y + bias.reshape([c_out, 1, 1, 1, 1])
 }
 
 /// [`fuse_branches`] with tensor ops on the device (differentiable): each

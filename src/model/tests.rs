@@ -243,7 +243,7 @@ fn training_fusion_has_the_branches_outputs_and_gradients() {
     }
 }
 
-/// The conv3d reference and [`inception::conv3d_over_slices`] (time-major
+/// The conv3d reference and [`inception::conv3d_channel_major`] (channel-major
 /// in and out) of the same `x` `[B, C, T, H, W]`, kernel and bias.
 fn conv3d_both_ways(x: Tensor<5>, w: Tensor<5>, bias: Tensor<1>) -> (Tensor<5>, Tensor<5>) {
     let k = w.dims()[2];
@@ -253,13 +253,13 @@ fn conv3d_both_ways(x: Tensor<5>, w: Tensor<5>, bias: Tensor<1>) -> (Tensor<5>, 
         Some(bias.clone()),
         burn::tensor::ops::ConvOptions::new([1, 1, 1], [k / 2; 3], [1, 1, 1], 1),
     );
-    let got =
-        inception::conv3d_over_slices(x.permute([0, 2, 1, 3, 4]), w, bias).permute([0, 2, 1, 3, 4]);
+    let got = inception::conv3d_channel_major(x.permute([1, 0, 2, 3, 4]), w, bias)
+        .permute([1, 0, 2, 3, 4]);
     (want, got)
 }
 
 #[test]
-fn conv3d_over_slices_is_a_3d_convolution() {
+fn conv3d_channel_major_is_a_3d_convolution() {
     let device = cpu_device();
     for (k, t) in [(3, 5), (1, 4), (5, 7), (3, 1)] {
         let x = Tensor::<5>::from_data(
@@ -287,7 +287,7 @@ fn conv3d_over_slices_is_a_3d_convolution() {
 /// the input, the weight and the bias (a vision layer past the first, whose
 /// input is itself trained, needs all three).
 #[test]
-fn conv3d_over_slices_has_the_convolution_gradients() {
+fn conv3d_channel_major_has_the_convolution_gradients() {
     fn vec_of<const D: usize>(t: Tensor<D>) -> Vec<f32> {
         t.into_data().try_to_vec::<f32>().unwrap()
     }

@@ -69,15 +69,15 @@ impl VisionEncoder {
     }
 
     /// `[B, 3, N, s, s]` (low-passed) -> `[B, features]` (training). The
-    /// layers run time-major (`[B, T, C, H, W]`, see
-    /// [`Inception3d::forward_slices`]): one permutation in, one out, the
-    /// features in the same `(C, T, H, W)` order as [`VisionFused::forward`].
+    /// layers run channel-major (`[C, B, T, H, W]`, see
+    /// [`Inception3d::forward_channel_major`]): one permutation in, one out,
+    /// the features in the same `(C, T, H, W)` order as [`VisionFused::forward`].
     pub fn forward(&self, frames: Tensor<5>) -> Tensor<2> {
-        let mut x = frames.permute([0, 2, 1, 3, 4]);
+        let mut x = frames.permute([1, 0, 2, 3, 4]);
         for (layer, &tp) in self.layers.iter().zip(&self.time_pool) {
-            x = pool_slices(relu(layer.forward_slices(x)), tp);
+            x = pool_channel_major(relu(layer.forward_channel_major(x)), tp);
         }
-        x.permute([0, 2, 1, 3, 4]).flatten(1, 4)
+        x.permute([1, 0, 2, 3, 4]).flatten(1, 4)
     }
 }
 
@@ -124,25 +124,25 @@ pub fn time_pool(x: Tensor<5>) -> Tensor<5> {
         .reshape([b, c, t2, h, w])
 }
 
-/// [`pool`] on time-major activations: `[B, T, C, H, W]` ->
-/// `[B, T or T/2, C, H/2, W/2]`.
-fn pool_slices(x: Tensor<5>, time: bool) -> Tensor<5> {
-    let [b, t, c, h, w] = x.dims();
-    let x = max_pool2d(x.reshape([b, t * c, h, w]), MaxPoolOptions::new([2, 2]));
+/// [`pool`] on channel-major activations: `[C, B, T, H, W]` ->
+/// `[C, B, T or T/2, H/2, W/2]`.
+fn pool_channel_major(x: Tensor<5>, time: bool) -> Tensor<5> {
+    let [c, b, t, h, w] = x.dims();
+    let x = max_pool2d(x.reshape([c, b * t, h, w]), MaxPoolOptions::new([2, 2]));
     let (h, w) = (h / 2, w / 2);
     if !time {
-        return x.reshape([b, t, c, h, w]);
+        return x.reshape([c, b, t, h, w]);
     }
     let t2 = t / 2;
-    let x = x.reshape([b, t, c * h * w]);
+    let x = x.reshape([c * b, t, h * w]);
     let x = if t % 2 == 1 {
-        x.slice([0..b, 0..2 * t2, 0..c * h * w])
+        x.slice([0..c * b, 0..2 * t2, 0..h * w])
     } else {
         x
     };
-    x.reshape([b, t2, 2, c * h * w])
+    x.reshape([c * b, t2, 2, h * w])
         .max_dim(2)
-        .reshape([b, t2, c, h, w])
+        .reshape([c, b, t2, h, w])
 }
 
 /// Low-pass + decimation of raw frames: `[B, 3, N, S, S]` in `[0, 1]` ->

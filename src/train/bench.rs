@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
+use super::adam::FusedAdam;
 use super::device::TrainDevice;
 use super::fit::{bce_with_logits, keep_freed_memory, LabeledWindow};
 use crate::model::file::build_input;
@@ -262,13 +263,13 @@ pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
 }
 
 fn train_throughput(cfg: &ModelConfig, steps: usize, on: TrainDevice) -> anyhow::Result<f64> {
-    use burn::optim::{AdamConfig, GradientsParams};
+    use burn::optim::GradientsParams;
     keep_freed_memory();
     let device = on.device()?.autodiff();
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let meta = ModelMeta::new(cfg.clone(), Ablation::EMP, 30.0, names);
     let mut model = Emp::new(cfg, Ablation::EMP, &device);
-    let mut opt = AdamConfig::new().init();
+    let mut opt = FusedAdam::new(None).init();
     let (n, c, s, l, k) = (
         cfg.n_ticks,
         cfg.n_joints,

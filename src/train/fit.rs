@@ -6,11 +6,11 @@
 //! its [`ModelMeta`] (standardisation statistics, history), ready for
 //! [`crate::model::save_model`].
 
-use burn::optim::decay::WeightDecayConfig;
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::prelude::*;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use super::adam::FusedAdam;
 use super::device::{DeviceError, TrainDevice};
 use crate::model::file::build_input;
 use crate::model::{cpu_device, Ablation, Emp, EpochRecord, ModelConfig, ModelError, ModelMeta};
@@ -351,11 +351,7 @@ pub fn fit(
     let ablation: Ablation = meta.ablation;
     let k = cfg.k();
     let mut model = Emp::new(&cfg, ablation, &device);
-    let adam = |r: Rate| -> ModuleOptimizer {
-        AdamConfig::new()
-            .with_weight_decay(Some(WeightDecayConfig::new(r.weight_decay)))
-            .init()
-    };
+    let adam = |r: Rate| -> ModuleOptimizer { FusedAdam::new(Some(r.weight_decay)).init() };
     let r = opts.rates;
     let (mut opt_m, mut opt_t, mut opt_v, mut opt_c) = (
         adam(r.motion),

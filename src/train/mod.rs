@@ -1,10 +1,11 @@
 //! Training and evaluation: data sets of recordings and the i.i.d. window
 //! sampler (data plane: `dataset`, `sampler`), and the network side: the
 //! training loop (`fit`), metrics, evaluation, plots, the logistic baseline,
-//! the `train`/`eval` commands (`cli`), `calibrate` (Platt scaling on
+//! the optimizer (`adam`), the `train`/`eval` commands (`cli`), `calibrate` (Platt scaling on
 //! held-out windows), `bench`, and the safety figures of
 //! `warnings` (lead time, false alarms, thresholds).
 
+pub mod adam;
 pub mod bench;
 pub mod calibrate;
 pub mod cli;
