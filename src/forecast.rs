@@ -671,6 +671,13 @@ fn inference_loop(
         bus.send_forecast(output);
         busy.store(false, Ordering::Release);
         idle.notify_one();
+        // Off the tick's path: the next tick's trajectory features, from
+        // this tick's plan (used if no new plan arrives before it).
+        if let Some(last) = job.ticks.last() {
+            if job.ticks.len() >= models.spec().n_ticks {
+                forecasters.precompute_next(job.ablation, last);
+            }
+        }
     }
 }
 
@@ -781,6 +788,20 @@ impl Forecasters {
 }
 
 impl Forecasters {
+    /// After the forecast of `last`'s tick by `ablation`'s forecaster: its
+    /// trajectory features for the next tick, computed now
+    /// ([`StreamingForecaster::precompute_next`]). A failure is left to
+    /// that tick's forecast, which computes and reports it itself.
+    fn precompute_next(&mut self, ablation: Ablation, last: &TickInput) {
+        if let Some((_, f)) = self.by_ablation.iter_mut().find(|(a, _)| *a == ablation) {
+            if f.last_tick() == Some(last.tick) {
+                if let Err(e) = f.precompute_next(last) {
+                    tracing::debug!(tick = last.tick, error = %e, "trajectory features not computed ahead");
+                }
+            }
+        }
+    }
+
     /// While the ring fills (`ticks` fewer than N): pushes the ticks the
     /// forecaster of `ablation` has not seen and computes their vision
     /// slices, without a forecast. A tick the network refuses (a stream not

@@ -157,15 +157,37 @@ impl EmpInference {
         self.forward_with_vision(input, vision)
     }
 
-    /// Forward with the vision features already computed (the streaming path).
+    /// Forward with the vision features already computed.
     pub fn forward_with_vision(
         &self,
         input: EmpInput,
         vision_features: Option<Tensor<2>>,
     ) -> Tensor<2> {
-        let mut feats = vec![self.motion.forward(input.joints)];
-        if let (Some(p), Some(plan)) = (&self.plan, input.plan) {
-            feats.push(p.forward(plan, self.plan_fused.as_ref()));
+        let plan = input.plan.and_then(|p| self.plan_features(p));
+        self.forward_with_features(input.joints, plan, vision_features)
+    }
+
+    /// The trajectory encoder's features `[B, L·d_t]` of a standardised
+    /// plan window `[B, L, C]`; `None` for a network without a plan input.
+    pub fn plan_features(&self, plan: Tensor<3>) -> Option<Tensor<2>> {
+        self.plan
+            .as_ref()
+            .map(|p| p.forward(plan, self.plan_fused.as_ref()))
+    }
+
+    /// Forward with the trajectory and vision features already computed
+    /// (the streaming path): motion, the classifier.
+    pub fn forward_with_features(
+        &self,
+        joints: Tensor<3>,
+        plan_features: Option<Tensor<2>>,
+        vision_features: Option<Tensor<2>>,
+    ) -> Tensor<2> {
+        let mut feats = vec![self.motion.forward(joints)];
+        if self.plan.is_some() {
+            if let Some(p) = plan_features {
+                feats.push(p);
+            }
         }
         if self.vision_fused.is_some() {
             if let Some(v) = vision_features {

@@ -23,7 +23,6 @@ use burn::prelude::*;
 
 use super::file::{host_logits, LoadedModel, ModelError};
 use super::vision::lowpass_frames;
-use super::EmpInput;
 
 /// One time slice of one vision layer: `[channels, h, w]` row-major.
 #[derive(Debug, Clone)]
@@ -52,6 +51,12 @@ pub struct StreamingForecaster {
     model: LoadedModel,
     ticks: VecDeque<TickState>,
     plan_std: Option<Vec<f32>>,
+    /// Trajectory features computed ahead of their tick
+    /// ([`StreamingForecaster::precompute_plan`]) with the standardised plan
+    /// window they are of: used when the tick's window is that one.
+    plan_ahead: Option<(Vec<f32>, Tensor<2>)>,
+    /// Forecasts that used `plan_ahead`, for tests and benchmarks.
+    plan_reused: u64,
     /// Per vision layer: stable slice (after conv, ReLU, spatial pool) by key.
     cache: Vec<HashMap<i64, Arc<Vec<f32>>>>,
     /// Vision slices computed so far (all layers), for tests and benchmarks.
@@ -67,6 +72,8 @@ impl StreamingForecaster {
             model: model.clone(),
             ticks: VecDeque::with_capacity(cfg.n_ticks + 1),
             plan_std: None,
+            plan_ahead: None,
+            plan_reused: 0,
             cache: vec![HashMap::new(); layers],
             slices_computed: 0,
         }
@@ -81,7 +88,14 @@ impl StreamingForecaster {
     pub fn reset(&mut self) {
         self.ticks.clear();
         self.plan_std = None;
+        self.plan_ahead = None;
         self.cache.iter_mut().for_each(HashMap::clear);
+    }
+
+    /// Forecasts whose trajectory features were computed ahead of their
+    /// tick ([`StreamingForecaster::precompute_plan`]).
+    pub fn plan_reused(&self) -> u64 {
+        self.plan_reused
     }
 
     /// Vision slices computed since the forecaster was made (every layer):
@@ -170,32 +184,13 @@ impl StreamingForecaster {
             None
         };
         if meta.ablation.uses_plan() && cfg.trajectory.reads_plan() {
-            let l = cfg.plan_len();
             let p = plan_rad.ok_or_else(|| {
                 ModelError::Input(format!(
                     "tick {tick}: no plan, the {} model needs one",
                     meta.ablation
                 ))
             })?;
-            let p = cfg.trajectory_rows(&[], p);
-            if p.len() != l * c {
-                return Err(ModelError::Input(format!(
-                    "tick {tick}: plan window has {} values, expected {l} ticks x {c} joints",
-                    p.len()
-                )));
-            }
-            let mut std = Vec::with_capacity(l * c);
-            for (i, &v) in p.iter().enumerate() {
-                if !v.is_finite() {
-                    return Err(ModelError::Input(format!(
-                        "tick {tick}: plan not finite at offset {} joint {}",
-                        i / c,
-                        meta.joint_names[i % c]
-                    )));
-                }
-                std.push((v - meta.plan_mean[i % c]) / meta.plan_std[i % c]);
-            }
-            self.plan_std = Some(std);
+            self.plan_std = Some(self.standardised_plan(tick, p)?);
         }
         if let Some(last) = self.ticks.back() {
             if tick != last.tick + 1 {
@@ -213,6 +208,57 @@ impl StreamingForecaster {
         });
         if self.ticks.len() > cfg.n_ticks {
             self.ticks.pop_front();
+        }
+        Ok(())
+    }
+
+    /// The trajectory encoder's input for tick `tick`, standardised, from
+    /// the plan window `plan_rad` (checked: length, finite values).
+    fn standardised_plan(&self, tick: i64, plan_rad: &[f32]) -> Result<Vec<f32>, ModelError> {
+        let meta = &self.model.meta;
+        let cfg = &meta.config;
+        let (l, c) = (cfg.plan_len(), cfg.n_joints);
+        let p = cfg.trajectory_rows(&[], plan_rad);
+        if p.len() != l * c {
+            return Err(ModelError::Input(format!(
+                "tick {tick}: plan window has {} values, expected {l} ticks x {c} joints",
+                p.len()
+            )));
+        }
+        let mut std = Vec::with_capacity(l * c);
+        for (i, &v) in p.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(ModelError::Input(format!(
+                    "tick {tick}: plan not finite at offset {} joint {}",
+                    i / c,
+                    meta.joint_names[i % c]
+                )));
+            }
+            std.push((v - meta.plan_mean[i % c]) / meta.plan_std[i % c]);
+        }
+        Ok(std)
+    }
+
+    /// Computes now the trajectory features of a later tick's plan window
+    /// `plan_rad` (the same rows `push_parts` would be given), so that the
+    /// forecast of that tick, if its window is exactly this one, does not
+    /// wait for them. Between two plan messages the next tick's window is
+    /// known as soon as a tick is done (the plan sampled on the tick grid),
+    /// so the daemon computes it while it waits for the next joints. The
+    /// features are the same computation on the same values: a forecast is
+    /// bit for bit what it would have been. A model without a plan input
+    /// does nothing.
+    pub fn precompute_plan(&mut self, tick: i64, plan_rad: &[f32]) -> Result<(), ModelError> {
+        let meta = &self.model.meta;
+        if !(meta.ablation.uses_plan() && meta.config.trajectory.reads_plan()) {
+            return Ok(());
+        }
+        let std = self.standardised_plan(tick, plan_rad)?;
+        let (l, c) = (meta.config.plan_len(), meta.config.n_joints);
+        let plan =
+            Tensor::<3>::from_data(TensorData::new(std.clone(), [1, l, c]), &self.model.device);
+        if let Some(features) = self.model.network.plan_features(plan) {
+            self.plan_ahead = Some((std, features));
         }
         Ok(())
     }
@@ -279,19 +325,27 @@ impl StreamingForecaster {
                 &device,
             ))
         };
+        // Trajectory features computed ahead for exactly this window, or now.
+        let ahead = match (&self.plan_ahead, &self.plan_std) {
+            (Some((rows, features)), Some(now)) if rows == now => Some(features.clone()),
+            _ => None,
+        };
+        let plan_features = match ahead {
+            Some(f) => {
+                self.plan_reused += 1;
+                Some(f)
+            }
+            None => plan.and_then(|p| self.model.network.plan_features(p)),
+        };
         let vision = if meta.ablation.uses_vision() {
             Some(self.vision_features()?)
         } else {
             None
         };
-        let logits = self.model.network.forward_with_vision(
-            EmpInput {
-                joints,
-                plan,
-                frames: None,
-            },
-            vision,
-        );
+        let logits = self
+            .model
+            .network
+            .forward_with_features(joints, plan_features, vision);
         Ok(self.model.meta.probabilities_of(&host_logits(logits)?))
     }
 

@@ -984,3 +984,62 @@ fn grouped_period_grids_are_the_per_sample_convolutions() {
         );
     }
 }
+
+/// Trajectory features computed ahead of their tick give bit for bit the
+/// forecast computed at the tick, are used only when the tick's plan window
+/// is the one they were computed for (a new plan, or a guess for another
+/// window, is computed at the tick), and equal the whole-window forward.
+#[test]
+fn plan_features_computed_ahead_change_nothing() {
+    let cfg = small_config();
+    for ablation in [Ablation::EMP, Ablation::MP] {
+        let (meta, emp) = model(&cfg, ablation);
+        let loaded = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+        let (c, s, l) = (cfg.n_joints, cfg.frame_size, cfg.plan_len());
+        let total = cfg.n_ticks + 9;
+        let joints = noise(total * c, 79);
+        let frames: Vec<Vec<f32>> = (0..total)
+            .map(|t| noise(3 * s * s, 3000 + t as u64))
+            .collect();
+        // The plan window of tick t: a new message every fourth tick.
+        let plan_of = |t: usize| noise(l * c, 6000 + (t / 4) as u64);
+        let mut ahead = StreamingForecaster::new(&loaded);
+        let mut plain = StreamingForecaster::new(&loaded);
+        let mut reused = 0;
+        for t in 0..total {
+            let plan = plan_of(t);
+            let frame = ablation.uses_vision().then_some(frames[t].as_slice());
+            for f in [&mut ahead, &mut plain] {
+                f.push_parts(
+                    100 + t as i64,
+                    &joints[t * c..(t + 1) * c],
+                    frame,
+                    Some(&plan),
+                )
+                .unwrap();
+            }
+            if t + 1 < cfg.n_ticks {
+                continue;
+            }
+            let got = ahead.forecast().unwrap();
+            let want = plain.forecast().unwrap();
+            assert_eq!(got, want, "{ablation} tick {t}");
+            let (wj, wf) = stream_window(&cfg, &joints, &frames, t);
+            let window = loaded.forecast_arrays(&wj, &plan, &wf).unwrap();
+            for (g, w) in got.iter().zip(&window) {
+                assert!(
+                    (g - w).abs() < 1e-5,
+                    "{ablation} tick {t}: {got:?} vs {window:?}"
+                );
+            }
+            // The guess for the next tick: this tick's plan message.
+            ahead.precompute_plan(101 + t as i64, &plan).unwrap();
+            if t + 1 < total && plan_of(t + 1) == plan {
+                reused += 1;
+            }
+        }
+        assert_eq!(ahead.plan_reused(), reused, "{ablation}");
+        assert!(reused > 0 && reused < 9, "{ablation}: {reused}");
+        assert_eq!(plain.plan_reused(), 0);
+    }
+}

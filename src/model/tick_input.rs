@@ -8,7 +8,7 @@
 
 use super::file::ModelError;
 use super::streaming::StreamingForecaster;
-use crate::window::{TickGrid, TickInput, WindowSpec};
+use crate::window::{Plan, TickGrid, TickInput, WindowSpec};
 
 impl StreamingForecaster {
     /// The window spec of the loaded model (for `check_compatible` and the ring).
@@ -19,7 +19,7 @@ impl StreamingForecaster {
     /// Adds one tick. Streams the model's ablation does not use may be absent.
     pub fn push(&mut self, input: &TickInput) -> Result<(), ModelError> {
         let meta = &self.model().meta;
-        let (n, c, s) = (meta.n_ticks, meta.config.n_joints, meta.config.frame_size);
+        let s = meta.config.frame_size;
         let tick = input.tick;
         let joints = input
             .joints_rad
@@ -47,22 +47,48 @@ impl StreamingForecaster {
                 .plan
                 .as_ref()
                 .ok_or_else(|| ModelError::Input(format!("tick {tick}: no plan yet")))?;
-            // Only the plan needs the grid: no window spec (joint names
-            // and all) is built per tick.
-            let grid = TickGrid::new(meta.rate_hz)
-                .map_err(|e| ModelError::Input(format!("tick grid: {e}")))?;
-            let first_tick = tick - n as i64 + 1;
-            // As many rows as the model reads (`N + h_K`, or `N` for
-            // historical-only): the forecaster cuts the same rows from it.
-            let mut out = vec![0.0f32; meta.config.plan_len() * c];
-            for (i, row) in out.chunks_exact_mut(c).enumerate() {
-                p.sample_into(grid.stamp_ns(first_tick + i as i64), row);
-            }
-            Some(out)
+            Some(self.plan_window(tick, p)?)
         } else {
             None
         };
         self.push_parts(tick, joints, frame.as_deref(), plan.as_deref())
+    }
+
+    /// After the forecast of `input`'s tick: the trajectory features of the
+    /// next tick, computed now from the same plan message
+    /// ([`StreamingForecaster::precompute_plan`]). If no new plan arrives
+    /// before that tick, its forecast uses them and waits only for the
+    /// joints, the frame, and the classifier. A model without a plan input,
+    /// or a tick without a plan, does nothing.
+    pub fn precompute_next(&mut self, input: &TickInput) -> Result<(), ModelError> {
+        let meta = &self.model().meta;
+        if !(meta.ablation.uses_plan() && meta.config.trajectory.reads_plan()) {
+            return Ok(());
+        }
+        let Some(p) = input.plan.as_ref() else {
+            return Ok(());
+        };
+        let next = input.tick + 1;
+        let rows = self.plan_window(next, p)?;
+        self.precompute_plan(next, &rows)
+    }
+
+    /// The plan window of tick `tick`: `plan` sampled on the tick grid at
+    /// ticks `tick - N + 1 ..`, as many rows as the model reads (`N + h_K`,
+    /// or `N` for historical-only: the forecaster cuts the same rows).
+    fn plan_window(&self, tick: i64, plan: &Plan) -> Result<Vec<f32>, ModelError> {
+        let meta = &self.model().meta;
+        let (n, c) = (meta.n_ticks, meta.config.n_joints);
+        // Only the plan needs the grid: no window spec (joint names and
+        // all) is built per tick.
+        let grid = TickGrid::new(meta.rate_hz)
+            .map_err(|e| ModelError::Input(format!("tick grid: {e}")))?;
+        let first_tick = tick - n as i64 + 1;
+        let mut out = vec![0.0f32; meta.config.plan_len() * c];
+        for (i, row) in out.chunks_exact_mut(c).enumerate() {
+            plan.sample_into(grid.stamp_ns(first_tick + i as i64), row);
+        }
+        Ok(out)
     }
 }
 
