@@ -12,7 +12,10 @@
 //!   absolute tick where it starts. Each tick recomputes only the slices next
 //!   to the window's two ends (and the new ones).
 //!
-//! Motion, plan and classifier are recomputed every tick (their inputs all move).
+//! Motion, plan and classifier are recomputed every tick (their inputs all
+//! move). The plan's features can be computed before their tick
+//! ([`StreamingForecaster::precompute_plan`]): between two plan messages the
+//! next tick's plan window is known once a tick is done.
 //! Inference runs on the calling thread: the Flex backend is built without
 //! its rayon feature, so no other thread is used.
 
