@@ -13,7 +13,6 @@
 //! time a [`DiagnosticsSnapshot`] leaves on the [`OutputBus`]. Each tick
 //! also pets the systemd watchdog.
 
-use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -23,8 +22,8 @@ use crate::forecast::{
 };
 use crate::model::Ablation;
 use crate::outputs::{
-    DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, OutputBus, StreamDiagnostics,
-    ERROR_WINDOW_S,
+    CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, OutputBus,
+    StreamDiagnostics, ERROR_WINDOW_S,
 };
 use crate::shutdown::Shutdown;
 use crate::sources::input::Seq;
@@ -128,10 +127,10 @@ pub struct TickLoop {
     /// Sample counts and stamp at the last diagnostics snapshot.
     diag_samples: PerStream<u64>,
     diag_stamp_ns: Option<i64>,
-    /// Per stream, (tick stamp, error total, rejection total) at each
-    /// snapshot of the last [`ERROR_WINDOW_S`] seconds: levels look at
-    /// errors and rejections in that window.
-    error_history: PerStream<VecDeque<(i64, u64, u64)>>,
+    /// Per stream, (error total, rejection total) at each snapshot of the
+    /// last [`ERROR_WINDOW_S`] seconds of tick time: levels look at errors
+    /// and rejections in that window.
+    error_history: PerStream<CounterWindow<i64, (u64, u64)>>,
     /// Model-order joint names, to name the joints a reading lacks.
     joint_names: Vec<String>,
     last_valid: bool,
@@ -382,21 +381,18 @@ impl TickLoop {
             let rate_hz =
                 (stats.samples - self.diag_samples[kind].min(stats.samples)) as f64 / period_s;
             self.diag_samples[kind] = stats.samples;
-            let history = &mut self.error_history[kind];
-            history.push_back((stamp_ns, stats.errors, stats.rejected));
             let window_ns = ERROR_WINDOW_S as i64 * 1_000_000_000;
-            while history.len() > 1 && history[1].0 <= stamp_ns - window_ns {
-                history.pop_front();
-            }
             // Errors (rejections) since the newest snapshot at or before the
             // window's start (all of them while the run is younger than the
             // window).
-            let (recent_errors, recent_rejected) = match history.front() {
-                Some(&(t, e, r)) if t <= stamp_ns - window_ns => (
+            let history = &mut self.error_history[kind];
+            history.push(stamp_ns, window_ns, (stats.errors, stats.rejected));
+            let (recent_errors, recent_rejected) = match history.window_start(stamp_ns, window_ns) {
+                Some(&(_, (e, r))) => (
                     stats.errors.saturating_sub(e),
                     stats.rejected.saturating_sub(r),
                 ),
-                _ => (stats.errors, stats.rejected),
+                None => (stats.errors, stats.rejected),
             };
             // Why samples were refused, appended to a STALE message: a
             // stream that is stale because every sample is rejected says so.

@@ -296,11 +296,44 @@ impl StreamingForecaster {
             .flat_map(|t| t.joints_std.iter().copied())
             .collect();
         let joints = Tensor::<3>::from_data(TensorData::new(joints, [1, n, c]), &device);
-        let plan = if !meta.ablation.uses_plan() {
+        // Trajectory features computed ahead for exactly this window, or now.
+        let ahead = match (&self.plan_ahead, &self.plan_std) {
+            (Some((rows, features)), Some(now)) if rows == now => Some(features.clone()),
+            _ => None,
+        };
+        let plan_features = match ahead {
+            Some(f) => {
+                self.plan_reused += 1;
+                Some(f)
+            }
+            None => self
+                .plan_input()?
+                .and_then(|p| self.model.network.plan_features(p)),
+        };
+        let vision = if meta.ablation.uses_vision() {
+            Some(self.vision_features()?)
+        } else {
+            None
+        };
+        let logits = self
+            .model
+            .network
+            .forward_with_features(joints, plan_features, vision);
+        Ok(self.model.meta.probabilities_of(&host_logits(logits)?))
+    }
+
+    /// The trajectory encoder's input `[1, L, C]` for the current window,
+    /// standardised; `None` for a network without a plan input.
+    fn plan_input(&self) -> Result<Option<Tensor<3>>, ModelError> {
+        let meta = &self.model.meta;
+        let cfg = &meta.config;
+        let c = cfg.n_joints;
+        let device = &self.model.device;
+        Ok(if !meta.ablation.uses_plan() {
             None
         } else if cfg.trajectory.reads_plan() {
             self.plan_std.as_ref().map(|p| {
-                Tensor::<3>::from_data(TensorData::new(p.clone(), [1, cfg.plan_len(), c]), &device)
+                Tensor::<3>::from_data(TensorData::new(p.clone(), [1, cfg.plan_len(), c]), device)
             })
         } else {
             // Real position: the window's measured angles, through the same
@@ -325,31 +358,9 @@ impl StreamingForecaster {
                 .collect();
             Some(Tensor::<3>::from_data(
                 TensorData::new(std, [1, cfg.plan_len(), c]),
-                &device,
+                device,
             ))
-        };
-        // Trajectory features computed ahead for exactly this window, or now.
-        let ahead = match (&self.plan_ahead, &self.plan_std) {
-            (Some((rows, features)), Some(now)) if rows == now => Some(features.clone()),
-            _ => None,
-        };
-        let plan_features = match ahead {
-            Some(f) => {
-                self.plan_reused += 1;
-                Some(f)
-            }
-            None => plan.and_then(|p| self.model.network.plan_features(p)),
-        };
-        let vision = if meta.ablation.uses_vision() {
-            Some(self.vision_features()?)
-        } else {
-            None
-        };
-        let logits = self
-            .model
-            .network
-            .forward_with_features(joints, plan_features, vision);
-        Ok(self.model.meta.probabilities_of(&host_logits(logits)?))
+        })
     }
 
     /// Vision features `[1, F]` of the current window, reusing cached slices.

@@ -17,7 +17,6 @@
 //! `data[k]` is horizon k in ms. A subscriber reads it once (it arrives even
 //! when the subscriber starts late) and then indexes the forecasts.
 
-use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 
@@ -27,7 +26,9 @@ use crate::msgs::{
     Bool, DiagnosticArray, DiagnosticStatus, Float32MultiArray, Header, JointState, KeyValue,
     MultiArrayDimension, MultiArrayLayout, Time,
 };
-use crate::outputs::{DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ERROR_WINDOW_S};
+use crate::outputs::{
+    CounterWindow, DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ERROR_WINDOW_S,
+};
 use crate::ros::{qos, RosError, RosNode};
 
 /// `layout.dim[0].label` of the forecast and of the horizons topic.
@@ -88,7 +89,7 @@ pub struct RosOutputs {
     pub failures: PublishFailures,
     /// Failure totals at past `/diagnostics` reports (tick time), for the
     /// figures over the last [`ERROR_WINDOW_S`].
-    failure_history: Mutex<VecDeque<(i64, [u64; 4])>>,
+    failure_history: Mutex<CounterWindow<i64, [u64; 4]>>,
 }
 
 #[derive(Debug, Clone)]
@@ -159,7 +160,7 @@ impl RosOutputs {
             topics: resolved,
             status_prefix: node.settings().node_name.clone(),
             failures: PublishFailures::default(),
-            failure_history: Mutex::new(VecDeque::new()),
+            failure_history: Mutex::new(CounterWindow::default()),
         })
     }
 
@@ -224,12 +225,11 @@ impl RosOutputs {
             .failure_history
             .lock()
             .unwrap_or_else(|e| e.into_inner());
-        // Keep the newest report at least a window old as the base.
-        while history.len() > 1 && history[1].0 <= stamp_ns - window_ns {
-            history.pop_front();
-        }
-        let base = history.front().map_or([0; 4], |&(_, totals)| totals);
-        history.push_back((stamp_ns, now));
+        history.push(stamp_ns, window_ns, now);
+        // All failures since start while the run is younger than the window.
+        let base = history
+            .window_start(stamp_ns, window_ns)
+            .map_or([0; 4], |&(_, totals)| totals);
         let recent: [u64; 4] = std::array::from_fn(|i| now[i].saturating_sub(base[i]));
         let t = &self.topics;
         let topics = [

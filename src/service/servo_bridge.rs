@@ -14,11 +14,10 @@
 //! error. Its level is judged on the window, so it returns to OK once the
 //! fault is gone; a plain (non-USB2AX) adapter is a mode, not a fault.
 
-use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use crate::config::Config;
-use crate::outputs::{DeviceDiagnostics, DiagnosticLevel, ERROR_WINDOW_S};
+use crate::outputs::{CounterWindow, DeviceDiagnostics, DiagnosticLevel, ERROR_WINDOW_S};
 use crate::robot::JointTable;
 use crate::service::{ServiceError, SourceHandle};
 use crate::shutdown::Shutdown;
@@ -207,7 +206,7 @@ pub fn bus_status(
 pub struct ServoHealth {
     /// (seconds since the reader started, counters), oldest first; the
     /// first entry is the newest one at or before the window's start.
-    history: VecDeque<(f64, ServoStatsSnapshot)>,
+    history: CounterWindow<f64, ServoStatsSnapshot>,
 }
 
 impl ServoHealth {
@@ -219,18 +218,15 @@ impl ServoHealth {
     /// decreasing) and return one status per bus.
     pub fn update(&mut self, t_s: f64, snapshot: ServoStatsSnapshot) -> Vec<DeviceDiagnostics> {
         let window = ERROR_WINDOW_S as f64;
-        self.history.push_back((t_s, snapshot));
-        while self.history.len() > 1 && self.history[1].0 <= t_s - window {
-            self.history.pop_front();
-        }
-        let (base_t, base) = if self.history.len() > 1 && self.history[0].0 <= t_s - window {
-            let (t, s) = &self.history[0];
-            (*t, Some(s))
-        } else {
+        self.history.push(t_s, window, snapshot);
+        let (base_t, base) = match self.history.window_start(t_s, window) {
+            Some((t, s)) => (*t, Some(s)),
             // Less than a window since the start: count from the start.
-            (0.0, None)
+            None => (0.0, None),
         };
-        let now = &self.history[self.history.len() - 1].1;
+        let Some(now) = self.history.latest() else {
+            return Vec::new();
+        };
         now.buses
             .iter()
             .enumerate()
