@@ -23,6 +23,13 @@ use super::host_conv::{HostConv, Strides};
 /// Output positions per im2col tile (keeps the tile in L2).
 const TILE: usize = 32;
 
+/// Periods up to this are convolved a grid column at a time
+/// ([`HostConv::grid_by_column`]).
+const BY_COLUMN_MAX_PERIOD: usize = 7;
+
+/// Output positions per tile there (one GEMM per kernel row and tile).
+const COLUMN_TILE: usize = 64;
+
 impl HostConv {
     /// `x` `[len, C_in]` position-major, folded as `rows x p` (`len <= rows·p`,
     /// zeros after `len`) -> the first `out_len` positions of the output,
@@ -42,6 +49,10 @@ impl HostConv {
         let mut out = vec![0.0f32; out_len * c_out];
         for row in out.chunks_exact_mut(c_out) {
             row.copy_from_slice(self.bias());
+        }
+        if p <= BY_COLUMN_MAX_PERIOD && p < rows {
+            self.grid_by_column(x, p, &mut out);
+            return out;
         }
         // The kernel rows that reach a data row from grid row `r`; the others
         // read only zeros and are left out of the GEMM.
@@ -102,6 +113,94 @@ impl HostConv {
             }
         });
         out
+    }
+
+    /// [`forward_grid`](Self::forward_grid) for a short period: the
+    /// positions taken a grid column at a time, each with only the kernel
+    /// columns that reach the grid from it (for `p = 3`, 3 of 5 from every
+    /// column), one GEMM per kernel row (their weight rows are contiguous
+    /// only within a kernel row). Kernel rows are not restricted here: a
+    /// short period folds the plan into many rows, where only the first
+    /// and last `k/2` read padding. `out` holds the bias.
+    fn grid_by_column(&self, x: &[f32], p: usize, out: &mut [f32]) {
+        let (k, c_in, c_out) = (self.k(), self.c_in(), self.c_out());
+        let (len, out_len, half) = (x.len() / c_in, out.len() / c_out, k / 2);
+        let kernel_cols = |c: usize| (half.saturating_sub(c), (p + half - c).min(k));
+        let mut tmp = vec![0.0f32; COLUMN_TILE * c_out];
+        let mut positions: Vec<usize> = Vec::with_capacity(COLUMN_TILE);
+        HostConv::with_scratch(COLUMN_TILE * k * k * c_in, |a| {
+            let mut c0 = 0;
+            while c0 < p {
+                // Neighbouring columns with the same kernel columns (the
+                // interior of a wide grid) are taken together.
+                let (kx_lo, kx_hi) = kernel_cols(c0);
+                let mut c1 = c0 + 1;
+                while c1 < p && kernel_cols(c1) == (kx_lo, kx_hi) {
+                    c1 += 1;
+                }
+                let nkx = kx_hi - kx_lo;
+                let kk = k * nkx * c_in;
+                let mut all = (0..out_len).filter(|m| (c0..c1).contains(&(m % p)));
+                loop {
+                    positions.clear();
+                    positions.extend(all.by_ref().take(COLUMN_TILE));
+                    if positions.is_empty() {
+                        break;
+                    }
+                    let tile = positions.len();
+                    for (t, &m) in positions.iter().enumerate() {
+                        let (r, c) = ((m / p) as isize, m % p);
+                        let arow = &mut a[t * kk..(t + 1) * kk];
+                        for ky in 0..k {
+                            let rr = r + ky as isize - half as isize;
+                            for kx in kx_lo..kx_hi {
+                                // In the grid's columns by the choice of kx.
+                                let cc = c + kx - half;
+                                let at = (ky * nkx + kx - kx_lo) * c_in;
+                                let dst = &mut arow[at..at + c_in];
+                                match usize::try_from(rr).map(|rr| rr * p + cc) {
+                                    Ok(n) if n < len => {
+                                        dst.copy_from_slice(&x[n * c_in..(n + 1) * c_in])
+                                    }
+                                    _ => dst.fill(0.0),
+                                }
+                            }
+                        }
+                    }
+                    let out_tile = &mut tmp[..tile * c_out];
+                    out_tile.fill(0.0);
+                    let rows_of = |cols| Strides { row: cols, col: 1 };
+                    if nkx == k {
+                        self.accumulate_taps(
+                            0..k * k,
+                            tile,
+                            out_tile,
+                            rows_of(c_out),
+                            &a[..tile * kk],
+                            rows_of(kk),
+                        );
+                    } else {
+                        for ky in 0..k {
+                            let at = ky * nkx * c_in;
+                            self.accumulate_taps(
+                                ky * k + kx_lo..ky * k + kx_hi,
+                                tile,
+                                out_tile,
+                                rows_of(c_out),
+                                &a[at..tile * kk],
+                                rows_of(kk),
+                            );
+                        }
+                    }
+                    for (&m, part) in positions.iter().zip(out_tile.chunks_exact(c_out)) {
+                        for (o, v) in out[m * c_out..(m + 1) * c_out].iter_mut().zip(part) {
+                            *o += v;
+                        }
+                    }
+                }
+                c0 = c1;
+            }
+        });
     }
 }
 

@@ -14,7 +14,7 @@ use burn::tensor::ops::MaxPoolOptions;
 use super::config::ModelConfig;
 use super::host_conv::HostConv;
 use super::inception::{FusedConv, Inception3d};
-use super::spectral::lowpass_matrix;
+use super::spectral::lowpass_matrix_shared;
 
 /// The vision encoder.
 #[derive(Module, Debug)]
@@ -152,7 +152,10 @@ pub fn lowpass_frames(frames: Tensor<5>, a: usize) -> Tensor<5> {
     debug_assert_eq!(s, s2);
     let o = 2 * a;
     let device = frames.device();
-    let p = Tensor::<2>::from_data(TensorData::new(lowpass_matrix(a, s), [o, s]), &device);
+    let p = Tensor::<2>::from_data(
+        TensorData::new(lowpass_matrix_shared(a, s).to_vec(), [o, s]),
+        &device,
+    );
     let planes = b * c * t;
     // x · Pᵀ over width: [planes·S, S] · [S, o] -> [planes, S, o]
     let y = frames
