@@ -98,6 +98,10 @@ fn projection(c: &mut Criterion) {
     group.bench_function(format!("{d_in}x{d_out}_f16"), |b| {
         b.iter(|| std::hint::black_box(linear.forward(x.clone())))
     });
+    let int8 = linear.to_int8();
+    group.bench_function(format!("{d_in}x{d_out}_int8"), |b| {
+        b.iter(|| std::hint::black_box(int8.forward(x.clone())))
+    });
     group.finish();
 }
 

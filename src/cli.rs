@@ -11,7 +11,7 @@ use clap::{Args, Parser, Subcommand};
 use clap::ValueEnum;
 
 use fall_guard::daemon_bench::BenchDaemonOptions;
-use fall_guard::model::{Ablation, TrajectoryInput};
+use fall_guard::model::{Ablation, ProjectionWeights, TrajectoryInput};
 use fall_guard::service::{LabelOptions, RecordOptions, ReplayOptions, RunOptions};
 use fall_guard::train::bench::BenchOptions;
 use fall_guard::train::calibrate::CalibrateOptions;
@@ -372,6 +372,10 @@ pub struct EvalArgs {
     /// JSON lines: one forecast per tick of --recording.
     #[arg(long)]
     pub per_tick_out: Option<PathBuf>,
+    /// How each network's classifier input projection is held: as the
+    /// file stores it, or int8 (`[model].projection`).
+    #[arg(long, value_enum, default_value_t = ProjectionWeights::AsFile)]
+    pub projection: ProjectionWeights,
 }
 
 impl From<EvalArgs> for EvalOptions {
@@ -387,6 +391,7 @@ impl From<EvalArgs> for EvalOptions {
             protocol: a.protocol.into(),
             recording: a.recording,
             per_tick_out: a.per_tick_out,
+            projection: a.projection,
         }
     }
 }
@@ -441,6 +446,10 @@ pub struct BenchArgs {
     /// Device of the training part: cpu, cuda, cuda:N or wgpu (see `train --device`).
     #[arg(long, default_value = "cpu")]
     pub device: TrainDevice,
+    /// How the classifier's input projection is held for the inference
+    /// part: as the file stores it, or int8 (`[model].projection`).
+    #[arg(long, value_enum, default_value_t = ProjectionWeights::AsFile)]
+    pub projection: ProjectionWeights,
 }
 
 impl From<BenchArgs> for BenchOptions {
@@ -454,6 +463,7 @@ impl From<BenchArgs> for BenchOptions {
             ablations: a.ablations,
             train_only: a.train_only,
             device: a.device,
+            projection: a.projection,
         }
     }
 }

@@ -132,6 +132,12 @@ pub struct ModelConfig {
     /// less memory until the first switch, which also pays the load).
     #[serde(default)]
     pub fallbacks: FallbackLoading,
+    /// How each network's classifier input projection is held in memory:
+    /// `"int8"` (default: half the memory of f16 and less read per tick;
+    /// forecasts within 0.0011 of the file's, model card) or `"as_file"`
+    /// (f16 for the shipped files: the product training evaluated).
+    #[serde(default = "default_projection")]
+    pub projection: crate::model::ProjectionWeights,
     /// Horizon watched by the safety latch (`/fall_guard/fall_imminent`), ms;
     /// must be one of the model's horizons.
     pub horizon_ms: u32,
@@ -150,6 +156,10 @@ pub enum FallbackLoading {
     AtStart,
     /// Checked at start, released, loaded at their first use, then kept.
     WhenNeeded,
+}
+
+fn default_projection() -> crate::model::ProjectionWeights {
+    crate::model::ProjectionWeights::Int8
 }
 
 fn default_model_dir() -> PathBuf {

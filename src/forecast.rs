@@ -30,7 +30,9 @@ use thiserror::Error;
 use tokio::sync::Notify;
 
 use crate::config::{Config, ConfigError, FallbackLoading, ModelFacts};
-use crate::model::{Ablation, LoadedModel, ModelError, StreamingForecaster, TrajectoryInput};
+use crate::model::{
+    Ablation, LoadedModel, ModelError, ProjectionWeights, StreamingForecaster, TrajectoryInput,
+};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::sources::StreamKind;
@@ -98,6 +100,8 @@ pub struct ModelSet {
     spec: WindowSpec,
     horizons_ms: Vec<u32>,
     robot_joints: Vec<String>,
+    /// `[model].projection`, applied to every network as it is loaded.
+    projection: ProjectionWeights,
 }
 
 /// One configured network: its file, and the network while in memory.
@@ -202,10 +206,14 @@ impl ModelSet {
         for (key, file, expected) in entries {
             let Some(file) = file else { continue };
             let path = config.model_path(file);
-            let model = load_checked(key, &path, expected, robot_joints, emp.as_ref())?;
+            let model = load_checked(key, &path, expected, robot_joints, emp.as_ref())?
+                .with_projection(m.projection);
             let meta = &model.meta;
             tracing::info!(key, file = %path.display(), ablation = ablation_name(meta.ablation),
-                trained_on = %meta.trained_on, best_epoch = meta.best_epoch, "network ready");
+                trained_on = %meta.trained_on, best_epoch = meta.best_epoch,
+                projection = m.projection.name(),
+                projection_mb = format!("{:.1}", model.network.projection_bytes() as f64 / 1e6),
+                "network ready");
             if emp.is_none() {
                 emp = Some(model.clone());
             }
@@ -238,6 +246,7 @@ impl ModelSet {
             spec,
             horizons_ms,
             robot_joints: robot_joints.to_vec(),
+            projection: m.projection,
         })
     }
 
@@ -251,6 +260,7 @@ impl ModelSet {
             spec,
             horizons_ms,
             robot_joints,
+            projection: ProjectionWeights::AsFile,
             slots: models
                 .into_iter()
                 .map(|m| ModelSlot {
@@ -305,7 +315,8 @@ impl ModelSet {
             ablation,
             &self.robot_joints,
             emp.as_ref().filter(|e| e.meta.ablation != ablation),
-        )?;
+        )?
+        .with_projection(self.projection);
         // As at start: hand the load's transient heap back to the system,
         // or the resident memory keeps the load's peak (README "Measured").
         release_freed_memory();

@@ -10,7 +10,7 @@
 mod daemon_common;
 
 use daemon_common::*;
-use fall_guard::model::LoadedModel;
+use fall_guard::model::{LoadedModel, ProjectionWeights};
 use fall_guard::msgs::DiagnosticArray;
 use fall_guard::recording::{read_topic, topics, Recording};
 use fall_guard::window::{EpisodeTicks, Streams, WindowSpec};
@@ -58,8 +58,11 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
         }
     }
 
-    // The same windows, cut offline and run through the same network.
-    let emp = LoadedModel::load(scene.path("models/emp.fgm")).expect("model");
+    // The same windows, cut offline and run through the same network, its
+    // input projection held in int8 as the daemon holds it by default.
+    let emp = LoadedModel::load(scene.path("models/emp.fgm"))
+        .expect("model")
+        .with_projection(ProjectionWeights::Int8);
     for line in lines.iter().skip(N_TICKS - 1) {
         let window = episode
             .window_ending_at(line.tick, &spec(), Streams::ALL)
@@ -241,6 +244,61 @@ fn fallbacks_loaded_when_needed_forecast_as_if_loaded_at_start() {
             );
         }
     }
+}
+
+/// `[model].projection = "int8"` (the default): every network's input
+/// projection held in int8 (logged at start); the daemon forecasts the
+/// same ticks with the
+/// same networks and validity, each probability moved a little and not
+/// left unchanged.
+#[test]
+fn int8_projection_forecasts_close_to_the_stored_weights() {
+    let scene = Scene::new("no_camera.mcap");
+    let full = scene.path("full.mcap");
+    write_recording(&full, 3, false, 120);
+    copy_without(
+        &full,
+        &scene.path("no_camera.mcap"),
+        topics::HEAD_CAMERA,
+        1_500_000_000,
+        2_500_000_000,
+    );
+    let text = std::fs::read_to_string(&scene.config).expect("config");
+    let with = |projection: &str| {
+        let edited = text.replace(
+            "release = 0.3\n",
+            &format!("release = 0.3\nprojection = \"{projection}\"\n"),
+        );
+        assert_ne!(edited, text, "config edited");
+        std::fs::write(&scene.config, edited).expect("config");
+    };
+    with("as_file");
+    let (stored, stored_log) = scene.replay_max_speed();
+    assert!(
+        stored_log.contains("projection=\"as_file\""),
+        "{stored_log}"
+    );
+    // Without the key: int8, the default.
+    std::fs::write(&scene.config, &text).expect("config");
+    let (_, default_log) = scene.replay_max_speed();
+    assert!(default_log.contains("projection=\"int8\""), "{default_log}");
+    with("int8");
+    let (quantised, log) = scene.replay_max_speed();
+    assert!(log.contains("projection=\"int8\""), "{log}");
+    assert_eq!(stored.len(), quantised.len());
+    let mut moved = 0usize;
+    for (a, b) in stored.iter().zip(&quantised) {
+        assert_eq!(
+            (a.tick, &a.ablation, a.valid),
+            (b.tick, &b.ablation, b.valid)
+        );
+        for (x, y) in a.probabilities.iter().zip(&b.probabilities) {
+            assert!((x - y).abs() < 0.05, "tick {}: {x} vs {y}", a.tick);
+            moved += usize::from(x != y);
+        }
+    }
+    assert!(moved > 0, "int8 changed no probability: not applied");
+    assert!(quantised.iter().any(|l| l.ablation == "MP" && l.valid));
 }
 
 #[test]

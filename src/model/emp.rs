@@ -198,6 +198,12 @@ impl EmpInference {
         monotone_logits(self.out.forward(gelu(h)))
     }
 
+    /// Holds the classifier's input projection in int8
+    /// ([`HostLinear::to_int8`]).
+    pub fn quantize_projection(&mut self) {
+        self.hidden = self.hidden.to_int8();
+    }
+
     /// Bytes the classifier's input projection takes (f16 when the file was).
     pub fn projection_bytes(&self) -> usize {
         self.hidden.bytes()

@@ -476,6 +476,32 @@ pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelE
     Ok((meta, model))
 }
 
+/// How the classifier's input projection, most of a network's weights
+/// (7,260 x 1,024 for EMP lite), is held in memory for inference
+/// (`[model].projection`, `bench --projection`, `eval --projection`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum ProjectionWeights {
+    /// At the file's precision (f16 for the shipped files): the product is
+    /// the one training evaluated.
+    #[default]
+    AsFile,
+    /// Symmetric int8, one scale per input row: half the memory of f16 and
+    /// half the bytes read per tick; forecasts move by the amounts the
+    /// model card gives.
+    Int8,
+}
+
+impl ProjectionWeights {
+    /// As `[model].projection` spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            ProjectionWeights::AsFile => "as_file",
+            ProjectionWeights::Int8 => "int8",
+        }
+    }
+}
+
 /// A model ready for inference: metadata, fused network, device.
 #[derive(Debug, Clone)]
 pub struct LoadedModel {
@@ -497,6 +523,14 @@ impl LoadedModel {
         let (meta, emp) = load_emp(path, &device)?;
         tracing::info!(file = %path.display(), ablation = %meta.ablation, config = %meta.config.name, "model loaded");
         Ok(Self::from_parts(meta, &emp, device, path.to_path_buf()))
+    }
+
+    /// The same model with its input projection held as `projection` says.
+    pub fn with_projection(mut self, projection: ProjectionWeights) -> Self {
+        if projection == ProjectionWeights::Int8 {
+            self.network.quantize_projection();
+        }
+        self
     }
 
     /// Wraps an in-memory network (tests, training).

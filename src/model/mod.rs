@@ -23,7 +23,7 @@ pub use config::{Ablation, ModelConfig, TrajectoryInput};
 pub use emp::{Emp, EmpInference, EmpInput};
 pub use file::{
     save_model, save_model_as, Calibration, EpochRecord, LoadedModel, ModelError, ModelMeta,
-    WeightPrecision,
+    ProjectionWeights, WeightPrecision,
 };
 pub use streaming::StreamingForecaster;
 

@@ -12,7 +12,8 @@ use super::device::TrainDevice;
 use super::fit::{bce_with_logits, keep_freed_memory, LabeledWindow};
 use crate::model::file::build_input;
 use crate::model::{
-    cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster,
+    cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, ProjectionWeights,
+    StreamingForecaster,
 };
 
 /// Arguments of `fall-guard bench`.
@@ -37,6 +38,8 @@ pub struct BenchOptions {
     pub train_only: bool,
     /// Device of the training part: cpu, cuda, cuda:N or wgpu (see `train --device`).
     pub device: TrainDevice,
+    /// How the classifier's input projection is held (inference part).
+    pub projection: ProjectionWeights,
 }
 
 /// Latency summary, milliseconds.
@@ -149,7 +152,7 @@ fn noise(len: usize, seed: u64) -> Vec<f32> {
 /// Runs the benchmark.
 pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
     let file_model = match &args.model {
-        Some(p) => Some(LoadedModel::load(p)?),
+        Some(p) => Some(LoadedModel::load(p)?.with_projection(args.projection)),
         None => None,
     };
     let cfg = match &file_model {
@@ -173,6 +176,7 @@ pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
                 let meta = ModelMeta::new(cfg.clone(), ablation, 30.0, names.clone());
                 let emp = Emp::new(&cfg, ablation, &device);
                 LoadedModel::from_parts(meta, &emp, device.clone(), "bench".into())
+                    .with_projection(args.projection)
             }
         };
         let mut stream = StreamingForecaster::new(&model);
@@ -337,6 +341,7 @@ mod tests {
             ablations: Vec::new(),
             train_only: false,
             device: TrainDevice::Cpu,
+            projection: ProjectionWeights::AsFile,
         };
         let report = run_bench(&args).unwrap();
         println!("{}", serde_json::to_string_pretty(&report).unwrap());

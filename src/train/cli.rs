@@ -16,7 +16,8 @@ use super::fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, Trai
 use super::logreg::LogRegModel;
 use super::plots;
 use crate::model::{
-    save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, StreamingForecaster, TrajectoryInput,
+    save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, ProjectionWeights,
+    StreamingForecaster, TrajectoryInput,
 };
 use crate::train::dataset::{Dataset, Split};
 use crate::train::sampler::{labels_at, Protocol, SamplerConfig, SamplerError, WindowSampler};
@@ -98,6 +99,8 @@ pub struct EvalOptions {
     pub recording: Option<PathBuf>,
     /// JSON lines: one forecast per tick of --recording.
     pub per_tick_out: Option<PathBuf>,
+    /// How each network's classifier input projection is held.
+    pub projection: ProjectionWeights,
 }
 
 /// The streams a model reads: its ablation's, and the plan only when its
@@ -447,11 +450,13 @@ enum AnyModel {
     LogReg(Box<LogRegModel>, PathBuf),
 }
 
-fn load_any(path: &Path) -> anyhow::Result<AnyModel> {
+fn load_any(path: &Path, projection: ProjectionWeights) -> anyhow::Result<AnyModel> {
     if let Some(m) = LogRegModel::load(path)? {
         return Ok(AnyModel::LogReg(Box::new(m), path.to_path_buf()));
     }
-    Ok(AnyModel::Network(Box::new(LoadedModel::load(path)?)))
+    Ok(AnyModel::Network(Box::new(
+        LoadedModel::load(path)?.with_projection(projection),
+    )))
 }
 
 /// Runs `fall-guard eval`.
@@ -461,7 +466,7 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
             .per_tick_out
             .as_ref()
             .context("--recording needs --per-tick-out FILE")?;
-        let model = LoadedModel::load(&args.model)?;
+        let model = LoadedModel::load(&args.model)?.with_projection(args.projection);
         let n = per_tick_forecast(&model, rec, out)?;
         eprintln!("{n} per-tick forecasts written to {}", out.display());
         if args.data.is_none() {
@@ -483,7 +488,7 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
     paths.extend(args.seeds.iter().cloned());
     let models: Vec<AnyModel> = paths
         .iter()
-        .map(|p| load_any(p))
+        .map(|p| load_any(p, args.projection))
         .collect::<anyhow::Result<_>>()?;
     // Windows come from the first model's description; the others must agree.
     let (spec, needs, horizons, rate_hz, ablation_name, history) = match &models[0] {

@@ -134,6 +134,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         protocol: super::sampler::Protocol::Deployment,
         recording: None,
         per_tick_out: None,
+        projection: crate::model::ProjectionWeights::AsFile,
     };
     run_eval(&eval).unwrap();
     let metrics: serde_json::Value =
@@ -258,6 +259,7 @@ fn per_horizon_paper_training_on_the_fixtures() {
             protocol: Protocol::Paper,
             recording: None,
             per_tick_out: None,
+            projection: crate::model::ProjectionWeights::AsFile,
         })
         .unwrap();
         let v: serde_json::Value =
@@ -281,5 +283,45 @@ fn per_horizon_paper_training_on_the_fixtures() {
             md.contains("## Protocol: paper") && md.contains("## Protocol: deployment"),
             "{md}"
         );
+    }
+}
+
+/// The shipped networks with their input projection in int8 forecast what
+/// they forecast with it as stored (f16), within 0.02 on every tick and
+/// horizon of a recorded episode (`[model].projection`; the model card
+/// gives the figures over the simulated validation and test episodes).
+#[test]
+fn int8_projection_moves_the_shipped_forecasts_by_little() {
+    use super::cli::{forecast_ticks, needs_of_model};
+    use crate::model::ProjectionWeights;
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let recording = root.join("tests/fixtures/episode_00005.mcap");
+    for net in ["emp", "p"] {
+        let stored = LoadedModel::load(root.join("models").join(format!("{net}.bpk"))).unwrap();
+        let int8 = stored.clone().with_projection(ProjectionWeights::Int8);
+        // Half of f16, plus one f32 scale per input row.
+        let (b16, b8) = (
+            stored.network.projection_bytes(),
+            int8.network.projection_bytes(),
+        );
+        assert!(
+            b8 * 100 < b16 * 52,
+            "{net}: {b8} bytes in int8, {b16} as stored"
+        );
+        let spec = stored.meta.window_spec();
+        let episode =
+            crate::train::dataset::load_episode(&recording, &spec, needs_of_model(&stored.meta))
+                .unwrap();
+        let a = forecast_ticks(&stored, &episode).unwrap();
+        let b = forecast_ticks(&int8, &episode).unwrap();
+        assert_eq!(a.len(), b.len());
+        assert!(a.len() > 100, "{net}: {} forecasts", a.len());
+        let worst = a
+            .iter()
+            .zip(&b)
+            .flat_map(|(x, y)| x.2.iter().zip(&y.2).map(|(p, q)| (p - q).abs()))
+            .fold(0.0f32, f32::max);
+        assert!(worst > 0.0, "{net}: int8 changed nothing: not int8");
+        assert!(worst < 0.02, "{net}: int8 moved a forecast by {worst}");
     }
 }
