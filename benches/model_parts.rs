@@ -70,7 +70,7 @@ fn trajectory_grid(c: &mut Criterion) {
         &Inception2d::new(cfg.inc_dim, cfg.plan_d, cfg.num_kernels, &device).fuse(),
     );
     let x = noise(l * cfg.plan_d, 7);
-    for p in [2usize, 3, 4, 5, 6, 7, 8, 10, 12, 20, 40, 60] {
+    for p in [2usize, 3, 4, 5, 6, 7, 8, 10, 12, 16, 20, 40, 60] {
         let rows = l.div_ceil(p);
         group.bench_function(format!("in_out_p{p}"), |b| {
             b.iter(|| {

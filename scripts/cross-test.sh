@@ -93,5 +93,11 @@ for m in "${networks[@]}"; do
   "$native_bin" eval --model "models/$m.bpk" --recording "$recording" \
     --per-tick-out "$out/$m-native.jsonl"
 done
-python3 scripts/compare_forecasts.py --tolerance "$tolerance" "$out" "${networks[@]}"
+# The daemon's default projection (int8, `[model].projection`): the
+# aarch64 kernel (generic, vectorised for NEON) against AVX2.
+timed run_arm eval --model models/emp.bpk --recording "$recording" --projection int8 \
+  --per-tick-out "$out/emp-int8-aarch64.jsonl"
+"$native_bin" eval --model models/emp.bpk --recording "$recording" --projection int8 \
+  --per-tick-out "$out/emp-int8-native.jsonl"
+python3 scripts/compare_forecasts.py --tolerance "$tolerance" "$out" "${networks[@]}" emp-int8
 echo "cross-test: done in $SECONDS s ($(uptime | sed 's/.*load/load/'))"

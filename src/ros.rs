@@ -306,11 +306,16 @@ impl RosNode {
             ..
         } = self;
         drop(node);
-        if tokio::time::timeout(std::time::Duration::from_secs(2), spinner)
+        let mut spinner = spinner;
+        if tokio::time::timeout(std::time::Duration::from_secs(2), &mut spinner)
             .await
             .is_err()
         {
-            tracing::warn!("ROS 2 spinner did not stop within 2 s: leaving the domain anyway");
+            // Ended here, not left running: its readers must go before the
+            // participant, or RustDDS logs an ERROR for each when they do.
+            tracing::warn!("ROS 2 spinner did not stop within 2 s: ended");
+            spinner.abort();
+            let _ = spinner.await;
         }
         drop(context);
     }

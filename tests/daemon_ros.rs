@@ -232,6 +232,8 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         .arg(repo(FALLING_FIXTURE))
         .arg("--per-tick-out")
         .arg(&per_tick)
+        // The input projection held as the daemon holds it by default.
+        .args(["--projection", "int8"])
         .output()
         .expect("run fall-guard eval");
     assert!(

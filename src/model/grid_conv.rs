@@ -25,9 +25,9 @@ const TILE: usize = 32;
 
 /// Periods up to this are convolved a grid column at a time
 /// ([`HostConv::grid_by_column`]).
-const BY_COLUMN_MAX_PERIOD: usize = 7;
+const BY_COLUMN_MAX_PERIOD: usize = 16;
 
-/// Output positions per tile there (one GEMM per kernel row and tile).
+/// Output positions per tile there (one GEMM per tile).
 const COLUMN_TILE: usize = 64;
 
 impl HostConv {
@@ -118,8 +118,8 @@ impl HostConv {
     /// [`forward_grid`](Self::forward_grid) for a short period: the
     /// positions taken a grid column at a time, each with only the kernel
     /// columns that reach the grid from it (for `p = 3`, 3 of 5 from every
-    /// column), one GEMM per kernel row (their weight rows are contiguous
-    /// only within a kernel row). Kernel rows are not restricted here: a
+    /// column), one GEMM per tile with the weights laid out by kernel
+    /// column ([`HostConv::accumulate_kernel_columns`]). Kernel rows are not restricted here: a
     /// short period folds the plan into many rows, where only the first
     /// and last `k/2` read padding. `out` holds the bias.
     fn grid_by_column(&self, x: &[f32], p: usize, out: &mut [f32]) {
@@ -156,7 +156,7 @@ impl HostConv {
                             for kx in kx_lo..kx_hi {
                                 // In the grid's columns by the choice of kx.
                                 let cc = c + kx - half;
-                                let at = (ky * nkx + kx - kx_lo) * c_in;
+                                let at = ((kx - kx_lo) * k + ky) * c_in;
                                 let dst = &mut arow[at..at + c_in];
                                 match usize::try_from(rr).map(|rr| rr * p + cc) {
                                     Ok(n) if n < len => {
@@ -170,28 +170,14 @@ impl HostConv {
                     let out_tile = &mut tmp[..tile * c_out];
                     out_tile.fill(0.0);
                     let rows_of = |cols| Strides { row: cols, col: 1 };
-                    if nkx == k {
-                        self.accumulate_taps(
-                            0..k * k,
-                            tile,
-                            out_tile,
-                            rows_of(c_out),
-                            &a[..tile * kk],
-                            rows_of(kk),
-                        );
-                    } else {
-                        for ky in 0..k {
-                            let at = ky * nkx * c_in;
-                            self.accumulate_taps(
-                                ky * k + kx_lo..ky * k + kx_hi,
-                                tile,
-                                out_tile,
-                                rows_of(c_out),
-                                &a[at..tile * kk],
-                                rows_of(kk),
-                            );
-                        }
-                    }
+                    self.accumulate_kernel_columns(
+                        kx_lo..kx_hi,
+                        tile,
+                        out_tile,
+                        rows_of(c_out),
+                        &a[..tile * kk],
+                        rows_of(kk),
+                    );
                     for (&m, part) in positions.iter().zip(out_tile.chunks_exact(c_out)) {
                         for (o, v) in out[m * c_out..(m + 1) * c_out].iter_mut().zip(part) {
                             *o += v;

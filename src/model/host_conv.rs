@@ -24,6 +24,10 @@ pub struct HostConv {
     /// `[taps·C_in, C_out]` row-major, row `tap·C_in + ci`, the kernel
     /// offsets (`(kt,) ky, kx`) numbered row-major.
     weight: Arc<[f32]>,
+    /// 2-D kernels only: the same rows with the offsets numbered
+    /// column-major (`kx·k + ky`), so that the taps of a range of kernel
+    /// columns are contiguous ([`HostConv::accumulate_kernel_columns`]).
+    weight_by_column: Option<Arc<[f32]>>,
     /// `[C_out]`.
     bias: Arc<[f32]>,
 }
@@ -58,11 +62,23 @@ impl HostConv {
                 }
             }
         }
+        let weight_by_column = (D == 4).then(|| {
+            let mut by_col = vec![0.0f32; weight.len()];
+            for ky in 0..k {
+                for kx in 0..k {
+                    let (from, to) = ((ky * k + kx) * c_in, (kx * k + ky) * c_in);
+                    by_col[to * c_out..(to + c_in) * c_out]
+                        .copy_from_slice(&weight[from * c_out..(from + c_in) * c_out]);
+                }
+            }
+            by_col.into()
+        });
         HostConv {
             k,
             c_in,
             c_out,
             weight: weight.into(),
+            weight_by_column,
             bias: bias.into(),
         }
     }
@@ -121,13 +137,48 @@ impl HostConv {
         a: &[f32],
         a_s: Strides,
     ) {
+        self.gemm(&self.weight, taps, m, dst, dst_s, a, a_s);
+    }
+
+    /// [`accumulate_taps`](Self::accumulate_taps) over the kernel columns
+    /// `cols` of a 2-D kernel, every kernel row: `a` is
+    /// `m x cols.len()·k·C_in`, its columns ordered `(kx, ky, ci)`.
+    pub fn accumulate_kernel_columns(
+        &self,
+        cols: std::ops::Range<usize>,
+        m: usize,
+        dst: &mut [f32],
+        dst_s: Strides,
+        a: &[f32],
+        a_s: Strides,
+    ) {
+        let weight = self
+            .weight_by_column
+            .as_ref()
+            .expect("kernel columns of a 2-D convolution");
+        let k = self.k;
+        self.gemm(weight, cols.start * k..cols.end * k, m, dst, dst_s, a, a_s);
+    }
+
+    /// `dst += a · weight[taps]`, `weight` one of this convolution's layouts.
+    #[allow(clippy::too_many_arguments)]
+    fn gemm(
+        &self,
+        weight: &[f32],
+        taps: std::ops::Range<usize>,
+        m: usize,
+        dst: &mut [f32],
+        dst_s: Strides,
+        a: &[f32],
+        a_s: Strides,
+    ) {
         let n = self.c_out;
         assert!(
-            taps.start < taps.end && taps.end * self.c_in * n <= self.weight.len(),
+            taps.start < taps.end && taps.end * self.c_in * n <= weight.len(),
             "taps inside the kernel"
         );
         let kk = taps.len() * self.c_in;
-        let weight = &self.weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
+        let weight = &weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
         if m == 0 {
             return;
         }
