@@ -29,18 +29,31 @@ impl HostConv {
         for s in inputs.iter().flatten() {
             assert_eq!(s.len(), c_in * n, "input slice size");
         }
-        let kk = k * k * k * c_in;
         let half = (k / 2) as isize;
         let mut conv = vec![0.0f32; c_out * n];
         for (plane, &b) in conv.chunks_exact_mut(n).zip(self.bias()) {
             plane.fill(b);
         }
+        // The time taps that read an input slice: at the window's ends the
+        // others read the "same" padding, zeros, and are left out of the
+        // im2col matrix and the GEMM (their weight rows are contiguous).
+        let Some(kt_lo) = inputs.iter().position(Option::is_some) else {
+            // Only padding: the bias alone, through ReLU and the pool below.
+            return Self::relu_pool(&conv, c_out, hw);
+        };
+        let kt_hi = inputs
+            .iter()
+            .rposition(Option::is_some)
+            .map_or(kt_lo, |i| i + 1);
+        let taps_per_kt = k * k;
+        let kk = (kt_hi - kt_lo) * taps_per_kt * c_in;
         HostConv::with_scratch(kk * n, |a| {
             a.fill(0.0);
-            // Column q = ((kt·k + ky)·k + kx)·C_in + ci holds, for every output
-            // position m = y·hw + x, input[kt][ci][y + ky - k/2][x + kx - k/2]
-            // (zero outside): a shifted copy of one input plane.
-            for (kt, input) in inputs.iter().enumerate() {
+            // Column q = (((kt - kt_lo)·k + ky)·k + kx)·C_in + ci holds, for
+            // every output position m = y·hw + x,
+            // input[kt][ci][y + ky - k/2][x + kx - k/2] (zero outside): a
+            // shifted copy of one input plane.
+            for (kt, input) in inputs.iter().enumerate().take(kt_hi).skip(kt_lo) {
                 let Some(input) = input else { continue };
                 for ky in 0..k {
                     let dy = ky as isize - half;
@@ -49,7 +62,7 @@ impl HostConv {
                         let x0 = (-dx).max(0) as usize;
                         let x1 = (hw as isize - dx).min(hw as isize) as usize;
                         for ci in 0..c_in {
-                            let q = ((kt * k + ky) * k + kx) * c_in + ci;
+                            let q = (((kt - kt_lo) * k + ky) * k + kx) * c_in + ci;
                             let col = &mut a[q * n..(q + 1) * n];
                             let plane = &input[ci * n..(ci + 1) * n];
                             for y in 0..hw {
@@ -70,8 +83,21 @@ impl HostConv {
             }
             // `conv` is `n x C_out` channel-major, `a` `n x kk` column-major.
             let column_major = Strides { row: 1, col: n };
-            self.accumulate(n, &mut conv, column_major, a, column_major);
+            self.accumulate_taps(
+                kt_lo * taps_per_kt..kt_hi * taps_per_kt,
+                n,
+                &mut conv,
+                column_major,
+                a,
+                column_major,
+            );
         });
+        Self::relu_pool(&conv, c_out, hw)
+    }
+
+    /// ReLU and the `2 x 2` max-pool (floor) of `[C_out, hw, hw]`.
+    fn relu_pool(conv: &[f32], c_out: usize, hw: usize) -> Vec<f32> {
+        let n = hw * hw;
         // ReLU and the 2 x 2 max-pool (floor), per channel.
         let ho = hw / 2;
         let mut out = vec![0.0f32; c_out * ho * ho];
