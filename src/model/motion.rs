@@ -8,7 +8,7 @@ use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
 
 use super::config::ModelConfig;
-use super::spectral::dct_matrix;
+use super::spectral::dct_matrix_shared;
 
 /// One `X = X + Norm_C(U · X + b)` block, `U` linear over time.
 #[derive(Module, Debug)]
@@ -56,7 +56,10 @@ impl MotionEncoder {
     pub fn forward(&self, joints: Tensor<3>) -> Tensor<2> {
         let [b, n, c] = joints.dims();
         let device = joints.device();
-        let d = Tensor::<2>::from_data(TensorData::new(dct_matrix(self.n_ticks), [n, n]), &device);
+        let d = Tensor::<2>::from_data(
+            TensorData::new(dct_matrix_shared(self.n_ticks).to_vec(), [n, n]),
+            &device,
+        );
         let dt = d.clone().transpose();
         let mut x = d.unsqueeze::<3>().matmul(joints);
         x = self.norm_in.forward(self.spatial_in.forward(x));

@@ -48,34 +48,41 @@ impl HostConv {
         let taps_per_kt = k * k;
         let kk = (kt_hi - kt_lo) * taps_per_kt * c_in;
         HostConv::with_scratch(kk * n, |a| {
-            a.fill(0.0);
             // Column q = (((kt - kt_lo)·k + ky)·k + kx)·C_in + ci holds, for
             // every output position m = y·hw + x,
             // input[kt][ci][y + ky - k/2][x + kx - k/2] (zero outside): a
-            // shifted copy of one input plane.
+            // shifted copy of one input plane. Every element is written
+            // once (the zeros too: no clearing pass over the matrix).
+            let per_kt = taps_per_kt * c_in * n;
             for (kt, input) in inputs.iter().enumerate().take(kt_hi).skip(kt_lo) {
-                let Some(input) = input else { continue };
+                let block = &mut a[(kt - kt_lo) * per_kt..(kt - kt_lo + 1) * per_kt];
+                let Some(input) = input else {
+                    block.fill(0.0);
+                    continue;
+                };
                 for ky in 0..k {
                     let dy = ky as isize - half;
                     for kx in 0..k {
                         let dx = kx as isize - half;
-                        let x0 = (-dx).max(0) as usize;
-                        let x1 = (hw as isize - dx).min(hw as isize) as usize;
+                        let x0 = ((-dx).max(0) as usize).min(hw);
+                        let x1 = ((hw as isize - dx).min(hw as isize).max(0) as usize).max(x0);
                         for ci in 0..c_in {
-                            let q = (((kt - kt_lo) * k + ky) * k + kx) * c_in + ci;
-                            let col = &mut a[q * n..(q + 1) * n];
+                            let q = (ky * k + kx) * c_in + ci;
+                            let col = &mut block[q * n..(q + 1) * n];
                             let plane = &input[ci * n..(ci + 1) * n];
-                            for y in 0..hw {
+                            for (y, row) in col.chunks_exact_mut(hw).enumerate() {
                                 let sy = y as isize + dy;
-                                if sy < 0 || sy >= hw as isize || x0 >= x1 {
+                                if sy < 0 || sy >= hw as isize || x0 == x1 {
+                                    row.fill(0.0);
                                     continue;
                                 }
-                                let src = sy as usize * hw;
-                                let (s0, s1) = (
-                                    (src as isize + x0 as isize + dx) as usize,
-                                    (src as isize + x1 as isize + dx) as usize,
+                                let src = (sy as usize * hw) as isize + dx;
+                                row[..x0].fill(0.0);
+                                row[x0..x1].copy_from_slice(
+                                    &plane[(src + x0 as isize) as usize
+                                        ..(src + x1 as isize) as usize],
                                 );
-                                col[y * hw + x0..y * hw + x1].copy_from_slice(&plane[s0..s1]);
+                                row[x1..].fill(0.0);
                             }
                         }
                     }

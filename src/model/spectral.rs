@@ -51,22 +51,39 @@ pub fn lowpass_matrix(a: usize, s: usize) -> Vec<f32> {
     p
 }
 
-/// [`lowpass_matrix`], computed once per `(a, s)` for the whole process:
-/// 30,720 cosines in f64 for `a = 16, s = 64`, which were 0.4 ms of
-/// every streaming tick when made per frame.
-pub fn lowpass_matrix_shared(a: usize, s: usize) -> Arc<[f32]> {
-    type Cache = Mutex<Vec<((usize, usize), Arc<[f32]>)>>;
+/// A fixed matrix of this module made once per process and kept: `make`
+/// runs the first time `(kind, a, b)` is asked for.
+fn shared_matrix(
+    kind: &'static str,
+    a: usize,
+    b: usize,
+    make: impl FnOnce() -> Vec<f32>,
+) -> Arc<[f32]> {
+    type Cache = Mutex<Vec<((&'static str, usize, usize), Arc<[f32]>)>>;
     static CACHE: OnceLock<Cache> = OnceLock::new();
     let mut cache = CACHE
         .get_or_init(Cache::default)
         .lock()
         .unwrap_or_else(PoisonError::into_inner);
-    if let Some((_, p)) = cache.iter().find(|(key, _)| *key == (a, s)) {
-        return Arc::clone(p);
+    if let Some((_, m)) = cache.iter().find(|(key, _)| *key == (kind, a, b)) {
+        return Arc::clone(m);
     }
-    let p: Arc<[f32]> = lowpass_matrix(a, s).into();
-    cache.push(((a, s), Arc::clone(&p)));
-    p
+    let m: Arc<[f32]> = make().into();
+    cache.push(((kind, a, b), Arc::clone(&m)));
+    m
+}
+
+/// [`lowpass_matrix`], computed once per `(a, s)` for the whole process:
+/// 30,720 cosines in f64 for `a = 16, s = 64`, which were 0.3-0.4 ms of
+/// every streaming tick when made per frame.
+pub fn lowpass_matrix_shared(a: usize, s: usize) -> Arc<[f32]> {
+    shared_matrix("lowpass", a, s, || lowpass_matrix(a, s))
+}
+
+/// [`dct_matrix`], computed once per `n` for the whole process (3,600
+/// cosines in f64 for `N = 60`, once per forecast before).
+pub fn dct_matrix_shared(n: usize) -> Arc<[f32]> {
+    shared_matrix("dct", n, 0, || dct_matrix(n))
 }
 
 /// Real-DFT rows for a length-`l` signal: `(cos, sin)`, each `(l/2 + 1) x l`
@@ -133,12 +150,15 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
 #[cfg(test)]
 mod tests {
     #[test]
-    fn the_shared_lowpass_matrix_is_made_once_and_equals_a_fresh_one() {
+    fn shared_matrices_are_made_once_and_equal_fresh_ones() {
         let a = lowpass_matrix_shared(5, 16);
         assert_eq!(&a[..], &lowpass_matrix(5, 16)[..]);
         assert!(Arc::ptr_eq(&a, &lowpass_matrix_shared(5, 16)), "made once");
         let other = lowpass_matrix_shared(4, 16);
         assert_eq!(&other[..], &lowpass_matrix(4, 16)[..], "keyed by (a, s)");
+        let dct = dct_matrix_shared(16);
+        assert_eq!(&dct[..], &dct_matrix(16)[..], "keyed by kind too");
+        assert!(Arc::ptr_eq(&dct, &dct_matrix_shared(16)));
     }
 
     use super::*;
