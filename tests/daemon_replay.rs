@@ -154,12 +154,12 @@ fn camera_frames_of_any_size_replay_as_their_resized_frames() {
     assert_eq!(from_big, from_resized);
 }
 
-#[test]
-fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
+/// A replay scene whose recording loses the camera from 1.5 s to 2.5 s
+/// (ticks 45..75): EMP, then MP, then EMP again.
+fn camera_gap_scene() -> Scene {
     let scene = Scene::new("no_camera.mcap");
     let full = scene.path("full.mcap");
     write_recording(&full, 3, false, 120);
-    // Camera gone from 1.5 s to 2.5 s (ticks 45..75).
     copy_without(
         &full,
         &scene.path("no_camera.mcap"),
@@ -167,6 +167,12 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
         1_500_000_000,
         2_500_000_000,
     );
+    scene
+}
+
+#[test]
+fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
+    let scene = camera_gap_scene();
     let (lines, err) = scene.replay_max_speed();
     let ablation_at = |tick: i64| {
         lines
@@ -200,16 +206,7 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
 /// networks loaded at start prints.
 #[test]
 fn fallbacks_loaded_when_needed_forecast_as_if_loaded_at_start() {
-    let scene = Scene::new("no_camera.mcap");
-    let full = scene.path("full.mcap");
-    write_recording(&full, 3, false, 120);
-    copy_without(
-        &full,
-        &scene.path("no_camera.mcap"),
-        topics::HEAD_CAMERA,
-        1_500_000_000,
-        2_500_000_000,
-    );
+    let scene = camera_gap_scene();
     let (at_start, at_start_log) = scene.replay_max_speed();
     assert!(!at_start_log.contains("fallback loaded at its first use"));
     let text = std::fs::read_to_string(&scene.config).expect("config");
@@ -248,21 +245,11 @@ fn fallbacks_loaded_when_needed_forecast_as_if_loaded_at_start() {
 
 /// `[model].projection = "int8"` (the default): every network's input
 /// projection held in int8 (logged at start); the daemon forecasts the
-/// same ticks with the
-/// same networks and validity, each probability moved a little and not
-/// left unchanged.
+/// same ticks with the same networks and validity, each probability moved
+/// a little and not left unchanged.
 #[test]
 fn int8_projection_forecasts_close_to_the_stored_weights() {
-    let scene = Scene::new("no_camera.mcap");
-    let full = scene.path("full.mcap");
-    write_recording(&full, 3, false, 120);
-    copy_without(
-        &full,
-        &scene.path("no_camera.mcap"),
-        topics::HEAD_CAMERA,
-        1_500_000_000,
-        2_500_000_000,
-    );
+    let scene = camera_gap_scene();
     let text = std::fs::read_to_string(&scene.config).expect("config");
     let with = |projection: &str| {
         let edited = text.replace(
