@@ -111,23 +111,10 @@ impl HostConv {
         })
     }
 
-    /// `dst += a · weight`, one thread: `a` is the `m x taps·C_in` im2col
-    /// matrix, `dst` the `m x C_out` output, each stored with its strides.
-    pub fn accumulate(&self, m: usize, dst: &mut [f32], dst_s: Strides, a: &[f32], a_s: Strides) {
-        self.accumulate_taps(
-            0..self.weight.len() / (self.c_in * self.c_out),
-            m,
-            dst,
-            dst_s,
-            a,
-            a_s,
-        );
-    }
-
-    /// [`accumulate`](Self::accumulate) over the kernel taps `taps` only:
-    /// `a` is `m x taps.len()·C_in` and multiplies those taps' rows of the
-    /// weights. For taps that read only zero padding, whose products are
-    /// all zero.
+    /// `dst += a · weight[taps]`, one thread: `a` is the
+    /// `m x taps.len()·C_in` im2col matrix of the kernel taps `taps` (the
+    /// others read only zero padding, whose products are all zero), `dst`
+    /// the `m x C_out` output, each stored with its strides.
     pub fn accumulate_taps(
         &self,
         taps: std::ops::Range<usize>,

@@ -108,34 +108,28 @@ impl HostLinear {
     /// measured in the model card. Already int8: unchanged.
     pub fn to_int8(&self) -> HostLinear {
         let (d_in, n) = (self.d_in, self.d_out);
-        let row_f32 = |r: usize, buf: &mut Vec<f32>| match &self.weight {
-            Weights::F32(w) => buf.copy_from_slice(&w[r * n..(r + 1) * n]),
-            Weights::F16(w) => w[r * n..(r + 1) * n].convert_to_f32_slice(buf),
-            Weights::I8 { .. } => unreachable!("handled below"),
-        };
-        if self.is_int8() {
-            return self.clone();
-        }
         let mut q = vec![0i8; d_in * n];
         let mut scale = vec![0.0f32; d_in];
         let mut buf = vec![0.0f32; n];
         for r in 0..d_in {
-            row_f32(r, &mut buf);
+            match &self.weight {
+                Weights::F32(w) => buf.copy_from_slice(&w[r * n..(r + 1) * n]),
+                Weights::F16(w) => w[r * n..(r + 1) * n].convert_to_f32_slice(&mut buf),
+                Weights::I8 { .. } => return self.clone(),
+            }
             let max = buf.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-            let s = if max > 0.0 && max.is_finite() {
-                max / 127.0
-            } else {
-                1.0
-            };
-            scale[r] = s;
+            let s = if max > 0.0 { max / 127.0 } else { 1.0 };
             for (j, &v) in buf.iter().enumerate() {
-                // A non-finite weight stays non-finite in the product: NaN
-                // through the scale (127 · NaN), as in the f32 path.
                 q[i8_index(d_in, n, r, j)] = (v / s).round().clamp(-127.0, 127.0) as i8;
             }
-            if !max.is_finite() {
-                scale[r] = f32::NAN;
-            }
+            // A row with a non-finite weight gives a non-finite product, as
+            // in the f32 path: its scale is NaN (`max` alone would miss a
+            // NaN, which `f32::max` skips).
+            scale[r] = if buf.iter().all(|v| v.is_finite()) {
+                s
+            } else {
+                f32::NAN
+            };
         }
         HostLinear {
             weight: Weights::I8 {
@@ -480,6 +474,18 @@ mod tests {
         };
         assert_eq!(sz[0], 1.0);
         assert!((0..d_out).all(|j| qzw[i8_index(d_in, d_out, 0, j)] == 0));
+    }
+
+    #[test]
+    fn a_non_finite_weight_gives_non_finite_outputs_in_int8_too() {
+        for bad in [f32::NAN, f32::INFINITY] {
+            let mut w = vec![0.5f32; 6];
+            w[2] = bad;
+            let host = HostLinear::new(w, vec![0.0; 2], 3, 2).to_int8();
+            let mut y = vec![0.0; 2];
+            host.row(&[1.0, 1.0, 1.0], &mut y);
+            assert!(y.iter().all(|v| v.is_nan()), "{bad}: {y:?}");
+        }
     }
 
     #[test]

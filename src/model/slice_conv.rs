@@ -105,7 +105,6 @@ impl HostConv {
     /// ReLU and the `2 x 2` max-pool (floor) of `[C_out, hw, hw]`.
     fn relu_pool(conv: &[f32], c_out: usize, hw: usize) -> Vec<f32> {
         let n = hw * hw;
-        // ReLU and the 2 x 2 max-pool (floor), per channel.
         let ho = hw / 2;
         let mut out = vec![0.0f32; c_out * ho * ho];
         for (dst, src) in out.chunks_exact_mut(ho * ho).zip(conv.chunks_exact(n)) {

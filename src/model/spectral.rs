@@ -149,6 +149,9 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use rustfft::{num_complex::Complex, FftPlanner};
+
     #[test]
     fn shared_matrices_are_made_once_and_equal_fresh_ones() {
         let a = lowpass_matrix_shared(5, 16);
@@ -160,9 +163,6 @@ mod tests {
         assert_eq!(&dct[..], &dct_matrix(16)[..], "keyed by kind too");
         assert!(Arc::ptr_eq(&dct, &dct_matrix_shared(16)));
     }
-
-    use super::*;
-    use rustfft::{num_complex::Complex, FftPlanner};
 
     #[test]
     fn dct_is_orthonormal() {
