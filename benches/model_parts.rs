@@ -80,6 +80,41 @@ fn trajectory_grid(c: &mut Criterion) {
         });
     }
     group.finish();
+    // A block's first convolution at three periods: folded at each, or the
+    // tap products made once and summed per period (`grid_taps` chooses).
+    let conv_in = conv_in.with_tap_products();
+    let mut group = c.benchmark_group("trajectory_conv_in_3_periods");
+    group.measurement_time(Duration::from_secs(2));
+    group.bench_function("tap_products_only", |b| {
+        b.iter(|| std::hint::black_box(conv_in.tap_products(&x)))
+    });
+    for periods in [
+        [2usize, 3, 4],
+        [3, 5, 8],
+        [5, 7, 10],
+        [8, 12, 20],
+        [12, 20, 40],
+    ] {
+        let name = format!("{}_{}_{}", periods[0], periods[1], periods[2]);
+        group.bench_function(format!("folded/{name}"), |b| {
+            b.iter(|| {
+                for &p in &periods {
+                    let rows = l.div_ceil(p);
+                    std::hint::black_box(conv_in.forward_grid(&x, rows, p, rows * p));
+                }
+            })
+        });
+        group.bench_function(format!("tap_products/{name}"), |b| {
+            b.iter(|| {
+                let y = conv_in.tap_products(&x);
+                for &p in &periods {
+                    let rows = l.div_ceil(p);
+                    std::hint::black_box(conv_in.forward_grid_from_taps(&y, rows, p, rows * p));
+                }
+            })
+        });
+    }
+    group.finish();
 }
 
 fn projection(c: &mut Criterion) {

@@ -15,10 +15,34 @@
 //! into few rows (2 rows for half the plan), where most of a 5x5 kernel
 //! reads padding.
 //!
+//! A TimesNet block folds the same input at up to `top_k` periods, and its
+//! second convolution's outputs are summed with weights. Two more entries
+//! use that (the block chooses by [`HostConv::grid_taps`], the count of
+//! products each way):
+//! - [`HostConv::tap_products`] (`host_conv`) multiplies every input
+//!   position by every kernel tap once; [`HostConv::forward_grid_from_taps`]
+//!   then makes any period's output by sums alone;
+//! - [`HostConv::forward_grids_summed`] runs the weighted periods through one
+//!   GEMM (the weighted sum of their im2col matrices: the convolution is
+//!   linear).
+//!
+//! Either way, a block costs about two full convolutions whatever its
+//! periods; folding each period on its own cost up to six.
+//!
 //! Same arithmetic as `burn`'s `conv2d` (f32 products summed, bias added),
 //! in another order: equal to it within rounding (tested).
 
 use super::host_conv::{HostConv, Strides};
+
+/// One input of [`HostConv::forward_grids_summed`]: a sequence
+/// `[len, C_in]`, its folding `rows x p` and its weight in the sum.
+#[derive(Debug, Clone, Copy)]
+pub struct WeightedGrid<'a> {
+    pub x: &'a [f32],
+    pub rows: usize,
+    pub p: usize,
+    pub weight: f32,
+}
 
 /// Output positions per im2col tile (keeps the tile in L2).
 const TILE: usize = 32;
@@ -115,6 +139,138 @@ impl HostConv {
         out
     }
 
+    /// [`forward_grid`](Self::forward_grid) from the input's
+    /// [`tap_products`](Self::tap_products) `y` (`[len, taps·C_out]`): each
+    /// output position is the bias plus the products of the taps that land
+    /// on the sequence (row-major tap order), with no multiplication left.
+    /// A block folds one input at up to `top_k` periods; with the products
+    /// made once, each further period costs only these sums.
+    pub fn forward_grid_from_taps(
+        &self,
+        y: &[f32],
+        rows: usize,
+        p: usize,
+        out_len: usize,
+    ) -> Vec<f32> {
+        let (k, c_out) = (self.k(), self.c_out());
+        let width = k * k * c_out;
+        assert_eq!(y.len() % width, 0, "tap products width");
+        let len = y.len() / width;
+        assert!(
+            len <= rows * p && out_len <= rows * p,
+            "sequence fits the grid"
+        );
+        let half = k / 2;
+        let mut out = vec![0.0f32; out_len * c_out];
+        for (m, o) in out.chunks_exact_mut(c_out).enumerate() {
+            o.copy_from_slice(self.bias());
+            let (r, c) = (m / p, m % p);
+            // Kernel columns that stay in the grid's columns.
+            let (kx_lo, kx_hi) = (half.saturating_sub(c), (p + half - c).min(k));
+            for ky in half.saturating_sub(r)..k {
+                // Sequence position of tap (ky, kx_lo); later taps follow it.
+                let first = (r + ky - half) * p + c + kx_lo - half;
+                for (kx, n) in (kx_lo..kx_hi).zip(first..len) {
+                    let at = n * width + (ky * k + kx) * c_out;
+                    for (a, v) in o.iter_mut().zip(&y[at..at + c_out]) {
+                        *a += v;
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// `Σ_i w_i · forward_grid(x_i, rows_i, p_i, out_len)` as one GEMM:
+    /// the convolution is linear, so the weighted sum of the periods'
+    /// im2col matrices times the weights is the weighted sum of their
+    /// outputs. Each `x_i` is `[len_i, C_in]` position-major, folded as
+    /// `rows_i x p_i`; the bias is added once, times `Σ_i w_i`. Every
+    /// kernel tap is in the GEMM (`out_len · k²` multiplied, whatever the
+    /// periods), so it pays when the periods together would multiply more.
+    pub fn forward_grids_summed(&self, grids: &[WeightedGrid<'_>], out_len: usize) -> Vec<f32> {
+        let (k, c_in, c_out) = (self.k(), self.c_in(), self.c_out());
+        let half = k / 2;
+        for g in grids {
+            assert_eq!(g.x.len() % c_in, 0, "input width");
+            assert!(
+                g.x.len() / c_in <= g.rows * g.p && out_len <= g.rows * g.p,
+                "sequence fits the grid"
+            );
+        }
+        let w_sum: f32 = grids.iter().map(|g| g.weight).sum();
+        let mut out = vec![0.0f32; out_len * c_out];
+        for row in out.chunks_exact_mut(c_out) {
+            for (o, b) in row.iter_mut().zip(self.bias()) {
+                *o = b * w_sum;
+            }
+        }
+        let kk = k * k * c_in;
+        HostConv::with_scratch(TILE * kk, |a| {
+            let mut m0 = 0;
+            while m0 < out_len {
+                let tile = TILE.min(out_len - m0);
+                let a = &mut a[..tile * kk];
+                a.fill(0.0);
+                for (t, arow) in a.chunks_exact_mut(kk).enumerate() {
+                    let m = m0 + t;
+                    for g in grids {
+                        let (r, c, len) = (m / g.p, m % g.p, g.x.len() / c_in);
+                        let (kx_lo, kx_hi) = (half.saturating_sub(c), (g.p + half - c).min(k));
+                        for ky in half.saturating_sub(r)..k {
+                            let first = (r + ky - half) * g.p + c + kx_lo - half;
+                            for (kx, n) in (kx_lo..kx_hi).zip(first..len) {
+                                let at = (ky * k + kx) * c_in;
+                                let src = &g.x[n * c_in..(n + 1) * c_in];
+                                for (d, v) in arow[at..at + c_in].iter_mut().zip(src) {
+                                    *d += g.weight * v;
+                                }
+                            }
+                        }
+                    }
+                }
+                let row_major = |cols| Strides { row: cols, col: 1 };
+                self.accumulate_taps(
+                    0..k * k,
+                    tile,
+                    &mut out[m0 * c_out..(m0 + tile) * c_out],
+                    row_major(c_out),
+                    a,
+                    row_major(kk),
+                );
+                m0 += tile;
+            }
+        });
+        out
+    }
+
+    /// Positions times kernel taps that [`forward_grid`](Self::forward_grid)
+    /// multiplies for this folding (its GEMMs' rows times their taps), to
+    /// choose between it and [`tap_products`](Self::tap_products), which
+    /// multiplies `len · k²`.
+    pub fn grid_taps(&self, len: usize, rows: usize, p: usize, out_len: usize) -> usize {
+        let (k, half) = (self.k(), self.k() / 2);
+        if p <= BY_COLUMN_MAX_PERIOD && p < rows {
+            (0..p)
+                .map(|c| {
+                    let cols = (p + half - c).min(k) - half.saturating_sub(c);
+                    let positions = (out_len + p - 1 - c) / p;
+                    positions * cols * k
+                })
+                .sum()
+        } else {
+            let data_rows = len.div_ceil(p);
+            (0..out_len.div_ceil(p))
+                .map(|r| {
+                    let lo = half.saturating_sub(r);
+                    let hi = (data_rows + half).saturating_sub(r).min(k);
+                    let positions = p.min(out_len - r * p);
+                    positions * hi.saturating_sub(lo) * k
+                })
+                .sum()
+        }
+    }
+
     /// [`forward_grid`](Self::forward_grid) for a short period: the
     /// positions taken a grid column at a time, each with only the kernel
     /// columns that reach the grid from it (for `p = 3`, 3 of 5 from every
@@ -198,15 +354,17 @@ mod tests {
     use burn::prelude::*;
     use burn::tensor::Distribution;
 
-    /// Against burn's conv2d on the explicitly folded, zero-padded grid.
+    /// Against burn's conv2d on the explicitly folded, zero-padded grid,
+    /// both ways: folded im2col and summed tap products.
     #[test]
     fn equals_conv2d_on_the_folded_grid() {
         let device = cpu_device();
         let (c_in, c_out, l) = (6usize, 5usize, 45usize);
         let fused = Inception2d::new(c_in, c_out, 3, &device).fuse();
-        let conv = HostConv::from_fused(&fused);
+        let conv = HostConv::from_fused(&fused).with_tap_products();
         let x = Tensor::<2>::random([l, c_in], Distribution::Normal(0.0, 1.0), &device);
         let xs: Vec<f32> = x.clone().into_data().try_into_vec().unwrap();
+        let y = conv.tap_products(&xs);
         for p in [1usize, 2, 3, 4, 5, 7, 12, 45] {
             let rows = l.div_ceil(p);
             let lp = rows * p;
@@ -224,11 +382,72 @@ mod tests {
                 .try_into_vec()
                 .unwrap();
             for out_len in [l, lp] {
-                let got = conv.forward_grid(&xs, rows, p, out_len);
-                assert_eq!(got.len(), out_len * c_out);
-                for (i, (g, w)) in got.iter().zip(&want).enumerate() {
-                    assert!((g - w).abs() < 1e-5, "p {p} at {i}: {g} vs {w}");
+                let folded = conv.forward_grid(&xs, rows, p, out_len);
+                let from_taps = conv.forward_grid_from_taps(&y, rows, p, out_len);
+                for (how, got) in [("folded", folded), ("from taps", from_taps)] {
+                    assert_eq!(got.len(), out_len * c_out);
+                    for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+                        assert!((g - w).abs() < 1e-5, "{how} p {p} at {i}: {g} vs {w}");
+                    }
                 }
+            }
+        }
+    }
+
+    /// The tap count is what the GEMMs multiply: a single-row fold
+    /// (period = length) keeps one kernel row; a period of 2 keeps two
+    /// kernel columns of every column's taps.
+    #[test]
+    fn grid_taps_counts_the_multiplied_taps() {
+        let device = cpu_device();
+        let conv = HostConv::from_fused(&Inception2d::new(2, 2, 3, &device).fuse());
+        assert_eq!(conv.k(), 5);
+        // One row: kernel row 2 only, all five columns (some read padding).
+        assert_eq!(conv.grid_taps(45, 1, 45, 45), 45 * 5);
+        // p = 2, 23 rows: every column reaches 2 kernel columns, 5 rows each.
+        assert_eq!(conv.grid_taps(45, 23, 2, 46), 46 * 2 * 5);
+    }
+
+    /// One GEMM over the weighted periods equals the weighted sum of each
+    /// period folded on its own, for short (by-column) and long (by-row)
+    /// periods, each input as long as its grid (a block's hidden layer).
+    #[test]
+    fn summed_grids_equal_the_weighted_sum_of_each() {
+        let device = cpu_device();
+        let (c_in, c_out, l) = (6usize, 5usize, 45usize);
+        let conv = HostConv::from_fused(&Inception2d::new(c_in, c_out, 3, &device).fuse());
+        for periods in [[2usize, 3, 5], [7, 12, 45], [4, 23, 9]] {
+            let weights = [0.5f32, 0.3, 0.2];
+            let xs: Vec<Vec<f32>> = periods
+                .iter()
+                .map(|&p| {
+                    let lp = l.div_ceil(p) * p;
+                    Tensor::<1>::random([lp * c_in], Distribution::Normal(0.0, 1.0), &device)
+                        .into_data()
+                        .try_into_vec()
+                        .unwrap()
+                })
+                .collect();
+            let mut want = vec![0.0f32; l * c_out];
+            for ((x, &p), &w) in xs.iter().zip(&periods).zip(&weights) {
+                let y = conv.forward_grid(x, l.div_ceil(p), p, l);
+                want.iter_mut().zip(&y).for_each(|(a, v)| *a += w * v);
+            }
+            let grids: Vec<WeightedGrid> = xs
+                .iter()
+                .zip(&periods)
+                .zip(&weights)
+                .map(|((x, &p), &weight)| WeightedGrid {
+                    x,
+                    rows: l.div_ceil(p),
+                    p,
+                    weight,
+                })
+                .collect();
+            let got = conv.forward_grids_summed(&grids, l);
+            assert_eq!(got.len(), want.len());
+            for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+                assert!((g - w).abs() < 1e-5, "{periods:?} at {i}: {g} vs {w}");
             }
         }
     }

@@ -28,6 +28,11 @@ pub struct HostConv {
     /// column-major (`kx·k + ky`), so that the taps of a range of kernel
     /// columns are contiguous ([`HostConv::accumulate_kernel_columns`]).
     weight_by_column: Option<Arc<[f32]>>,
+    /// 2-D kernels, made on request ([`HostConv::with_tap_products`]): the
+    /// weights as `[C_in, taps·C_out]`, element `(ci, tap·C_out + co)`, so
+    /// that one GEMM gives every tap's product with every input position
+    /// ([`HostConv::tap_products`]).
+    weight_by_input: Option<Arc<[f32]>>,
     /// `[C_out]`.
     bias: Arc<[f32]>,
 }
@@ -79,8 +84,31 @@ impl HostConv {
             c_out,
             weight: weight.into(),
             weight_by_column,
+            weight_by_input: None,
             bias: bias.into(),
         }
+    }
+
+    /// This convolution with the layout [`HostConv::tap_products`] reads
+    /// (`taps·C_in·C_out` more floats; 2-D kernels only).
+    pub fn with_tap_products(mut self) -> HostConv {
+        assert!(self.weight_by_column.is_some(), "a 2-D convolution");
+        let (taps, c_in, c_out) = (self.k * self.k, self.c_in, self.c_out);
+        let mut by_input = vec![0.0f32; self.weight.len()];
+        for tap in 0..taps {
+            for ci in 0..c_in {
+                let from = (tap * c_in + ci) * c_out;
+                let to = (ci * taps + tap) * c_out;
+                by_input[to..to + c_out].copy_from_slice(&self.weight[from..from + c_out]);
+            }
+        }
+        self.weight_by_input = Some(by_input.into());
+        self
+    }
+
+    /// Whether [`HostConv::tap_products`] can be used.
+    pub fn has_tap_products(&self) -> bool {
+        self.weight_by_input.is_some()
     }
 
     /// Kernel side.
@@ -164,39 +192,74 @@ impl HostConv {
             taps.start < taps.end && taps.end * self.c_in * n <= weight.len(),
             "taps inside the kernel"
         );
-        let kk = taps.len() * self.c_in;
         let weight = &weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
-        if m == 0 {
-            return;
-        }
-        let last = |s: Strides, cols: usize| (m - 1) * s.row + (cols - 1) * s.col;
-        assert!(last(dst_s, n) < dst.len(), "output inside its buffer");
-        assert!(last(a_s, kk) < a.len(), "im2col inside its buffer");
-        // SAFETY: the largest index each matrix is read or written at was
-        // checked above against its slice; `weight` is `kk x n` row-major,
-        // sliced so; `dst` is borrowed mutably, so no input overlaps it.
-        unsafe {
-            gemm::gemm(
-                m,
-                n,
-                kk,
-                dst.as_mut_ptr(),
-                dst_s.col as isize,
-                dst_s.row as isize,
-                true,
-                a.as_ptr(),
-                a_s.col as isize,
-                a_s.row as isize,
-                weight.as_ptr(),
-                1,
-                n as isize,
-                1.0f32,
-                1.0f32,
-                false,
-                false,
-                false,
-                gemm::Parallelism::None,
-            );
-        }
+        gemm_rows(weight, n, m, dst, dst_s, a, a_s);
+    }
+
+    /// Every kernel tap's product with every input position: `x`
+    /// `[len, C_in]` position-major -> `[len, taps·C_out]`, row `n` holding
+    /// `x[n] · W_tap` for each tap in turn (no bias). A 2-D convolution at
+    /// any folding of `x` is then a sum of these rows
+    /// ([`HostConv::forward_grid_from_taps`]): one GEMM shared by all the
+    /// periods a block folds the same input at.
+    pub fn tap_products(&self, x: &[f32]) -> Vec<f32> {
+        let weight = self
+            .weight_by_input
+            .as_ref()
+            .expect("HostConv::with_tap_products");
+        let c_in = self.c_in;
+        assert_eq!(x.len() % c_in, 0, "input width");
+        let (len, n) = (x.len() / c_in, self.k * self.k * self.c_out);
+        let mut y = vec![0.0f32; len * n];
+        let row_major = |cols| Strides { row: cols, col: 1 };
+        gemm_rows(weight, n, len, &mut y, row_major(n), x, row_major(c_in));
+        y
+    }
+}
+
+/// `dst += a · weight`: `weight` `kk x n` row-major (`kk = weight.len() / n`),
+/// `a` `m x kk` and `dst` `m x n` with their strides, on this thread.
+fn gemm_rows(
+    weight: &[f32],
+    n: usize,
+    m: usize,
+    dst: &mut [f32],
+    dst_s: Strides,
+    a: &[f32],
+    a_s: Strides,
+) {
+    assert!(n > 0 && weight.len().is_multiple_of(n), "weight rows");
+    let kk = weight.len() / n;
+    if m == 0 || kk == 0 {
+        return;
+    }
+    let last = |s: Strides, cols: usize| (m - 1) * s.row + (cols - 1) * s.col;
+    assert!(last(dst_s, n) < dst.len(), "output inside its buffer");
+    assert!(last(a_s, kk) < a.len(), "im2col inside its buffer");
+    // SAFETY: the largest index each matrix is read or written at was
+    // checked above against its slice; `weight` is `kk x n` row-major,
+    // sliced so; `dst` is borrowed mutably, so no input overlaps it.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            kk,
+            dst.as_mut_ptr(),
+            dst_s.col as isize,
+            dst_s.row as isize,
+            true,
+            a.as_ptr(),
+            a_s.col as isize,
+            a_s.row as isize,
+            weight.as_ptr(),
+            1,
+            n as isize,
+            1.0f32,
+            1.0f32,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
     }
 }

@@ -14,6 +14,7 @@ use burn::tensor::activation::{gelu, softmax};
 use burn::tensor::IndexingUpdateOp;
 
 use super::config::ModelConfig;
+use super::grid_conv::WeightedGrid;
 use super::host_conv::HostConv;
 use super::inception::{FusedConv, Inception2d};
 use super::spectral::dft_matrices;
@@ -96,7 +97,7 @@ impl PlanEncoder {
                 .iter()
                 .map(|b| {
                     [
-                        HostConv::from_fused(&b.conv_in.fuse()),
+                        HostConv::from_fused(&b.conv_in.fuse()).with_tap_products(),
                         HostConv::from_fused(&b.conv_out.fuse()),
                     ]
                 })
@@ -228,17 +229,62 @@ fn fused_periods(
                 None => distinct.push((p, w)),
             }
         }
-        for (i, &(p, w)) in distinct.iter().enumerate() {
-            let rows = l.div_ceil(p);
-            let lp = rows * p;
-            let mut h = convs[0].forward_grid(xs, rows, p, lp);
-            debug_assert_eq!(h.len(), lp * mid);
-            gelu_in_place(&mut h);
-            let y = convs[1].forward_grid(&h, rows, p, l);
-            if i == 0 {
-                acc.iter_mut().zip(&y).for_each(|(a, v)| *a = v * w);
-            } else {
-                acc.iter_mut().zip(&y).for_each(|(a, v)| *a += v * w);
+        // Every period's first convolution reads the same input: when
+        // folding it at each period would multiply more than once per tap
+        // and position, the tap products are made once and each period
+        // only sums them.
+        let conv_in = &convs[0];
+        let taps = conv_in.k() * conv_in.k();
+        let folded: usize = distinct
+            .iter()
+            .map(|&(p, _)| {
+                let rows = l.div_ceil(p);
+                conv_in.grid_taps(l, rows, p, rows * p)
+            })
+            .sum();
+        let shared = (conv_in.has_tap_products() && folded * 4 > l * taps * 5)
+            .then(|| conv_in.tap_products(xs));
+        let hidden: Vec<(usize, usize, f32, Vec<f32>)> = distinct
+            .iter()
+            .map(|&(p, w)| {
+                let rows = l.div_ceil(p);
+                let lp = rows * p;
+                let mut h = match &shared {
+                    Some(y) => conv_in.forward_grid_from_taps(y, rows, p, lp),
+                    None => conv_in.forward_grid(xs, rows, p, lp),
+                };
+                debug_assert_eq!(h.len(), lp * mid);
+                gelu_in_place(&mut h);
+                (p, rows, w, h)
+            })
+            .collect();
+        // The second convolution is linear: when folding each period would
+        // multiply more than the whole kernel once, the weighted periods
+        // go through one GEMM together.
+        let conv_out = &convs[1];
+        let folded: usize = hidden
+            .iter()
+            .map(|(p, rows, _, h)| conv_out.grid_taps(h.len() / mid, *rows, *p, l))
+            .sum();
+        if folded * 4 > l * taps * 5 {
+            let grids: Vec<WeightedGrid> = hidden
+                .iter()
+                .map(|(p, rows, w, h)| WeightedGrid {
+                    x: h,
+                    rows: *rows,
+                    p: *p,
+                    weight: *w,
+                })
+                .collect();
+            acc.copy_from_slice(&conv_out.forward_grids_summed(&grids, l));
+        } else {
+            for (i, (p, rows, w, h)) in hidden.iter().enumerate() {
+                let y = conv_out.forward_grid(h, *rows, *p, l);
+                if i == 0 {
+                    acc.iter_mut().zip(&y).for_each(|(a, v)| *a = v * w);
+                } else {
+                    acc.iter_mut().zip(&y).for_each(|(a, v)| *a += v * w);
+                }
             }
         }
     }
@@ -445,7 +491,7 @@ mod tests {
         let conv_in = Inception2d::new(d, mid, 3, &device);
         let conv_out = Inception2d::new(mid, d, 3, &device);
         let host = [
-            HostConv::from_fused(&conv_in.fuse()),
+            HostConv::from_fused(&conv_in.fuse()).with_tap_products(),
             HostConv::from_fused(&conv_out.fuse()),
         ];
         let train = [

@@ -4,11 +4,16 @@
 //! output slice of a fused `k x k x k` "same" convolution depends on the
 //! `k` input slices around it (zeros where the window ends). Burn Flex's
 //! generic `conv3d` on such a `[1, C_in, k, H, W]` input spent most of its
-//! time building its im2col buffer; here the im2col matrix is built
-//! column by column as shifted row copies of the channel-major input planes,
-//! and one GEMM (the `gemm` crate, as Flex itself uses) writes the output
+//! time building its im2col buffer; here each input plane is copied once
+//! with its zero border, the output is computed on rows as wide as that
+//! padded plane (the extra `k − 1` positions of each row are dropped), so
+//! that every im2col column is one contiguous copy of a padded plane, and
+//! one GEMM (the `gemm` crate, as Flex itself uses) writes the output
 //! channel-major, followed by ReLU and the `2 x 2` spatial max-pool: the
-//! layout the next layer and the cache read.
+//! layout the next layer and the cache read. (Row-by-row shifted copies
+//! took half of a slice's time; the wide rows cost up to 50% more GEMM on
+//! the 4x4 layer and are still faster there: `cargo bench --bench
+//! model_parts -- vision_slice`.)
 //!
 //! Same arithmetic as `conv3d` (f32 products summed, bias added), in
 //! another order: equal to it within rounding (tested against the
@@ -29,9 +34,18 @@ impl HostConv {
         for s in inputs.iter().flatten() {
             assert_eq!(s.len(), c_in * n, "input slice size");
         }
-        let half = (k / 2) as isize;
-        let mut conv = vec![0.0f32; c_out * n];
-        for (plane, &b) in conv.chunks_exact_mut(n).zip(self.bias()) {
+        // Outputs are computed on rows as wide as the padded input
+        // (`w = hw + 2·half`; the last `2·half` of each row are not
+        // outputs and are dropped by the pool), so that every im2col column
+        // is one contiguous run of a zero-padded input plane.
+        let half = k / 2;
+        let w = hw + 2 * half;
+        let wide = hw * w;
+        // The padded plane, and `2·half` more zeros that the dropped
+        // positions of the last row read.
+        let padded_len = (hw + 2 * half) * w + 2 * half;
+        let mut conv = vec![0.0f32; c_out * wide];
+        for (plane, &b) in conv.chunks_exact_mut(wide).zip(self.bias()) {
             plane.fill(b);
         }
         // The time taps that read an input slice: at the window's ends the
@@ -39,7 +53,7 @@ impl HostConv {
         // im2col matrix and the GEMM (their weight rows are contiguous).
         let Some(kt_lo) = inputs.iter().position(Option::is_some) else {
             // Only padding: the bias alone, through ReLU and the pool below.
-            return Self::relu_pool(&conv, c_out, hw);
+            return Self::relu_pool(&conv, c_out, hw, w);
         };
         let kt_hi = inputs
             .iter()
@@ -47,70 +61,56 @@ impl HostConv {
             .map_or(kt_lo, |i| i + 1);
         let taps_per_kt = k * k;
         let kk = (kt_hi - kt_lo) * taps_per_kt * c_in;
-        HostConv::with_scratch(kk * n, |a| {
-            // Column q = (((kt - kt_lo)·k + ky)·k + kx)·C_in + ci holds, for
-            // every output position m = y·hw + x,
-            // input[kt][ci][y + ky - k/2][x + kx - k/2] (zero outside): a
-            // shifted copy of one input plane. Every element is written
-            // once (the zeros too: no clearing pass over the matrix).
-            let per_kt = taps_per_kt * c_in * n;
+        let n_kt = kt_hi - kt_lo;
+        HostConv::with_scratch(kk * wide + n_kt * c_in * padded_len, |scratch| {
+            let (a, padded) = scratch.split_at_mut(kk * wide);
+            // Each input plane once with its zero border: `hw + 2·half`
+            // rows of `w` values.
             for (kt, input) in inputs.iter().enumerate().take(kt_hi).skip(kt_lo) {
-                let block = &mut a[(kt - kt_lo) * per_kt..(kt - kt_lo + 1) * per_kt];
-                let Some(input) = input else {
-                    block.fill(0.0);
-                    continue;
-                };
-                for ky in 0..k {
-                    let dy = ky as isize - half;
-                    for kx in 0..k {
-                        let dx = kx as isize - half;
-                        let x0 = ((-dx).max(0) as usize).min(hw);
-                        let x1 = ((hw as isize - dx).min(hw as isize).max(0) as usize).max(x0);
-                        for ci in 0..c_in {
-                            let q = (ky * k + kx) * c_in + ci;
-                            let col = &mut block[q * n..(q + 1) * n];
-                            let plane = &input[ci * n..(ci + 1) * n];
-                            for (y, row) in col.chunks_exact_mut(hw).enumerate() {
-                                let sy = y as isize + dy;
-                                if sy < 0 || sy >= hw as isize || x0 == x1 {
-                                    row.fill(0.0);
-                                    continue;
-                                }
-                                let src = (sy as usize * hw) as isize + dx;
-                                row[..x0].fill(0.0);
-                                row[x0..x1].copy_from_slice(
-                                    &plane[(src + x0 as isize) as usize
-                                        ..(src + x1 as isize) as usize],
-                                );
-                                row[x1..].fill(0.0);
-                            }
-                        }
+                for ci in 0..c_in {
+                    let dst = &mut padded[((kt - kt_lo) * c_in + ci) * padded_len..][..padded_len];
+                    dst.fill(0.0);
+                    let Some(input) = input else { continue };
+                    let plane = &input[ci * n..(ci + 1) * n];
+                    for (y, row) in plane.chunks_exact(hw).enumerate() {
+                        let at = (y + half) * w + half;
+                        dst[at..at + hw].copy_from_slice(row);
                     }
                 }
             }
-            // `conv` is `n x C_out` channel-major, `a` `n x kk` column-major.
-            let column_major = Strides { row: 1, col: n };
+            // Column q = (((kt - kt_lo)·k + ky)·k + kx)·C_in + ci holds, for
+            // every wide position m = y·w + x, the padded plane at
+            // m + ky·w + kx: one contiguous copy per column.
+            for (q, col) in a.chunks_exact_mut(wide).enumerate() {
+                let (ci, tap) = (q % c_in, q / c_in);
+                let (kt, ky, kx) = (tap / taps_per_kt, tap / k % k, tap % k);
+                let src = &padded[(kt * c_in + ci) * padded_len + ky * w + kx..];
+                col.copy_from_slice(&src[..wide]);
+            }
+            // `conv` is `wide x C_out` channel-major, `a` `wide x kk` column-major.
+            let column_major = Strides { row: 1, col: wide };
             self.accumulate_taps(
                 kt_lo * taps_per_kt..kt_hi * taps_per_kt,
-                n,
+                wide,
                 &mut conv,
                 column_major,
                 a,
                 column_major,
             );
         });
-        Self::relu_pool(&conv, c_out, hw)
+        Self::relu_pool(&conv, c_out, hw, w)
     }
 
-    /// ReLU and the `2 x 2` max-pool (floor) of `[C_out, hw, hw]`.
-    fn relu_pool(conv: &[f32], c_out: usize, hw: usize) -> Vec<f32> {
-        let n = hw * hw;
+    /// ReLU and the `2 x 2` max-pool (floor) of `[C_out, hw, hw]`, stored
+    /// with rows `w` apart.
+    fn relu_pool(conv: &[f32], c_out: usize, hw: usize, w: usize) -> Vec<f32> {
+        let n = hw * w;
         let ho = hw / 2;
         let mut out = vec![0.0f32; c_out * ho * ho];
         for (dst, src) in out.chunks_exact_mut(ho * ho).zip(conv.chunks_exact(n)) {
             for y in 0..ho {
-                let r0 = &src[2 * y * hw..];
-                let r1 = &src[(2 * y + 1) * hw..];
+                let r0 = &src[2 * y * w..];
+                let r1 = &src[(2 * y + 1) * w..];
                 for x in 0..ho {
                     let m = r0[2 * x]
                         .max(r0[2 * x + 1])
