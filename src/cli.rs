@@ -447,8 +447,9 @@ pub struct BenchArgs {
     #[arg(long, default_value = "cpu")]
     pub device: TrainDevice,
     /// How the classifier's input projection is held for the inference
-    /// part: as the file stores it, or int8 (`[model].projection`).
-    #[arg(long, value_enum, default_value_t = ProjectionWeights::AsFile)]
+    /// part: int8, as the daemon holds it by default (`[model].projection`),
+    /// or as the file stores it.
+    #[arg(long, value_enum, default_value_t = ProjectionWeights::Int8)]
     pub projection: ProjectionWeights,
 }
 

@@ -102,13 +102,15 @@ impl HostLinear {
     /// The matrix in int8, one scale per input row (symmetric, round to
     /// nearest: `scale[r] = max_j |w[r, j]| / 127`, so each weight moves by
     /// at most `scale[r] / 2`). Half the bytes of f16, and the product reads
-    /// half as much memory per tick; the scale is applied to the input
-    /// (`x[r] · scale[r]`), so the inner loop is the same multiply-add.
+    /// half as much memory per tick. The scale is applied to the input
+    /// (`x[r] · scale[r]`), which is then rounded to 16-bit integers with
+    /// one step for the vector ([`quantise_input`]), so that the product
+    /// is integer multiply-adds (two rows per instruction on AVX2).
     /// Not lossless: the forecasts it changes, and by how much, are
     /// measured in the model card. Already int8: unchanged.
     pub fn to_int8(&self) -> HostLinear {
         let (d_in, n) = (self.d_in, self.d_out);
-        let mut q = vec![0i8; d_in * n];
+        let mut q = vec![0i8; d_in.next_multiple_of(2) * n];
         let mut scale = vec![0.0f32; d_in];
         let mut buf = vec![0.0f32; n];
         for r in 0..d_in {
@@ -199,22 +201,56 @@ impl HostLinear {
                 }
             }
             Weights::I8 { q, scale } => {
-                let xs: Vec<f32> = x.iter().zip(scale.iter()).map(|(a, s)| a * s).collect();
+                let Some((qx, step)) = quantise_input(x, scale) else {
+                    // A non-finite input or weight: no number to stand behind.
+                    y.fill(f32::NAN);
+                    return;
+                };
+                let mut acc = vec![0.0f32; n];
                 #[cfg(target_arch = "x86_64")]
                 {
-                    if std::arch::is_x86_feature_detected!("avx2")
-                        && std::arch::is_x86_feature_detected!("fma")
-                    {
-                        // SAFETY: the CPU has AVX2 and FMA (checked just above).
-                        unsafe { axpy_rows_i8_avx2(&xs, q, y) };
-                        return;
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        // SAFETY: the CPU has AVX2 (checked just above).
+                        unsafe { i8_product_avx2(&qx, q, &mut acc) };
+                    } else {
+                        i8_columns_generic(&qx, q, &mut acc, 0);
                     }
                 }
-                axpy_rows_i8_generic(&xs, q, y);
+                #[cfg(not(target_arch = "x86_64"))]
+                i8_columns_generic(&qx, q, &mut acc, 0);
+                for (yv, a) in y.iter_mut().zip(&acc) {
+                    *yv += step * a;
+                }
             }
         }
     }
 }
+
+/// The int8 product's input: `x[r] · scale[r]` (the rows' weight scales
+/// moved onto the input) rounded to 16-bit integers with one step for the
+/// whole vector (`max |x[r] · scale[r]| / 32767`), padded with a zero to an
+/// even length (rows are taken in pairs). Each input moves by at most half
+/// a step: relative to the largest, 1.5e-5, far below the int8 weights'
+/// own rounding (half of 1/127 of each row's largest). `None` when a
+/// value is not finite.
+fn quantise_input(x: &[f32], scale: &[f32]) -> Option<(Vec<i16>, f32)> {
+    let xs: Vec<f32> = x.iter().zip(scale).map(|(a, s)| a * s).collect();
+    if !xs.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let max = xs.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let step = max / I16_MAX;
+    let mut qx = vec![0i16; xs.len().next_multiple_of(2)];
+    if step > 0.0 {
+        for (q, v) in qx.iter_mut().zip(&xs) {
+            *q = (v / step).round().clamp(-I16_MAX, I16_MAX) as i16;
+        }
+    }
+    Some((qx, step))
+}
+
+/// The largest 16-bit input code.
+const I16_MAX: f32 = 32767.0;
 
 /// `y += Σ_r x[r] · w[r, :]` for up to [`ROWS_PER_STEP`] rows.
 fn axpy_rows(x: &[f32], w: &[f32], y: &mut [f32]) {
@@ -269,83 +305,105 @@ fn axpy_rows_f16_avx2(x: &[f32], w: &[f16], y: &mut [f32]) {
 /// Output columns summed in registers at once (eight AVX2 registers).
 const I8_BLOCK: usize = 64;
 
-/// `y += Σ_r x[r] · q[r, :]` with `q` in int8, widened in registers:
-/// a quarter of the f32 bytes read. A block of [`I8_BLOCK`] outputs is
-/// summed over every row in registers, then added to `y` once (no load
-/// and store of `y` per row). Per output: `acc = 0`, `acc = fma(x[r],
-/// q[r, j], acc)` for `r` in order, `y += acc`: the order
-/// [`axpy_rows_i8_generic`] uses, so the two give the same bits.
+/// Row pairs summed in 32-bit integers before they are added to the f32
+/// sums: a pair adds at most `2 · 127 · 32767` (< 2^23.0), so 128 pairs
+/// stay below 2^30 and never overflow.
+const PAIRS_PER_CHUNK: usize = 128;
+
+/// `acc[j] = Σ_chunks f32(Σ_{r in chunk} qx[r] · q[r, j])`: 16-bit inputs
+/// times int8 weights, each pair of rows one `vpmaddwd` (two products and
+/// their sum per output, exact in 32 bits), a chunk of row pairs summed
+/// in integers, then converted and added in f32. Per output the same
+/// integers and the same f32 additions in the same order as
+/// [`i8_columns_generic`], so the two give the same bits.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn axpy_rows_i8_avx2(x: &[f32], q: &[i8], y: &mut [f32]) {
+#[target_feature(enable = "avx2")]
+fn i8_product_avx2(qx: &[i16], q: &[i8], acc: &mut [f32]) {
     use std::arch::x86_64::{
-        __m128i, __m256, _mm256_add_ps, _mm256_cvtepi32_ps, _mm256_cvtepi8_epi32, _mm256_fmadd_ps,
-        _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_storeu_ps, _mm_loadl_epi64,
+        __m128i, __m256, __m256i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps,
+        _mm256_cvtepi8_epi16, _mm256_loadu_ps, _mm256_madd_epi16, _mm256_set1_epi32,
+        _mm256_setzero_si256, _mm256_storeu_ps, _mm_loadu_si128,
     };
-    let n = y.len();
-    assert_eq!(q.len(), x.len() * n, "int8 matrix shape");
+    let (n, rows) = (acc.len(), qx.len());
+    assert_eq!(q.len(), rows * n, "int8 matrix shape");
+    assert!(rows.is_multiple_of(2), "rows in pairs");
     let blocks = n / I8_BLOCK * I8_BLOCK;
+    let pair = |r: usize| (qx[r] as u16 as u32 | (qx[r + 1] as u16 as u32) << 16) as i32;
     for j0 in (0..blocks).step_by(I8_BLOCK) {
-        let mut acc: [__m256; I8_BLOCK / 8] = [_mm256_setzero_ps(); I8_BLOCK / 8];
-        // The block's rows are contiguous: `I8_BLOCK` bytes each.
-        let block = &q[j0 * x.len()..(j0 + I8_BLOCK) * x.len()];
-        for (r, &xr) in x.iter().enumerate() {
-            let xv = _mm256_set1_ps(xr);
-            let base = r * I8_BLOCK;
-            for (i, a) in acc.iter_mut().enumerate() {
-                // SAFETY: `base + 8·i + 8 <= (r + 1)·I8_BLOCK <= block.len()`;
-                // an unaligned 8-byte load.
-                unsafe {
-                    let w8 = _mm_loadl_epi64(block.as_ptr().add(base + 8 * i).cast::<__m128i>());
-                    *a = _mm256_fmadd_ps(xv, _mm256_cvtepi32_ps(_mm256_cvtepi8_epi32(w8)), *a);
+        // The block's row pairs are contiguous: `2 · I8_BLOCK` bytes each.
+        let block = &q[j0 * rows..(j0 + I8_BLOCK) * rows];
+        let mut r0 = 0;
+        while r0 < rows {
+            let r1 = rows.min(r0 + 2 * PAIRS_PER_CHUNK);
+            let mut sum: [__m256i; I8_BLOCK / 8] = [_mm256_setzero_si256(); I8_BLOCK / 8];
+            for r in (r0..r1).step_by(2) {
+                let xv = _mm256_set1_epi32(pair(r));
+                let base = r * I8_BLOCK;
+                for (i, s) in sum.iter_mut().enumerate() {
+                    // SAFETY: `base + 16·i + 16 <= (r + 2)·I8_BLOCK <=
+                    // block.len()`; an unaligned 16-byte load.
+                    unsafe {
+                        let w =
+                            _mm_loadu_si128(block.as_ptr().add(base + 16 * i).cast::<__m128i>());
+                        *s = _mm256_add_epi32(*s, _mm256_madd_epi16(_mm256_cvtepi8_epi16(w), xv));
+                    }
                 }
             }
-        }
-        for (i, a) in acc.iter().enumerate() {
-            let at = j0 + 8 * i;
-            // SAFETY: `at + 8 <= j0 + I8_BLOCK <= n` = the length of `y`.
-            unsafe {
-                let yv = _mm256_loadu_ps(y.as_ptr().add(at));
-                _mm256_storeu_ps(y.as_mut_ptr().add(at), _mm256_add_ps(yv, *a));
+            for (i, s) in sum.iter().enumerate() {
+                let at = j0 + 8 * i;
+                // SAFETY: `at + 8 <= j0 + I8_BLOCK <= n` = the length of `acc`.
+                unsafe {
+                    let a: __m256 = _mm256_loadu_ps(acc.as_ptr().add(at));
+                    _mm256_storeu_ps(
+                        acc.as_mut_ptr().add(at),
+                        _mm256_add_ps(a, _mm256_cvtepi32_ps(*s)),
+                    );
+                }
             }
+            r0 = r1;
         }
     }
     if blocks < n {
-        i8_columns_generic(x, q, y, blocks);
+        i8_columns_generic(qx, q, acc, blocks);
     }
 }
 
 /// Where `q[r, j]` of a `d_in x n` int8 matrix is stored: by blocks of
-/// [`I8_BLOCK`] output columns (the last one narrower), each block its
-/// rows one after the other, so that the product reads memory in order.
+/// [`I8_BLOCK`] output columns (the last one narrower); in a block, by
+/// pairs of rows (`d_in` rounded up to even, the extra row zeros), each
+/// pair's two rows interleaved column by column, so that the product reads
+/// memory in order and one 16-byte load holds two rows of eight outputs.
 fn i8_index(d_in: usize, n: usize, r: usize, j: usize) -> usize {
+    let rows = d_in.next_multiple_of(2);
     let j0 = j / I8_BLOCK * I8_BLOCK;
     let w = I8_BLOCK.min(n - j0);
-    j0 * d_in + r * w + (j - j0)
+    j0 * rows + (r / 2) * 2 * w + (j - j0) * 2 + r % 2
 }
 
-/// The same on any CPU (the compiler vectorises it for NEON on aarch64).
-fn axpy_rows_i8_generic(x: &[f32], q: &[i8], y: &mut [f32]) {
-    i8_columns_generic(x, q, y, 0);
-}
-
-/// Columns `from..` of [`axpy_rows_i8_generic`], a block at a time.
-fn i8_columns_generic(x: &[f32], q: &[i8], y: &mut [f32], from: usize) {
-    let n = y.len();
-    let mut acc = [0.0f32; I8_BLOCK];
+/// Columns `from..` of the int8 product (see [`i8_product_avx2`]) on any
+/// CPU; the compiler vectorises it for NEON on aarch64.
+fn i8_columns_generic(qx: &[i16], q: &[i8], acc: &mut [f32], from: usize) {
+    let (n, rows) = (acc.len(), qx.len());
+    let mut sum = [0i32; I8_BLOCK];
     let mut j0 = from;
     while j0 < n {
         let w = I8_BLOCK.min(n - j0);
-        let acc = &mut acc[..w];
-        acc.fill(0.0);
-        let block = &q[j0 * x.len()..(j0 + w) * x.len()];
-        for (&xr, row) in x.iter().zip(block.chunks_exact(w)) {
-            for (a, &v) in acc.iter_mut().zip(row) {
-                *a = xr.mul_add(f32::from(v), *a);
+        let block = &q[j0 * rows..(j0 + w) * rows];
+        for (xc, bc) in qx
+            .chunks(2 * PAIRS_PER_CHUNK)
+            .zip(block.chunks(2 * PAIRS_PER_CHUNK * w))
+        {
+            let sum = &mut sum[..w];
+            sum.fill(0);
+            for (xp, pair) in xc.chunks_exact(2).zip(bc.chunks_exact(2 * w)) {
+                let (x0, x1) = (i32::from(xp[0]), i32::from(xp[1]));
+                for (s, wv) in sum.iter_mut().zip(pair.chunks_exact(2)) {
+                    *s += x0 * i32::from(wv[0]) + x1 * i32::from(wv[1]);
+                }
             }
-        }
-        for (yv, a) in y[j0..j0 + w].iter_mut().zip(acc.iter()) {
-            *yv += a;
+            for (a, &s) in acc[j0..j0 + w].iter_mut().zip(sum.iter()) {
+                *a += s as f32;
+            }
         }
         j0 += w;
     }
@@ -422,7 +480,11 @@ mod tests {
     #[test]
     fn int8_weights_are_the_f32_product_of_their_dequantised_matrix() {
         // Narrower than a register block, and wider with a remainder.
-        for (d_in, d_out) in [(45usize, 19usize), (37, 2 * I8_BLOCK + 6)] {
+        for (d_in, d_out) in [
+            (45usize, 19usize),
+            (37, 2 * I8_BLOCK + 6),
+            (2 * PAIRS_PER_CHUNK * 2 + 9, I8_BLOCK),
+        ] {
             int8_product_case(d_in, d_out);
         }
     }
@@ -438,12 +500,13 @@ mod tests {
         let full = HostLinear::new(w.clone(), b.clone(), d_in, d_out);
         let q = full.to_int8();
         assert!(q.is_int8() && !full.is_int8());
-        assert_eq!(q.bytes(), d_in * d_out + 4 * d_in + 4 * d_out);
+        let rows = d_in.next_multiple_of(2);
+        assert_eq!(q.bytes(), rows * d_out + 4 * d_in + 4 * d_out);
         let Weights::I8 { q: qw, scale } = &q.weight else {
             unreachable!()
         };
         // Each weight within half a step of its row's scale, the largest
-        // of each row exactly at ±127.
+        // of each row exactly at ±127; the padding row (odd d_in) zeros.
         let mut deq = vec![0.0f32; d_in * d_out];
         for r in 0..d_in {
             let row = &w[r * d_out..(r + 1) * d_out];
@@ -454,17 +517,52 @@ mod tests {
                 assert!((deq[at] - row[j]).abs() <= scale[r] * 0.5001, "r {r} j {j}");
             }
         }
+        for r in d_in..rows {
+            assert!((0..d_out).all(|j| qw[i8_index(d_in, d_out, r, j)] == 0));
+        }
         let mut y = vec![0.0; d_out];
         q.row(&x, &mut y);
-        let want = reference(&x, &deq, &b, d_in, d_out);
-        for (a, b) in want.iter().zip(&y) {
-            assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+        // The integer product, exactly (f64), times the input step.
+        let (qx, step) = quantise_input(&x, scale).unwrap();
+        for j in 0..d_out {
+            let dot: f64 = (0..d_in)
+                .map(|r| f64::from(qx[r]) * f64::from(qw[i8_index(d_in, d_out, r, j)]))
+                .sum();
+            let exact = f64::from(b[j]) + f64::from(step) * dot;
+            assert!(
+                (f64::from(y[j]) - exact).abs() < 1e-6 * exact.abs().max(1.0),
+                "{} vs {exact}",
+                y[j]
+            );
         }
-        // The generic kernel (aarch64) gives the same as the AVX2 one.
-        let xs: Vec<f32> = x.iter().zip(scale.iter()).map(|(a, s)| a * s).collect();
-        let mut y2 = b.clone();
-        axpy_rows_i8_generic(&xs, qw, &mut y2);
-        assert_eq!(y, y2);
+        // Against the dequantised weights times the f32 input: each input
+        // moved by at most half a step.
+        let want = reference(&x, &deq, &b, d_in, d_out);
+        for (j, (a, got)) in want.iter().zip(&y).enumerate() {
+            let bound: f32 = (0..d_in)
+                .map(|r| 0.5 * step * f32::from(qw[i8_index(d_in, d_out, r, j)]).abs())
+                .sum();
+            assert!(
+                (a - got).abs() <= bound + 1e-5,
+                "{a} vs {got} (bound {bound})"
+            );
+        }
+        // The generic kernel (aarch64) gives the same bits as the AVX2 one.
+        let mut generic = vec![0.0f32; d_out];
+        i8_columns_generic(&qx, qw, &mut generic, 0);
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            let mut avx2 = vec![0.0f32; d_out];
+            // SAFETY: the CPU has AVX2 (checked just above).
+            unsafe { i8_product_avx2(&qx, qw, &mut avx2) };
+            assert_eq!(avx2, generic);
+        }
+        let from_generic: Vec<f32> = b
+            .iter()
+            .zip(&generic)
+            .map(|(bv, a)| bv + step * a)
+            .collect();
+        assert_eq!(y, from_generic);
         // A zero row keeps scale 1 and all-zero codes.
         let mut wz = w;
         wz[..d_out].fill(0.0);
@@ -474,6 +572,20 @@ mod tests {
         };
         assert_eq!(sz[0], 1.0);
         assert!((0..d_out).all(|j| qzw[i8_index(d_in, d_out, 0, j)] == 0));
+    }
+
+    /// More rows than one integer chunk holds, at the largest codes: the
+    /// chunked sums neither overflow nor lose the product.
+    #[test]
+    fn int8_product_of_many_rows_at_full_scale_does_not_overflow() {
+        let (d_in, d_out) = (4 * PAIRS_PER_CHUNK * 2 + 3, I8_BLOCK);
+        let w = vec![1.0f32; d_in * d_out];
+        let host = HostLinear::new(w, vec![0.0; d_out], d_in, d_out).to_int8();
+        let mut y = vec![0.0; d_out];
+        host.row(&vec![2.0; d_in], &mut y);
+        for v in y {
+            assert!((v - 2.0 * d_in as f32).abs() < 1e-3 * d_in as f32, "{v}");
+        }
     }
 
     #[test]

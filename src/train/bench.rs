@@ -110,6 +110,8 @@ pub struct BenchReport {
     pub train_device: String,
     /// Threads used by inference.
     pub threads: usize,
+    /// How the input projection was held (`as_file` or `int8`).
+    pub projection: ProjectionWeights,
 }
 
 /// The backend compiled in.
@@ -161,6 +163,9 @@ pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
             .map_err(anyhow::Error::msg)?,
     };
     let device = cpu_device();
+    if !args.train_only {
+        eprintln!("input projection held {}", args.projection.name());
+    }
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let (n, c, s, l) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len());
     let mut ablations = Vec::new();
@@ -258,6 +263,7 @@ pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
         train_samples_per_s,
         train_device: args.device.to_string(),
         threads: 1,
+        projection: args.projection,
     };
     if let Some(path) = &args.json {
         std::fs::write(path, serde_json::to_string_pretty(&report)?)
