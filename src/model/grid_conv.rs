@@ -54,18 +54,25 @@ const BY_COLUMN_MAX_PERIOD: usize = 16;
 /// Output positions per tile there (one GEMM per tile).
 const COLUMN_TILE: usize = 64;
 
+/// Positions of a sequence of `values` numbers, `width` per position,
+/// checked to fit, with the `out_len` outputs, a `rows x p` grid.
+fn grid_len(values: usize, width: usize, rows: usize, p: usize, out_len: usize) -> usize {
+    assert!(values.is_multiple_of(width), "{width} values per position");
+    let len = values / width;
+    assert!(
+        len <= rows * p && out_len <= rows * p,
+        "sequence fits the grid"
+    );
+    len
+}
+
 impl HostConv {
     /// `x` `[len, C_in]` position-major, folded as `rows x p` (`len <= rows·p`,
     /// zeros after `len`) -> the first `out_len` positions of the output,
     /// `[out_len, C_out]`.
     pub fn forward_grid(&self, x: &[f32], rows: usize, p: usize, out_len: usize) -> Vec<f32> {
         let (k, c_in, c_out) = (self.k(), self.c_in(), self.c_out());
-        assert_eq!(x.len() % c_in, 0, "input width");
-        let len = x.len() / c_in;
-        assert!(
-            len <= rows * p && out_len <= rows * p,
-            "sequence fits the grid"
-        );
+        let len = grid_len(x.len(), c_in, rows, p, out_len);
         let half = k / 2;
         // Rows of the grid holding any of the `len` positions; rows past
         // them, like rows past the grid, are zero padding.
@@ -154,12 +161,7 @@ impl HostConv {
     ) -> Vec<f32> {
         let (k, c_out) = (self.k(), self.c_out());
         let width = k * k * c_out;
-        assert_eq!(y.len() % width, 0, "tap products width");
-        let len = y.len() / width;
-        assert!(
-            len <= rows * p && out_len <= rows * p,
-            "sequence fits the grid"
-        );
+        let len = grid_len(y.len(), width, rows, p, out_len);
         let half = k / 2;
         let mut out = vec![0.0f32; out_len * c_out];
         for (m, o) in out.chunks_exact_mut(c_out).enumerate() {
@@ -192,11 +194,7 @@ impl HostConv {
         let (k, c_in, c_out) = (self.k(), self.c_in(), self.c_out());
         let half = k / 2;
         for g in grids {
-            assert_eq!(g.x.len() % c_in, 0, "input width");
-            assert!(
-                g.x.len() / c_in <= g.rows * g.p && out_len <= g.rows * g.p,
-                "sequence fits the grid"
-            );
+            grid_len(g.x.len(), c_in, g.rows, g.p, out_len);
         }
         let w_sum: f32 = grids.iter().map(|g| g.weight).sum();
         let mut out = vec![0.0f32; out_len * c_out];
