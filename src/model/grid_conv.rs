@@ -66,6 +66,25 @@ fn grid_len(values: usize, width: usize, rows: usize, p: usize, out_len: usize) 
     len
 }
 
+/// The kernel taps of a `k x k` "same" convolution on a sequence of `len`
+/// positions folded by period `p` that land on the sequence from output
+/// position `m`, in row-major tap order: `f(tap, n)` with `n` the sequence
+/// position the tap reads. Taps off the grid's columns, above its first
+/// row or at or past `len` read zeros and are not given.
+#[inline(always)]
+fn for_each_landing_tap(k: usize, p: usize, len: usize, m: usize, mut f: impl FnMut(usize, usize)) {
+    let (half, r, c) = (k / 2, m / p, m % p);
+    // Kernel columns that stay in the grid's columns.
+    let (kx_lo, kx_hi) = (half.saturating_sub(c), (p + half - c).min(k));
+    for ky in half.saturating_sub(r)..k {
+        // Sequence position of tap (ky, kx_lo); later taps follow it.
+        let first = (r + ky - half) * p + c + kx_lo - half;
+        for (kx, n) in (kx_lo..kx_hi).zip(first..len) {
+            f(ky * k + kx, n);
+        }
+    }
+}
+
 impl HostConv {
     /// `x` `[len, C_in]` position-major, folded as `rows x p` (`len <= rows·p`,
     /// zeros after `len`) -> the first `out_len` positions of the output,
@@ -162,23 +181,15 @@ impl HostConv {
         let (k, c_out) = (self.k(), self.c_out());
         let width = k * k * c_out;
         let len = grid_len(y.len(), width, rows, p, out_len);
-        let half = k / 2;
         let mut out = vec![0.0f32; out_len * c_out];
         for (m, o) in out.chunks_exact_mut(c_out).enumerate() {
             o.copy_from_slice(self.bias());
-            let (r, c) = (m / p, m % p);
-            // Kernel columns that stay in the grid's columns.
-            let (kx_lo, kx_hi) = (half.saturating_sub(c), (p + half - c).min(k));
-            for ky in half.saturating_sub(r)..k {
-                // Sequence position of tap (ky, kx_lo); later taps follow it.
-                let first = (r + ky - half) * p + c + kx_lo - half;
-                for (kx, n) in (kx_lo..kx_hi).zip(first..len) {
-                    let at = n * width + (ky * k + kx) * c_out;
-                    for (a, v) in o.iter_mut().zip(&y[at..at + c_out]) {
-                        *a += v;
-                    }
+            for_each_landing_tap(k, p, len, m, |tap, n| {
+                let at = n * width + tap * c_out;
+                for (a, v) in o.iter_mut().zip(&y[at..at + c_out]) {
+                    *a += v;
                 }
-            }
+            });
         }
         out
     }
@@ -192,7 +203,6 @@ impl HostConv {
     /// periods), so it pays when the periods together would multiply more.
     pub fn forward_grids_summed(&self, grids: &[WeightedGrid<'_>], out_len: usize) -> Vec<f32> {
         let (k, c_in, c_out) = (self.k(), self.c_in(), self.c_out());
-        let half = k / 2;
         for g in grids {
             grid_len(g.x.len(), c_in, g.rows, g.p, out_len);
         }
@@ -213,18 +223,13 @@ impl HostConv {
                 for (t, arow) in a.chunks_exact_mut(kk).enumerate() {
                     let m = m0 + t;
                     for g in grids {
-                        let (r, c, len) = (m / g.p, m % g.p, g.x.len() / c_in);
-                        let (kx_lo, kx_hi) = (half.saturating_sub(c), (g.p + half - c).min(k));
-                        for ky in half.saturating_sub(r)..k {
-                            let first = (r + ky - half) * g.p + c + kx_lo - half;
-                            for (kx, n) in (kx_lo..kx_hi).zip(first..len) {
-                                let at = (ky * k + kx) * c_in;
-                                let src = &g.x[n * c_in..(n + 1) * c_in];
-                                for (d, v) in arow[at..at + c_in].iter_mut().zip(src) {
-                                    *d += g.weight * v;
-                                }
+                        for_each_landing_tap(k, g.p, g.x.len() / c_in, m, |tap, n| {
+                            let src = &g.x[n * c_in..(n + 1) * c_in];
+                            let dst = &mut arow[tap * c_in..(tap + 1) * c_in];
+                            for (d, v) in dst.iter_mut().zip(src) {
+                                *d += g.weight * v;
                             }
-                        }
+                        });
                     }
                 }
                 let row_major = |cols| Strides { row: cols, col: 1 };
