@@ -19,6 +19,13 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 FIXTURES_DIR = REPO_ROOT / "tests" / "fixtures"
 
 
+def _sigmas(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of numbers: {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m sim", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -28,6 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--seed", type=int, default=1, help="base seed (episode i uses seed*100000+i)")
     g.add_argument("--jobs", type=int, default=1, help="parallel worker processes")
     g.add_argument("--duration", type=float, default=10.0, help="episode length in seconds")
+    g.add_argument("--sigmas", type=_sigmas, default=None,
+                   help="comma-separated perturbation sigmas to draw from (default 0.005,0.01,0.035,0.04)")
+    g.add_argument("--ball-probability", type=float, default=None,
+                   help="share of episodes with a ball rolled at the robot (default 0.2)")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     f = sub.add_parser("fixtures", help="regenerate the committed test fixtures in tests/fixtures/")
     f.add_argument("--out", type=Path, default=FIXTURES_DIR)
@@ -47,15 +58,21 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.command == "generate":
-            t0 = time.perf_counter()
+            from .dataset import cpu_seconds
+            from .episode import HAZARD_PROBABILITY, SIGMAS
+            t0, cpu0 = time.perf_counter(), cpu_seconds()
             stats = generate(args.out, args.episodes, args.seed, args.jobs, args.duration,
-                             progress=not args.quiet)
+                             progress=not args.quiet, sigmas=args.sigmas or SIGMAS,
+                             hazard_probability=(HAZARD_PROBABILITY if args.ball_probability is None
+                                                 else args.ball_probability))
+            cpu = cpu_seconds() - cpu0
             made = len(stats)
             falls = sum(s["fall_onset_tick"] is not None for s in stats)
             wall = time.perf_counter() - t0
             per_episode = round(sum(s["seconds"] for s in stats) / made, 2) if made else None
             print(json.dumps({"out": str(args.out), "made": made, "already_there": args.episodes - made,
-                              "falling": falls, "wall_s": round(wall, 1),
+                              "falling": falls, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
+                              "cpu_s_per_episode": round(cpu / made, 2) if made else None,
                               "worker_wall_s_per_episode": per_episode}))
         elif args.command == "fixtures":
             if args.jobs < 1:

@@ -23,7 +23,10 @@ Why falls happen (generator 2), and what shows them coming:
   10 s episode. Knots are independent (not cumulative).
 - **Plans that walk at low sigma.** A kept plan stays up unperturbed and
   under ``VALIDATION_DRAWS`` knot perturbations at ``VALIDATION_SIGMA``, 1.5x
-  the largest low sigma, so that falls at sigma <= 0.01 are rare.
+  the largest low sigma, so that falls at sigma <= 0.01 are rare. The search
+  runs once per plan, on a bare floor (``search_plan``), and a kept plan
+  serves several episodes (``sim.dataset``), each with its own room, start
+  pose, ball and perturbation draw.
 - **A ball rolled at the robot** in ``HAZARD_PROBABILITY`` of the episodes:
   launched from 1.4-2.0 m ahead inside the head camera's view, it reaches
   the robot about 1 s later. The camera sees it coming; the plan and the
@@ -43,7 +46,7 @@ from PIL import Image
 
 from .gait import GaitParams, gait_waypoints, standing_pose
 from .robot import FALL_FRACTION, JOINT_NAMES, PHYSICS_HZ, ROBOT_NAME, Robot
-from .scene import build_room
+from .scene import FLOOR_FRICTION, build_room
 
 RATE_HZ = 30
 STEPS_PER_TICK = PHYSICS_HZ // RATE_HZ
@@ -56,7 +59,7 @@ SETTLE_STEPS = 60                      # physics steps holding the first pose be
 SIGMAS = (0.005, 0.010, 0.035, 0.040)
 RAMP_A = 90.0
 RAMP_B = 0.125
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 #: One perturbation knot every this many ticks (1/3 s); rho counts physics steps.
 KNOT_TICKS = 10
 #: Radians of knot deviation per unit of eta (chosen by measurement, see sim/README.md).
@@ -64,7 +67,7 @@ PERTURBATION_SCALE = 0.5
 #: Joints the plan perturbation leaves alone: the head carries the camera.
 UNPERTURBED_JOINTS = ("head_z", "head_y")
 #: A kept plan survives this many knot perturbations at VALIDATION_SIGMA.
-VALIDATION_DRAWS = 3
+VALIDATION_DRAWS = 6
 VALIDATION_SIGMA = 0.015
 HAZARD_PROBABILITY = 0.2
 HAZARD_LAUNCH_S = (2.0, 7.5)
@@ -75,11 +78,35 @@ HAZARD_MASS_KG = (2.0, 4.0)
 HAZARD_PARK_XY = (10.0, 10.0)          # outside the room until launched
 #: A fall is caused by a collision when it follows the first contact within this.
 COLLISION_FALL_WINDOW_TICKS = 2 * RATE_HZ
-MAX_PLAN_ATTEMPTS = 80
+MAX_PLAN_ATTEMPTS = 400
+#: Random stream of the plan search of an episode simulated alone (not in a data set).
+PLAN_STREAM = 31
 MIN_PROGRESS_M = 0.04                  # a kept 10 s plan walks at least this far along its heading
 CAMERA_FOV_DEG = 60.0
 CAMERA_PITCH_DOWN_DEG = 10.0           # camera axis below the head's forward direction
 JPEG_QUALITY = 90
+
+
+@dataclass(frozen=True)
+class KeptPlan:
+    """A walking plan the search kept: the gait, what the search cost, how far it walks.
+
+    PLAN_ID names it in the data set (``"<base seed>:<plan group>"``);
+    episodes that share a plan share this record.
+    """
+    params: GaitParams
+    attempts: int
+    progress_m: float
+    plan_id: str = ""
+
+    def as_dict(self) -> dict:
+        return {"params": self.params.as_dict(), "attempts": self.attempts,
+                "progress_m": self.progress_m, "plan_id": self.plan_id}
+
+    @staticmethod
+    def from_dict(d: dict) -> "KeptPlan":
+        return KeptPlan(GaitParams(**d["params"]), int(d["attempts"]), float(d["progress_m"]),
+                        str(d.get("plan_id", "")))
 
 
 def stamp_ns(tick: int) -> int:
@@ -207,6 +234,8 @@ class Episode:
     #: onset - lead on are redrawn (None: the fall was averted).
     counterfactual_onset_tick: int | None = None
     counterfactual_from_tick: int | None = None
+    #: The kept plan's name in its data set ("" when searched for this episode alone).
+    plan_id: str = ""
 
     @property
     def fall_threshold_m(self) -> float:
@@ -252,6 +281,7 @@ class Episode:
                              "rho=240 Hz physics steps from tick 0 to the knot"),
             "gait": json.dumps(self.params.as_dict() if self.params else None, sort_keys=True),
             "plan_attempts": str(self.plan_attempts),
+            "plan_id": self.plan_id,
             "progress_m": f"{self.progress_m:.3f}",
             "distance_m": f"{self.distance_m:.3f}",
             "hazard": json.dumps(self.hazard.as_dict() if self.hazard else None, sort_keys=True),
@@ -408,9 +438,9 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
             run.frames.append(encode_jpeg(camera.frame()))
         if stop_on_fall and run.onset_tick is not None:
             break
+        step = (plan[k + 1] - plan[k]) / STEPS_PER_TICK
         for s in range(1, STEPS_PER_TICK + 1):
-            a = s / STEPS_PER_TICK
-            robot.command((1 - a) * plan[k] + a * plan[k + 1])
+            robot.command(plan[k] + s * step)
             pb.stepSimulation(physicsClientId=world.client)
     if run.end_xy is None:
         run.end_xy = robot.base_xy()
@@ -430,32 +460,95 @@ def _add_ball(client: int, hazard: Hazard) -> int:
                               basePosition=(*HAZARD_PARK_XY, hazard.radius_m), physicsClientId=client)
 
 
+def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_id: str = "") -> KeptPlan:
+    """Search a walking plan on a bare floor: the first proposed gait that stays up
+    and walks unperturbed and survives VALIDATION_DRAWS knot perturbations at
+    VALIDATION_SIGMA (each validation run stops at its first fall, and the
+    candidate at its first failed run).
+
+    The floor is the room's (same friction), and the furniture stands at least
+    1 m ahead where no kept plan reaches (the farthest walks ~0.3 m in 10 s),
+    so a plan kept here walks in any room and from any start pose: one search
+    serves several episodes.
+    """
+    n_ticks = int(round(duration_s * RATE_HZ))
+    n_plan = n_ticks + PLAN_FUTURE_TICKS + 1
+    n_knots = len(knot_ticks(n_plan))
+    threshold = round(FALL_FRACTION * standing_head_height_m(), 4)
+    min_progress_m = MIN_PROGRESS_M * min(1.0, max(0.0, duration_s - 2.0) / 8.0)
+    world = World()
+    try:
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=world.client)
+        floor = pb.createMultiBody(0, plane, physicsClientId=world.client)
+        pb.changeDynamics(floor, -1, lateralFriction=FLOOR_FRICTION, physicsClientId=world.client)
+        robot = Robot(world.client)
+        robot.start_xy, robot.start_yaw = np.zeros(2), 0.0
+        robot.start_dir = direction = np.array([0.0, -1.0])  # yaw 0 faces -y
+        lo, hi = joint_limits(robot)
+        initial_state = pb.saveState(physicsClientId=world.client)
+
+        def stays_up(candidate: np.ndarray) -> tuple[bool, float]:
+            pb.restoreState(initial_state, physicsClientId=world.client)
+            run = _rollout(world, robot, candidate, n_ticks, threshold, True, None)
+            return run.onset_tick is None, float(robot.base_xy() @ direction)
+
+        for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):
+            cand = GaitParams.propose(rng)
+            cand_plan = gait_waypoints(cand, n_plan, RATE_HZ)
+            ok, moved = stays_up(cand_plan)
+            ok = ok and moved >= min_progress_m
+            for _ in range(VALIDATION_DRAWS if ok else 0):
+                eta = rng.normal(0.0, VALIDATION_SIGMA, (n_knots, len(JOINT_NAMES)))
+                plan = np.clip(cand_plan + knot_deviation(eta, VALIDATION_SIGMA, n_plan), lo, hi)
+                if not stays_up(plan)[0]:
+                    ok = False
+                    break
+            if ok:
+                return KeptPlan(cand, attempts, round(moved, 6), plan_id)
+    finally:
+        world.close()
+    raise RuntimeError(f"plan {plan_id or '(unnamed)'}: no walking plan kept in {MAX_PLAN_ATTEMPTS} attempts")
+
+
 def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = DURATION_S,
                      render: bool = True, gait: bool = True, hazard: bool | None = None,
-                     counterfactual_lead_ticks: int | None = None, counterfactual_draw: int = 1) -> Episode:
+                     counterfactual_lead_ticks: int | None = None, counterfactual_draw: int = 1,
+                     plan: KeptPlan | None = None, hazard_probability: float = HAZARD_PROBABILITY,
+                     sigmas: tuple[float, ...] = SIGMAS) -> Episode:
     """Simulate the episode of SEED. SIGMA None draws it from SIGMAS; 0 means unperturbed.
 
     A given SIGMA skips that draw, so the rest of the episode differs from the
     one SEED makes with its sigma drawn (as ``generate`` does): re-simulate a
     generated episode with SIGMA None (``stats.counterfactual``).
 
-    GAIT False keeps the standing pose (for the standing test). HAZARD None
-    draws whether a ball is rolled at the robot (HAZARD_PROBABILITY); True or
-    False forces it. COUNTERFACTUAL_LEAD_TICKS: when the episode falls, run it
-    again with the perturbation knots from onset - lead on redrawn (draw
-    COUNTERFACTUAL_DRAW) and record that run's onset.
+    PLAN is the kept walking plan the episode follows (``search_plan``; a data
+    set shares one among several episodes); None searches one for this
+    episode alone, from the episode's seed. GAIT False keeps the standing pose
+    (for the standing test). HAZARD None draws whether a ball is rolled at the
+    robot (HAZARD_PROBABILITY); True or False forces it.
+    COUNTERFACTUAL_LEAD_TICKS: when the episode falls, run it again with the
+    perturbation knots from onset - lead on redrawn (draw COUNTERFACTUAL_DRAW)
+    and record that run's onset.
     """
     rng = np.random.default_rng(seed)
     if sigma is None:
-        sigma = float(SIGMAS[rng.integers(len(SIGMAS))])
+        sigma = float(sigmas[rng.integers(len(sigmas))])
     n_ticks = int(round(duration_s * RATE_HZ))
     n_plan = n_ticks + PLAN_FUTURE_TICKS + 1
     n_knots = len(knot_ticks(n_plan))
     standing = standing_head_height_m()
     threshold = round(FALL_FRACTION * standing, 4)
     # Drawn before anything else, so that forcing it leaves the rest of the episode as it was.
-    hazard_drawn = bool(rng.uniform() < HAZARD_PROBABILITY)
+    hazard_drawn = bool(rng.uniform() < hazard_probability)
     with_hazard = hazard_drawn if hazard is None else hazard
+    if gait and plan is None:
+        plan = search_plan(np.random.default_rng([seed, PLAN_STREAM]), duration_s)
+    if plan is not None and gait:
+        params, attempts, progress = plan.params, plan.attempts, plan.progress_m
+        base_plan = gait_waypoints(params, n_plan, RATE_HZ)
+    else:
+        params, attempts, progress = None, 0, 0.0
+        base_plan = np.tile(standing_pose(), (n_plan, 1))
     world = World()
     try:
         yaw = float(rng.uniform(-math.pi, math.pi))
@@ -472,41 +565,12 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
         camera = HeadCamera(robot) if render else None
         lo, hi = joint_limits(robot)
         initial_state = pb.saveState(physicsClientId=world.client)
-        # Progress asked of a kept plan: MIN_PROGRESS_M over 10 s, pro rata after the 2 s start-up.
-        min_progress_m = MIN_PROGRESS_M * min(1.0, max(0.0, duration_s - 2.0) / 8.0)
 
-        def perturbed(base_plan: np.ndarray, s: float, eta: np.ndarray) -> np.ndarray:
+        def perturbed(s: float, eta: np.ndarray) -> np.ndarray:
             return np.clip(base_plan + knot_deviation(eta, s, n_plan), lo, hi)
 
-        def stays_up(candidate: np.ndarray) -> tuple[bool, float]:
-            pb.restoreState(initial_state, physicsClientId=world.client)
-            run = _rollout(world, robot, candidate, n_ticks, threshold, True, None)
-            moved = float((robot.base_xy() - start_xy) @ direction)
-            return run.onset_tick is None, moved
-
-        # Plan search: sample gait parameters, keep the first plan that, in this
-        # very room, stays up and walks forward unperturbed, and stays up under
-        # VALIDATION_DRAWS knot perturbations at VALIDATION_SIGMA.
-        params, plan, attempts, progress = None, np.tile(standing_pose(), (n_plan, 1)), 0, 0.0
-        if gait:
-            for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):  # noqa: B007 (read after the loop)
-                cand = GaitParams.sample(rng)
-                cand_plan = gait_waypoints(cand, n_plan, RATE_HZ)
-                ok, moved = stays_up(cand_plan)
-                ok = ok and moved >= min_progress_m
-                for _ in range(VALIDATION_DRAWS if ok else 0):
-                    eta = rng.normal(0.0, VALIDATION_SIGMA, (n_knots, len(JOINT_NAMES)))
-                    if not stays_up(perturbed(cand_plan, VALIDATION_SIGMA, eta))[0]:
-                        ok = False
-                        break
-                if ok:
-                    params, plan, progress = cand, cand_plan, moved
-                    break
-            else:
-                raise RuntimeError(f"episode seed {seed}: no walking plan kept in {MAX_PLAN_ATTEMPTS} attempts")
-
         knot_eta = rng.normal(0.0, 1.0, (n_knots, len(JOINT_NAMES))) * sigma
-        final = perturbed(plan, sigma, knot_eta)
+        final = perturbed(sigma, knot_eta)
         full_plan = np.vstack([np.tile(final[0], (PLAN_PAST_TICKS, 1)), final])
 
         pb.restoreState(initial_state, physicsClientId=world.client)
@@ -523,7 +587,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
             cf_rng = np.random.default_rng([seed, 2, counterfactual_draw])
             cf_eta[redraw] = cf_rng.normal(0.0, 1.0, (int(redraw.sum()), len(JOINT_NAMES))) * sigma
             pb.restoreState(initial_state, physicsClientId=world.client)
-            cf_run = _rollout(world, robot, perturbed(plan, sigma, cf_eta), n_ticks, threshold, True, None,
+            cf_run = _rollout(world, robot, perturbed(sigma, cf_eta), n_ticks, threshold, True, None,
                               bodies, haz, ball)
             cf_onset = cf_run.onset_tick
     finally:
@@ -535,8 +599,9 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
                    standing_head_height_m=standing, scene=scene, plan_attempts=attempts,
                    progress_m=progress, hazard=haz, first_contact_tick=run.first_contact_tick,
                    contact_with=run.contact_with, distance_m=distance,
-                   counterfactual_onset_tick=cf_onset, counterfactual_from_tick=cf_from)
+                   counterfactual_onset_tick=cf_onset, counterfactual_from_tick=cf_from,
+                   plan_id=plan.plan_id if plan is not None else "")
 
 
-__all__ = ["Episode", "Hazard", "simulate_episode", "stamp_ns", "perturbation_factor", "knot_deviation",
-           "SIGMAS", "RATE_HZ", "JOINT_NAMES", "GENERATOR_VERSION"]
+__all__ = ["Episode", "Hazard", "KeptPlan", "search_plan", "simulate_episode", "stamp_ns", "perturbation_factor",
+           "knot_deviation", "SIGMAS", "RATE_HZ", "JOINT_NAMES", "GENERATOR_VERSION"]

@@ -62,6 +62,11 @@ class Robot:
         self.joint_indices = [by_name[n] for n in JOINT_NAMES]
         self.max_force = np.array([
             pb.getJointInfo(self.body, j, physicsClientId=client)[10] for j in self.joint_indices])
+        # The per-step command's constant arguments, made once (the command runs 2,400 times an episode).
+        self._forces = self.max_force.tolist()
+        self._zero_velocities = [0.0] * len(self.joint_indices)
+        self._position_gains = [POSITION_GAIN] * len(self.joint_indices)
+        self._velocity_gains = [VELOCITY_GAIN] * len(self.joint_indices)
         self.head_link = self.link_by_name["head"]
         self.foot_links = [self.link_by_name["l_foot"], self.link_by_name["r_foot"]]
         for j in range(pb.getNumJoints(self.body, physicsClientId=client)):
@@ -91,11 +96,11 @@ class Robot:
     def command(self, targets_rad: np.ndarray) -> None:
         pb.setJointMotorControlArray(
             self.body, self.joint_indices, pb.POSITION_CONTROL,
-            targetPositions=[float(a) for a in targets_rad],
-            targetVelocities=[0.0] * len(targets_rad),
-            forces=self.max_force.tolist(),
-            positionGains=[POSITION_GAIN] * len(targets_rad),
-            velocityGains=[VELOCITY_GAIN] * len(targets_rad),
+            targetPositions=np.asarray(targets_rad, dtype=float).tolist(),
+            targetVelocities=self._zero_velocities,
+            forces=self._forces,
+            positionGains=self._position_gains,
+            velocityGains=self._velocity_gains,
             physicsClientId=self.client)
 
     def joint_angles(self) -> np.ndarray:

@@ -30,6 +30,8 @@ N_FURNITURE = 6
 #: Furniture bearing from the robot's heading stays within this (camera FOV is 60 deg).
 FURNITURE_MAX_BEARING_RAD = math.radians(20)
 FURNITURE_DIST_M = (1.0, 2.4)
+#: Friction of the floor (and of the bare floor plans are searched on).
+FLOOR_FRICTION = 0.9
 
 _ASSET_VERSION = "v1"
 
@@ -207,7 +209,7 @@ def build_room(client: int, rng: np.random.Generator, robot_xy, heading_rad: flo
                                      rgbaColor=np.append(rng.uniform(0.3, 0.7, 3), 1).tolist(),
                                      physicsClientId=client)
     floor = pb.createMultiBody(0, plane, floor_vis, basePosition=(0, 0, 0), physicsClientId=client)
-    pb.changeDynamics(floor, -1, lateralFriction=0.9, physicsClientId=client)
+    pb.changeDynamics(floor, -1, lateralFriction=FLOOR_FRICTION, physicsClientId=client)
     papers = [int(i) for i in rng.integers(0, N_WALLPAPERS, 4)]
     textures = [pb.loadTexture(str(assets / f"wallpaper_{i:02d}.png"), physicsClientId=client) for i in papers]
     r, h = ROOM_HALF_M, ROOM_HEIGHT_M

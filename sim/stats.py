@@ -45,16 +45,35 @@ def _spread(values: list[float], digits: int) -> dict[str, float] | None:
             "max": round(float(v.max()), digits), "mean": round(float(v.mean()), digits)}
 
 
-def counterfactual(seed: int, sigma: float, duration_s: float, draw: int = 1) -> dict:
+def plan_of(meta: dict[str, str]) -> dict | None:
+    """The kept plan an episode followed, from its metadata (None: generator 2 or older, no plan id)."""
+    if not meta.get("plan_id"):
+        return None
+    return {"params": json.loads(meta["gait"]), "attempts": int(meta["plan_attempts"]),
+            "progress_m": float(meta["progress_m"]), "plan_id": meta["plan_id"]}
+
+
+def _set_sigmas(directory: Path) -> tuple[float, ...]:
+    """The sigmas the set's episodes drew from (its manifest), or the generator's default."""
+    from .episode import SIGMAS
+    try:
+        return tuple(json.loads((directory / "manifest.json").read_text())["generator"]["sigmas"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return SIGMAS
+
+
+def counterfactual(seed: int, sigma: float, duration_s: float, draw: int = 1, plan: dict | None = None,
+                   sigmas: tuple[float, ...] | None = None) -> dict:
     """Re-simulate one generated episode (no camera) and its counterfactual; what happened to the fall.
 
     ``generate`` lets each episode draw its sigma, so the re-simulation does
     too (passing it would shift the episode's random stream and make another
     episode); SIGMA is the recorded one, checked against the draw.
     """
-    from .episode import simulate_episode
+    from .episode import SIGMAS, KeptPlan, simulate_episode
     ep = simulate_episode(seed, duration_s=duration_s, render=False,
-                          counterfactual_lead_ticks=COUNTERFACTUAL_LEAD_TICKS, counterfactual_draw=draw)
+                          counterfactual_lead_ticks=COUNTERFACTUAL_LEAD_TICKS, counterfactual_draw=draw,
+                          plan=KeptPlan.from_dict(plan) if plan else None, sigmas=sigmas or SIGMAS)
     if ep.sigma != sigma:
         raise ValueError(f"episode seed {seed}: re-simulated sigma {ep.sigma} is not the recorded {sigma}; "
                          "was it made by `sim generate` with this generator?")
@@ -81,6 +100,7 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
             "distance_m": float(meta.get("distance_m", "nan")),
             "progress_m": float(meta.get("progress_m", "nan")),
             "generator": meta.get("generator", "1"),
+            "plan": plan_of(meta),
         })
     per_sigma: dict[str, dict] = {}
     by_sigma = defaultdict(list)
@@ -113,14 +133,15 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
         "distance_m": _spread([r["distance_m"] for r in rows], 3),
         "distance_m_not_falling": _spread([r["distance_m"] for r in rows if r["onset_s"] is None], 3),
         "plan_progress_m": _spread([r["progress_m"] for r in rows], 3),
+        "distinct_plans": len({r["plan"]["plan_id"] for r in rows if r["plan"]}),
     }
     if counterfactual_n > 0:
         picks = [r for r in falls if r["cause"] == "perturbation"][:counterfactual_n]
-        args = [(r["seed"], float(r["sigma"]), r["duration_s"]) for r in picks]
+        sigmas = _set_sigmas(directory)
+        args = [(r["seed"], float(r["sigma"]), r["duration_s"], 1, r["plan"], sigmas) for r in picks]
         if jobs > 1:
             with ProcessPoolExecutor(max_workers=jobs) as pool:
-                results = list(pool.map(counterfactual, [a[0] for a in args], [a[1] for a in args],
-                                         [a[2] for a in args]))
+                results = list(pool.map(counterfactual, *zip(*args)))
         else:
             results = [counterfactual(*a) for a in args]
         changed = [r for r in results if r["averted"] or r["moved"]]

@@ -1,0 +1,280 @@
+#!/usr/bin/env bash
+# The whole retrain, from simulated data to the networks that ship:
+#
+#   data      generate the 2,000-episode set and the long walking set (sim/)
+#   train     every network of the plan below, RETRAIN_PARALLEL at a time
+#   calibrate Platt scaling of every network on the validation split
+#   select    the best network of each ablation by validation loss
+#   thresholds  the latch's trigger/release for each selected network (validation)
+#   evaluate  eval on test (both protocols, seeds as mean +- std), warnings on
+#             test and on the long walking set, by fall cause
+#   card      the model card's tables (models/card/) from those reports
+#   ship      copy the selected networks (f16) and their tables into models/
+#
+# `bash scripts/retrain.sh` runs every step in turn; `bash scripts/retrain.sh
+# STEP` runs one. Stop it at any point and run it again: every step writes
+# its outputs as .partial and renames them, a step whose output exists and
+# is newer than its inputs is skipped, the generator resumes where it
+# stopped and training resumes from its last epoch's checkpoint, so at most
+# the step in progress (for training: its epoch) is lost. Progress goes to
+# $FALL_GUARD_DATA/retrain.log with timestamps.
+#
+# Where:  FALL_GUARD_DATA (default ~/fall-guard-data): data sets, runs,
+#         reports; keep it outside the work tree.
+# Speed:  RETRAIN_JOBS generator processes (default: the core count);
+#         RETRAIN_PARALLEL trainings side by side (default 2);
+#         RETRAIN_DEVICE the training device (cpu, cuda, wgpu; a binary built
+#         with that feature, see README "Training on a GPU").
+# Scope:  RETRAIN_PAPER=1 also trains the `paper` configuration (last).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+REPO=$(pwd)
+
+DATA_ROOT=${FALL_GUARD_DATA:-$HOME/fall-guard-data}
+JOBS=${RETRAIN_JOBS:-$(nproc)}
+PARALLEL=${RETRAIN_PARALLEL:-2}
+DEVICE=${RETRAIN_DEVICE:-cpu}
+FG=${FALL_GUARD_BIN:-$REPO/target/release/fall-guard}
+PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
+SET=$DATA_ROOT/simv3                # the 2,000-episode set (seed 1)
+WALK=$DATA_ROOT/walk                # low sigma, no ball: false alarms per minute
+RUNS=$DATA_ROOT/runs
+REPORTS=$DATA_ROOT/reports
+LOG=$DATA_ROOT/retrain.log
+mkdir -p "$DATA_ROOT" "$RUNS" "$REPORTS"
+
+log() { printf '%s %s\n' "$(date -u +%Y-%m-%dT%H:%M:%SZ)" "$*" | tee -a "$LOG" >&2; }
+
+# newer OUT IN...: OUT exists and is newer than every IN.
+newer() {
+  local out=$1; shift
+  [ -e "$out" ] || return 1
+  local i
+  for i in "$@"; do [ "$out" -nt "$i" ] || return 1; done
+}
+
+need_binary() {
+  if [ ! -x "$FG" ]; then
+    log "building $FG (cargo build --release)"
+    cargo build --release --quiet
+  fi
+}
+
+# The training plan: NAME and the `fall-guard train` arguments. Order is
+# priority (a cut drops from the end): EMP, MP and P seeds first.
+plan() {
+  for s in 1 2 3 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
+  for s in 1 2 3; do echo "mp-s$s --ablation MP --seed $s"; done
+  for s in 1 2 3; do echo "p-s$s --ablation P --seed $s"; done
+  for s in 1 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
+  echo "logreg-s1 --ablation logreg --seed 1"
+  for s in 1 2 3; do echo "emp-hist-s$s --ablation EMP --seed $s --trajectory historical-only"; done
+  for s in 1 2 3; do echo "emp-real-s$s --ablation EMP --seed $s --trajectory real-position"; done
+  echo "emp-perh-s1 --ablation EMP --seed 1 --protocol paper --per-horizon"
+  if [ "${RETRAIN_PAPER:-0}" = 1 ]; then echo "emp-paper-s1 --ablation EMP --seed 1 --config paper"; fi
+}
+
+# Model file of a run (logreg is JSON; per-horizon runs write NAME.hH.bpk).
+run_file() {
+  case $1 in
+    logreg-*) echo "$RUNS/$1.json" ;;
+    *) echo "$RUNS/$1.bpk" ;;
+  esac
+}
+
+step_data() {
+  log "data: $SET (2,000 episodes, seed 1, $JOBS jobs)"
+  "$PY" -m sim generate --out "$SET" --episodes 2000 --seed 1 --jobs "$JOBS" --quiet >>"$LOG"
+  touch "$SET/.complete"
+  log "data: $WALK (200 walking episodes, sigma 0.005/0.01, no ball, seed 3)"
+  "$PY" -m sim generate --out "$WALK" --episodes 200 --seed 3 --jobs "$JOBS" --sigmas 0.005,0.01 \
+    --ball-probability 0 --quiet >>"$LOG"
+  touch "$WALK/.complete"
+  "$PY" -m sim stats "$SET" --counterfactual 60 --jobs "$JOBS" >"$REPORTS/simv3-stats.json.partial"
+  mv "$REPORTS/simv3-stats.json.partial" "$REPORTS/simv3-stats.json"
+  "$PY" -m sim stats "$WALK" >"$REPORTS/walk-stats.json.partial"
+  mv "$REPORTS/walk-stats.json.partial" "$REPORTS/walk-stats.json"
+  log "data: done"
+}
+
+# train_one NAME ARGS...: one run, resumable (checkpoint per epoch).
+train_one() {
+  local name=$1; shift
+  local out
+  out=$(run_file "$name")
+  local done_marker="$RUNS/$name.done"
+  if newer "$done_marker" "$SET/.complete"; then
+    return 0
+  fi
+  local device=()
+  case $name in logreg-*) ;; *) device=(--device "$DEVICE") ;; esac
+  log "train $name: start ($*)"
+  local t0=$SECONDS
+  # --out .partial: the run writes there, checkpoints beside it; renamed when whole.
+  local partial="${out%.*}.partial.${out##*.}"
+  if /usr/bin/time -v -o "$RUNS/$name.time.txt" "$FG" train --data "$SET" "$@" "${device[@]}" \
+      --out "$partial" --trained-on "simv3 (sim generator 3, 2,000 episodes, seed 1; simulated data)" \
+      --quiet >>"$RUNS/$name.log" 2>&1; then
+    local f
+    for f in "$RUNS/${name}".partial*; do
+      [ -e "$f" ] || continue
+      case $f in *.ckpt) continue ;; esac
+      mv "$f" "${f/.partial/}"
+    done
+    touch "$done_marker"
+    log "train $name: done in $((SECONDS - t0)) s"
+  else
+    log "train $name: FAILED after $((SECONDS - t0)) s (see $RUNS/$name.log)"
+    return 1
+  fi
+}
+
+step_train() {
+  need_binary
+  [ -e "$SET/.complete" ] || { log "train: the data set is not complete; run 'data' first"; return 1; }
+  log "train: $(plan | wc -l) runs, $PARALLEL at a time"
+  export -f train_one run_file newer log
+  export RUNS SET FG LOG DEVICE
+  plan | xargs -P "$PARALLEL" -L 1 bash -c 'train_one "$@"' _
+  log "train: done"
+}
+
+# The validation loss of a run's network (its best epoch), for selection.
+val_loss() { "$PY" "$REPO/scripts/model_meta.py" "$1" val_loss; }
+
+step_calibrate() {
+  need_binary
+  local name out cal
+  for name in $(plan | awk '{print $1}'); do
+    case $name in logreg-*|emp-perh-*) continue ;; esac
+    out=$(run_file "$name")
+    [ -e "$out" ] || continue
+    cal="$RUNS/$name.cal.bpk"
+    newer "$cal" "$out" && continue
+    log "calibrate $name"
+    "$FG" calibrate --model "$out" --data "$SET" --split validation --out "$cal.partial" --half >>"$RUNS/$name.log" 2>&1
+    mv "$cal.partial" "$cal"
+  done
+}
+
+step_select() {
+  local abl best bestloss name loss cal
+  : >"$REPORTS/selected.txt.partial"
+  for abl in emp mp ep p; do
+    best=""; bestloss=""
+    for name in $(plan | awk '{print $1}' | grep -E "^$abl-s[0-9]+$"); do
+      cal="$RUNS/$name.cal.bpk"
+      [ -e "$cal" ] || continue
+      loss=$(val_loss "$cal")
+      if [ -z "$best" ] || awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; then
+        best=$name; bestloss=$loss
+      fi
+    done
+    [ -n "$best" ] && echo "$abl $best $bestloss" >>"$REPORTS/selected.txt.partial"
+  done
+  mv "$REPORTS/selected.txt.partial" "$REPORTS/selected.txt"
+  log "select: $(tr '\n' ';' <"$REPORTS/selected.txt")"
+}
+
+step_thresholds() {
+  need_binary
+  local abl name loss model out
+  while read -r abl name loss; do
+    model="$RUNS/$name.cal.bpk"
+    out="$REPORTS/$abl-thresholds.json"
+    newer "$out" "$model" && continue
+    log "thresholds $abl ($name) on validation"
+    "$FG" warnings --model "$model" --data "$SET" --split validation --choose \
+      --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
+    mv "$out.partial" "$out"
+  done <"$REPORTS/selected.txt"
+}
+
+# seeds_of ABLATION-PREFIX: the calibrated runs of every seed.
+seeds_of() {
+  local name
+  for name in $(plan | awk '{print $1}' | grep -E "^$1-s[0-9]+$"); do
+    [ -e "$RUNS/$name.cal.bpk" ] && echo "$RUNS/$name.cal.bpk"
+  done
+  return 0
+}
+
+eval_group() { # eval_group LABEL PROTOCOL FILES...
+  local label=$1 protocol=$2; shift 2
+  local first=$1; shift
+  local out="$REPORTS/eval-$label-$protocol"
+  newer "$out/metrics.json" "$first" "$@" && return 0
+  log "eval $label ($protocol, $((1 + $#)) seeds)"
+  rm -rf "$out.partial"
+  local seeds=()
+  [ $# -gt 0 ] && seeds=(--seeds "$@")
+  "$FG" eval --model "$first" "${seeds[@]}" --data "$SET" --split test --protocol "$protocol" \
+    --draws 5 --out "$out.partial" >>"$LOG" 2>&1
+  rm -rf "$out"; mv "$out.partial" "$out"
+}
+
+step_evaluate() {
+  need_binary
+  local group files protocol abl name loss model
+  for group in emp mp ep p emp-hist emp-real; do
+    mapfile -t files < <(seeds_of "$group")
+    [ ${#files[@]} -gt 0 ] || continue
+    for protocol in paper deployment; do eval_group "$group" "$protocol" "${files[@]}"; done
+  done
+  if [ -e "$RUNS/logreg-s1.json" ]; then
+    for protocol in paper deployment; do eval_group logreg "$protocol" "$RUNS/logreg-s1.json"; done
+  fi
+  # The generator-1 networks that shipped before, on the same test split, for contrast.
+  for abl in emp mp ep p; do
+    [ -e "$REPO/models/$abl.bpk" ] || continue
+    cp -p "$REPO/models/$abl.bpk" "$REPORTS/gen1-$abl.bpk" 2>/dev/null || true
+  done
+  for abl in emp mp p; do
+    [ -e "$REPORTS/gen1-$abl.bpk" ] && eval_group "gen1-$abl" paper "$REPORTS/gen1-$abl.bpk"
+  done
+  # The daemon's own path: warnings on test and on the long walking set.
+  while read -r abl name loss; do
+    model="$RUNS/$name.cal.bpk"
+    local trig rel
+    trig=$("$PY" -c "import json,sys;print(json.load(open(sys.argv[1]))['trigger'])" "$REPORTS/$abl-thresholds.json")
+    rel=$("$PY" -c "import json,sys;print(json.load(open(sys.argv[1]))['release'])" "$REPORTS/$abl-thresholds.json")
+    # Test split of the set; every split of the walking set (no choice is made on it).
+    for target in simv3:test walk:train walk:validation walk:test; do
+      local set=${target%%:*} split=${target##*:} data=$SET
+      [ "$set" = walk ] && data=$WALK
+      local out="$REPORTS/warnings-$abl-$set-$split.json"
+      newer "$out" "$model" "$REPORTS/$abl-thresholds.json" && continue
+      log "warnings $abl on $set $split (trigger $trig, release $rel)"
+      "$FG" warnings --model "$model" --data "$data" --split "$split" --trigger "$trig" --release "$rel" \
+        --out "$out.partial" >>"$LOG" 2>&1
+      mv "$out.partial" "$out"
+    done
+  done <"$REPORTS/selected.txt"
+}
+
+step_card() {
+  log "card: tables from $REPORTS"
+  "$PY" "$REPO/scripts/model_card.py" --reports "$REPORTS" --set "$SET" --out "$REPORTS/card.md.partial"
+  mv "$REPORTS/card.md.partial" "$REPORTS/card.md"
+}
+
+step_ship() {
+  local abl name loss
+  while read -r abl name loss; do
+    log "ship $abl: $name (validation loss $loss)"
+    cp "$RUNS/$name.cal.bpk" "$REPO/models/$abl.bpk.partial"
+    mv "$REPO/models/$abl.bpk.partial" "$REPO/models/$abl.bpk"
+  done <"$REPORTS/selected.txt"
+  cp "$REPORTS/card.md" "$REPO/models/card.md"
+}
+
+all_steps=(data train calibrate select thresholds evaluate card)
+if [ $# -eq 0 ]; then
+  for s in "${all_steps[@]}"; do "step_$s"; done
+  log "retrain: every step done; 'bash scripts/retrain.sh ship' copies the networks into models/"
+else
+  for s in "$@"; do
+    declare -F "step_$s" >/dev/null || { echo "unknown step '$s' (steps: ${all_steps[*]} ship)" >&2; exit 2; }
+    "step_$s"
+  done
+fi
