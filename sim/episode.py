@@ -67,7 +67,7 @@ PERTURBATION_SCALE = 0.5
 #: Joints the plan perturbation leaves alone: the head carries the camera.
 UNPERTURBED_JOINTS = ("head_z", "head_y")
 #: A kept plan survives this many knot perturbations at VALIDATION_SIGMA.
-VALIDATION_DRAWS = 6
+VALIDATION_DRAWS = 10
 VALIDATION_SIGMA = 0.015
 HAZARD_PROBABILITY = 0.2
 HAZARD_LAUNCH_S = (2.0, 7.5)
