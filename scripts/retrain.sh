@@ -232,12 +232,26 @@ step_evaluate() {
   for abl in emp mp p; do
     [ -e "$REPORTS/gen1-$abl.bpk" ] && eval_group "gen1-$abl" paper "$REPORTS/gen1-$abl.bpk"
   done
+  # By fall cause: EMP and MP on the test falls of one cause with the test walks.
+  "$PY" "$REPO/scripts/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
+  local cause
+  for cause in collision perturbation; do
+    for group in emp mp; do
+      mapfile -t files < <(seeds_of "$group")
+      [ ${#files[@]} -gt 0 ] || continue
+      SET="$DATA_ROOT/bycause/$cause" eval_group "$group-$cause" paper "${files[@]}"
+    done
+  done
   # The daemon's own path: warnings on test and on the long walking set.
   while read -r abl name loss; do
     model="$RUNS/$name.cal.bpk"
     local trig rel
-    trig=$("$PY" -c "import json,sys;print(json.load(open(sys.argv[1]))['trigger'])" "$REPORTS/$abl-thresholds.json")
-    rel=$("$PY" -c "import json,sys;print(json.load(open(sys.argv[1]))['release'])" "$REPORTS/$abl-thresholds.json")
+    # The chosen pair, or the highest trigger of the grid when none keeps within the budget.
+    read -r trig rel < <("$PY" -c "
+import json, sys
+r = json.load(open(sys.argv[1]))
+c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
+print(c['trigger'], c['release'])" "$REPORTS/$abl-thresholds.json")
     # Test split of the set; every split of the walking set (no choice is made on it).
     for target in simv3:test walk:train walk:validation walk:test; do
       local set=${target%%:*} split=${target##*:} data=$SET

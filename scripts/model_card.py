@@ -1,0 +1,267 @@
+#!/usr/bin/env python3
+"""The model card's result tables, from the reports of scripts/retrain.sh.
+
+    model_card.py --reports DIR --set DATASET --out card.md
+
+Reads, under DIR: eval-GROUP-PROTOCOL/metrics.json (`fall-guard eval`),
+warnings-ABL-SET-SPLIT.json (`fall-guard warnings`), ABL-thresholds.json,
+selected.txt, simv3-stats.json and walk-stats.json (`python -m sim stats`).
+Writes Markdown: the data, the paper and deployment protocols (seeds as mean
++- std), the checks the card makes (each with its figure, and by how much a
+target is missed), by fall cause, and the daemon's warnings. Standard library
+only. Welch's t-test is one-sided (the claim "A > B" over seeds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+GROUPS = [("emp", "EMP"), ("mp", "MP"), ("ep", "EP"), ("p", "P"), ("emp-hist", "EMP, historical-only plan"),
+          ("emp-real", "EMP, real-position trajectory"), ("logreg", "logistic baseline"),
+          ("gen1-emp", "EMP trained on generator 1"), ("gen1-mp", "MP trained on generator 1"),
+          ("gen1-p", "P trained on generator 1")]
+
+
+def load(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+# --- Student's t distribution (regularised incomplete beta, Numerical Recipes' continued fraction) ---
+
+def _betacf(a: float, b: float, x: float) -> float:
+    qab, qap, qam = a + b, a + 1.0, a - 1.0
+    c, d = 1.0, 1.0 - qab * x / qap
+    d = 1.0 / (d if abs(d) > 1e-300 else 1e-300)
+    h = d
+    for m in range(1, 300):
+        m2 = 2 * m
+        aa = m * (b - m) * x / ((qam + m2) * (a + m2))
+        d = 1.0 + aa * d
+        d = 1.0 / (d if abs(d) > 1e-300 else 1e-300)
+        c = 1.0 + aa / c if abs(c) > 1e-300 else 1e300
+        h *= d * c
+        aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))
+        d = 1.0 + aa * d
+        d = 1.0 / (d if abs(d) > 1e-300 else 1e-300)
+        c = 1.0 + aa / c if abs(c) > 1e-300 else 1e300
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < 1e-12:
+            break
+    return h
+
+
+def betainc(a: float, b: float, x: float) -> float:
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    lbeta = math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log(1 - x)
+    if x < (a + 1) / (a + b + 2):
+        return math.exp(lbeta) * _betacf(a, b, x) / a
+    return 1.0 - math.exp(lbeta) * _betacf(b, a, 1 - x) / b
+
+
+def t_sf(t: float, df: float) -> float:
+    """P(T > t) for Student's t with DF degrees of freedom."""
+    x = df / (df + t * t)
+    tail = 0.5 * betainc(df / 2, 0.5, x)
+    return tail if t > 0 else 1.0 - tail
+
+
+def welch_greater(a: list[float], b: list[float]) -> tuple[float, float] | None:
+    """One-sided Welch test of mean(a) > mean(b): (t, p); None with fewer than 2 values a side."""
+    if len(a) < 2 or len(b) < 2:
+        return None
+    ma, mb = sum(a) / len(a), sum(b) / len(b)
+    va = sum((x - ma) ** 2 for x in a) / (len(a) - 1)
+    vb = sum((x - mb) ** 2 for x in b) / (len(b) - 1)
+    se2 = va / len(a) + vb / len(b)
+    if se2 == 0:
+        return (math.inf if ma > mb else -math.inf, 0.0 if ma > mb else 1.0)
+    t = (ma - mb) / math.sqrt(se2)
+    df = se2 ** 2 / ((va / len(a)) ** 2 / (len(a) - 1) + (vb / len(b)) ** 2 / (len(b) - 1))
+    return t, t_sf(t, df)
+
+
+# --- reports ---
+
+def protocol(report: dict, name: str) -> dict | None:
+    for p in report.get("protocols", []):
+        if p["protocol"] == name:
+            return p
+    return None
+
+
+def per_seed(h: dict, key: str) -> list[float]:
+    return [m[key] for m in h["per_model"]]
+
+
+def fmt_ms(ms: dict, digits: int = 3) -> str:
+    if ms is None or ms.get("mean") is None or (isinstance(ms["mean"], float) and math.isnan(ms["mean"])):
+        return "-"
+    return f"{ms['mean']:.{digits}f} +- {ms['std']:.{digits}f}"
+
+
+def horizon(report: dict, proto: str, ms: float) -> dict | None:
+    p = protocol(report, proto)
+    if p is None:
+        return None
+    for h in p["horizons"]:
+        if abs(h["horizon_ms"] - ms) < 1:
+            return h
+    return None
+
+
+def protocol_table(evals: dict, proto: str) -> list[str]:
+    rows = []
+    horizons = None
+    for key, label in GROUPS:
+        r = evals.get((key, proto))
+        if r is None:
+            continue
+        p = protocol(r, proto)
+        horizons = horizons or [h["horizon_ms"] for h in p["horizons"]]
+        cells = [f"{fmt_ms(h['accuracy'])}" for h in p["horizons"]]
+        auc = [f"{fmt_ms(h['roc_auc'])}" for h in p["horizons"]]
+        rows.append(f"| {label} | {len(r['models'])} | " + " | ".join(cells) + " | " + " | ".join(auc) + " |")
+    if not rows:
+        return [f"(no {proto}-protocol report yet)"]
+    hs = [f"{h / 1000:g} s" for h in horizons]
+    head = ("| network | seeds | " + " | ".join(f"accuracy {h}" for h in hs) + " | "
+            + " | ".join(f"ROC-AUC {h}" for h in hs) + " |")
+    return [head, "| " + " | ".join(["---"] * (2 + 2 * len(hs))) + " |", *rows]
+
+
+def checks(evals: dict) -> list[str]:
+    out = []
+    emp, mp, p, hist = (evals.get((k, "paper")) for k in ("emp", "mp", "p", "emp-hist"))
+    if emp:
+        pe = protocol(emp, "paper")
+        for h in pe["horizons"]:
+            acc = h["accuracy"]["mean"]
+            verdict = "met" if acc >= 0.96 else f"missed by {100 * (0.96 - acc):.1f} points"
+            out.append(f"- EMP accuracy at {h['horizon_ms'] / 1000:g} s: {acc:.3f} (target >= 0.96): {verdict}")
+        for h in pe["horizons"]:
+            ece = h["ece"]["mean"]
+            cis = ", ".join(f"[{c['lo']:.3f}, {c['hi']:.3f}]" for c in h.get("ece_ci95", []) if "lo" in c)
+            verdict = "met" if ece <= 0.03 else f"missed by {ece - 0.03:.3f}"
+            out.append(f"- EMP ECE at {h['horizon_ms'] / 1000:g} s: {ece:.3f} (target <= 0.03; 95% bootstrap "
+                       f"per seed {cis or '-'}): {verdict}")
+    for a, b, an, bn, gap in ((emp, mp, "EMP", "MP", 0.02), (mp, p, "MP", "P", 0.04)):
+        if not (a and b):
+            continue
+        ha, hb = horizon(a, "paper", 1000), horizon(b, "paper", 1000)
+        if not (ha and hb):
+            continue
+        xa, xb = per_seed(ha, "accuracy"), per_seed(hb, "accuracy")
+        diff = sum(xa) / len(xa) - sum(xb) / len(xb)
+        w = welch_greater(xa, xb)
+        wtxt = f"Welch t = {w[0]:.2f}, one-sided p = {w[1]:.3g}" if w else "Welch test needs 2 seeds a side"
+        verdict = ("met" if diff >= gap and w and w[1] < 0.05 else
+                   f"missed (gap {100 * diff:.1f} points against {100 * gap:.0f}; {wtxt})")
+        out.append(f"- {an} - {bn} at 1 s: {100 * diff:+.1f} points ({len(xa)} vs {len(xb)} seeds; {wtxt}): "
+                   f"{verdict}")
+    if emp and hist:
+        for h in protocol(emp, "paper")["horizons"]:
+            hh = horizon(hist, "paper", h["horizon_ms"])
+            if hh is None:
+                continue
+            diff = h["accuracy"]["mean"] - hh["accuracy"]["mean"]
+            verdict = "met" if diff >= 0.05 else f"missed by {100 * (0.05 - diff):.1f} points"
+            out.append(f"- full plan - historical-only at {h['horizon_ms'] / 1000:g} s: {100 * diff:+.1f} points "
+                       f"(target >= 5): {verdict}")
+    return out or ["(no paper-protocol reports yet)"]
+
+
+def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
+    rows = ["| network | trigger / release | test falls warned | warned >= 0.5 s ahead | lead median | "
+            "false alarms / min (walking set) | walking minutes |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for abl, name in selected:
+        test = load(reports / f"warnings-{abl}-simv3-test.json")
+        walks = [load(reports / f"warnings-{abl}-walk-{s}.json") for s in ("train", "validation", "test")]
+        if not test:
+            continue
+        t = test["grid"][0]
+        alarms = sum(w["grid"][0]["false_alarms"] for w in walks if w)
+        minutes = sum(w["grid"][0]["non_falling_minutes"] for w in walks if w)
+        early = t.get("warned_by_0_5s_share")
+        early_txt = "-" if early is None else f"{100 * early:.0f}%"
+        lead_txt = "-" if t["lead_median_s"] is None else f"{t['lead_median_s']:.2f} s"
+        rate = alarms / minutes if minutes else float("nan")
+        rows.append(f"| {abl.upper()} ({name}) | {t['trigger']:.2f} / {t['release']:.2f} | "
+                    f"{t['warned']}/{t['falling_episodes']} ({100 * t['warned_share']:.0f}%) | {early_txt} | "
+                    f"{lead_txt} | {rate:.3f} ({alarms} in {minutes:.1f} min) | {minutes:.1f} |")
+    return rows
+
+
+def stats_rows(stats: dict | None, title: str) -> list[str]:
+    if not stats:
+        return [f"({title}: no stats yet)"]
+    rows = [f"{title}: {stats['episodes']} episodes, {stats['falling']} falling ({100 * stats['fall_rate']:.1f}%), "
+            f"{stats.get('distinct_plans', '-')} plans, collision share of falls "
+            f"{stats['collision_share_of_falls']}.", "",
+            "| sigma | episodes | falls | without the ball: falls / episodes | collision falls |",
+            "| --- | --- | --- | --- | --- |"]
+    for s, r in stats["per_sigma"].items():
+        plain = r["episodes_without_ball"]
+        fr = r["fall_rate_without_ball"]
+        rows.append(f"| {s} | {r['episodes']} | {r['falling']} | "
+                    f"{round(fr * plain) if fr is not None else '-'} / {plain} | {r['collision_falls']} |")
+    cf = stats.get("counterfactual")
+    if cf:
+        rows += ["", f"Counterfactual (knots from onset - {cf['lead_s']} s redrawn, {cf['perturbation_falls_tried']} "
+                     f"perturbation falls): {cf['averted']} averted, {cf['moved']} moved by more than "
+                     f"{cf['move_ticks']} ticks: {100 * cf['share_averted_or_moved']:.0f}%."]
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reports", type=Path, required=True)
+    ap.add_argument("--set", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    a = ap.parse_args()
+    evals = {}
+    for d in sorted(a.reports.glob("eval-*")):
+        r = load(d / "metrics.json")
+        if r is None:
+            continue
+        label, proto = d.name[len("eval-"):].rsplit("-", 1)
+        evals[(label, proto)] = r
+    selected = []
+    sel = a.reports / "selected.txt"
+    if sel.exists():
+        selected = [tuple(line.split()[:2]) for line in sel.read_text().splitlines() if line.strip()]
+    lines = ["<!-- Written by scripts/model_card.py from the reports of scripts/retrain.sh. -->", "",
+             "### Data (simulated)", "", *stats_rows(load(a.reports / "simv3-stats.json"), "Training set"), "",
+             *stats_rows(load(a.reports / "walk-stats.json"), "Walking set (false alarms)"), "",
+             "### Paper protocol (test split)", "", *protocol_table(evals, "paper"), "",
+             "### Checks", "", *checks(evals), "",
+             "### Deployment protocol (test split)", "", *protocol_table(evals, "deployment"), ""]
+    cause_rows = []
+    for cause in ("collision", "perturbation"):
+        for key, label in (("emp", "EMP"), ("mp", "MP")):
+            r = evals.get((f"{key}-{cause}", "paper"))
+            if r:
+                p = protocol(r, "paper")
+                cause_rows.append(f"| {cause} | {label} | " + " | ".join(fmt_ms(h["accuracy"]) for h in p["horizons"])
+                                  + " |")
+    if cause_rows:
+        lines += ["### By fall cause (paper protocol, test falls of that cause with the test walks)", "",
+                  "| cause | network | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |",
+                  *cause_rows, ""]
+    lines += ["### The daemon's warnings (`fall-guard warnings`, streaming, thresholds chosen on validation)", "",
+              *warnings_rows(a.reports, selected), ""]
+    a.out.write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,52 @@
+#!/usr/bin/env python3
+"""Data sets of one fall cause: the test falls of that cause with every non-falling test episode.
+
+    subset_by_cause.py SET OUT     writes OUT/collision/ and OUT/perturbation/
+
+Each is a directory of symbolic links to SET's recordings with a manifest.json
+whose test split holds those episodes (train and validation empty), so that
+`fall-guard eval` and `warnings` score one cause at a time. The cause is the
+recording's `fall_cause` metadata (sim/README.md). Run with sim/.venv/bin/python.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from sim.stats import read_episode_metadata  # noqa: E402
+
+
+def main() -> int:
+    if len(sys.argv) != 3:
+        print(__doc__, file=sys.stderr)
+        return 2
+    src, out = Path(sys.argv[1]).resolve(), Path(sys.argv[2])
+    manifest = json.loads((src / "manifest.json").read_text())
+    causes: dict[str, list[str]] = {"collision": [], "perturbation": []}
+    walks = []
+    for name in manifest["test"]:
+        meta = read_episode_metadata(src / name)
+        cause = meta.get("fall_cause")
+        (causes[cause] if cause in causes else walks).append(name)
+    for cause, falls in causes.items():
+        d = out / cause
+        d.mkdir(parents=True, exist_ok=True)
+        for name in falls + walks:
+            link = d / name
+            if not link.exists():
+                os.symlink(src / name, link)
+        sub = {"train": [], "validation": [], "test": sorted(falls + walks),
+               "generator": {**manifest.get("generator", {}), "subset": f"test falls caused by {cause} + test walks"}}
+        tmp = d / "manifest.json.partial"
+        tmp.write_text(json.dumps(sub, indent=2) + "\n")
+        os.replace(tmp, d / "manifest.json")
+        print(f"{d}: {len(falls)} {cause} falls, {len(walks)} walks")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
