@@ -1,4 +1,4 @@
-"""Command line of the simulator: ``python -m sim {generate,fixtures,stats,strip,build-model}``.
+"""Command line of the simulator: ``python -m sim {generate,fixtures,stats,strip,build-model,poppy-muffin}``.
 
 Run from the repository root with the venv's Python (see sim/README.md).
 Arguments are checked before any work starts; a bad one ends with a message
@@ -54,6 +54,13 @@ def main(argv: list[str] | None = None) -> int:
     st.add_argument("--jobs", type=int, default=1, help="parallel worker processes for --counterfactual")
     m = sub.add_parser("build-model", help="rebuild sim/model/poppy_humanoid.urdf from the reference files")
     m.add_argument("--reference", type=Path, default=None)
+    pm = sub.add_parser("poppy-muffin",
+                        help="convert poppy-muffin's real-robot walk buffer to a recording (docs/real-recordings.md)")
+    pm.add_argument("--buffers", type=Path, required=True, help="scripts/scratchbuf.real.pkl of poppy-muffin")
+    pm.add_argument("--out", type=Path, default=None, help="recording to write")
+    pm.add_argument("--commit", default=None, help="poppy-muffin commit the buffers come from (metadata)")
+    pm.add_argument("--tracking", action="store_true",
+                    help="print the real servos' tracking and the simulator's on the same commanded path")
     args = parser.parse_args(argv)
 
     try:
@@ -91,6 +98,14 @@ def main(argv: list[str] | None = None) -> int:
             if args.jobs < 1:
                 raise DatasetError(f"--jobs must be at least 1 (got {args.jobs})")
             print(json.dumps(summarise(args.directory, args.counterfactual, args.jobs), indent=2))
+        elif args.command == "poppy-muffin":
+            from . import poppy_muffin as pmf
+            if args.out is None and not args.tracking:
+                raise DatasetError("poppy-muffin: give --out, --tracking or both")
+            if args.out is not None:
+                print(json.dumps(pmf.convert(args.buffers, args.out, args.commit or pmf.SOURCE_COMMIT)))
+            if args.tracking:
+                print(json.dumps(pmf.tracking_report(pmf.load_scratchbuf(args.buffers)), indent=2))
         elif args.command == "build-model":
             from .build_model import DEFAULT_REFERENCE_DIR, build
             print(build(args.reference or DEFAULT_REFERENCE_DIR))
