@@ -69,6 +69,8 @@ UNPERTURBED_JOINTS = ("head_z", "head_y")
 #: A kept plan survives this many knot perturbations at VALIDATION_SIGMA.
 VALIDATION_DRAWS = 10
 VALIDATION_SIGMA = 0.015
+#: Validation draws leave the knots up to this tick (2 s) unperturbed: the ramp is below 1e-13 there.
+VALIDATION_FROM_TICK = 60
 HAZARD_PROBABILITY = 0.2
 HAZARD_LAUNCH_S = (2.0, 7.5)
 HAZARD_DISTANCE_M = (1.4, 2.0)
@@ -347,6 +349,8 @@ class _Run:
         self.end_xy: np.ndarray | None = None
         #: First tick with the head below the fall threshold (None: stayed up).
         self.onset_tick: int | None = None
+        #: The physics state kept at ``save_at`` (None: not asked, or not reached).
+        self.saved: int | None = None
 
 
 def _facing_xy(robot: Robot, r0: np.ndarray, start_dir: np.ndarray) -> np.ndarray:
@@ -404,21 +408,34 @@ def _launch(ball: int, robot: Robot, hazard: Hazard, r0: np.ndarray, start_dir: 
 
 def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, threshold_m: float,
              stop_on_fall: bool, camera: HeadCamera | None, bodies: dict[int, str] | None = None,
-             hazard: Hazard | None = None, ball: int | None = None) -> _Run:
+             hazard: Hazard | None = None, ball: int | None = None, save_at: int | None = None,
+             resume: tuple[int, int] | None = None) -> _Run:
     """Run PLAN (waypoints from tick 0) for N_TICKS; returns per-tick measurements.
 
     BODIES names the room's bodies (contacts with anything but the floor are
-    recorded); HAZARD launches BALL at its tick.
+    recorded); HAZARD launches BALL at its tick. SAVE_AT: keep the physics
+    state at the start of that tick (``_Run.saved``, a ``pb.saveState`` id,
+    contacts included); RESUME (state id, tick) starts from such a state at
+    that tick instead of from the start pose: the same as running from tick 0
+    when PLAN equals the saved run's plan up to that tick. Measurements then
+    start at that tick.
     """
-    robot.place(plan[0], robot.start_xy, robot.start_yaw)
-    for _ in range(SETTLE_STEPS):
-        robot.command(plan[0])
-        pb.stepSimulation(physicsClientId=world.client)
+    k0 = 0
+    if resume is None:
+        robot.place(plan[0], robot.start_xy, robot.start_yaw)
+        for _ in range(SETTLE_STEPS):
+            robot.command(plan[0])
+            pb.stepSimulation(physicsClientId=world.client)
+    else:
+        pb.restoreState(resume[0], physicsClientId=world.client)
+        k0 = resume[1]
     _, quat = pb.getBasePositionAndOrientation(robot.body, physicsClientId=world.client)
     r0 = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
     run = _Run()
     walked_xy: list[np.ndarray] = []
-    for k in range(n_ticks):
+    for k in range(k0, n_ticks):
+        if k == save_at:
+            run.saved = pb.saveState(physicsClientId=world.client)
         if hazard is not None and ball is not None and k == hazard.launch_tick:
             _launch(ball, robot, hazard, r0, robot.start_dir, bodies or {})
         walked_xy.append(robot.base_xy())
@@ -427,7 +444,7 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
         run.heights.append(h)
         if h < threshold_m and run.onset_tick is None:
             run.onset_tick = k
-            run.end_xy = walked_xy[max(0, k - RATE_HZ)]
+            run.end_xy = walked_xy[max(0, k - k0 - RATE_HZ)]
         if bodies is not None and run.first_contact_tick is None:
             for contact in pb.getContactPoints(bodyA=robot.body, physicsClientId=world.client):
                 other = bodies.get(contact[2], "ball" if contact[2] == ball else "body")
@@ -487,22 +504,35 @@ def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_i
         lo, hi = joint_limits(robot)
         initial_state = pb.saveState(physicsClientId=world.client)
 
-        def stays_up(candidate: np.ndarray) -> tuple[bool, float]:
-            pb.restoreState(initial_state, physicsClientId=world.client)
-            run = _rollout(world, robot, candidate, n_ticks, threshold, True, None)
-            return run.onset_tick is None, float(robot.base_xy() @ direction)
+        # The validation draws perturb the knots after VALIDATION_FROM_TICK only
+        # (before it the ramp is below 1e-13 at VALIDATION_SIGMA), so each draw
+        # starts from the unperturbed run's state at that tick: the same
+        # simulation, without re-running its first seconds.
+        from_tick = min(VALIDATION_FROM_TICK, n_ticks - 1)
+        still = knot_ticks(n_plan) <= from_tick
+
+        def stays_up(candidate: np.ndarray, resume: tuple[int, int] | None = None,
+                     save_at: int | None = None) -> tuple[bool, float, int | None]:
+            if resume is None:
+                pb.restoreState(initial_state, physicsClientId=world.client)
+            run = _rollout(world, robot, candidate, n_ticks, threshold, True, None, save_at=save_at,
+                           resume=resume)
+            return run.onset_tick is None, float(robot.base_xy() @ direction), run.saved
 
         for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):
             cand = GaitParams.propose(rng)
             cand_plan = gait_waypoints(cand, n_plan, RATE_HZ)
-            ok, moved = stays_up(cand_plan)
-            ok = ok and moved >= min_progress_m
+            ok, moved, saved = stays_up(cand_plan, save_at=from_tick)
+            ok = ok and moved >= min_progress_m and saved is not None
             for _ in range(VALIDATION_DRAWS if ok else 0):
                 eta = rng.normal(0.0, VALIDATION_SIGMA, (n_knots, len(JOINT_NAMES)))
+                eta[still] = 0.0
                 plan = np.clip(cand_plan + knot_deviation(eta, VALIDATION_SIGMA, n_plan), lo, hi)
-                if not stays_up(plan)[0]:
+                if not stays_up(plan, resume=(saved, from_tick))[0]:
                     ok = False
                     break
+            if saved is not None:
+                pb.removeState(saved, physicsClientId=world.client)
             if ok:
                 return KeptPlan(cand, attempts, round(moved, 6), plan_id)
     finally:

@@ -119,3 +119,44 @@ def test_a_ball_rolled_at_the_robot_is_seen_before_it_hits():
     # The camera shows the ball between the launch and the hit: the frames differ there.
     differ = [k for k in range(launch, contact) if with_ball.jpeg_frames[k] != without.jpeg_frames[k]]
     assert len(differ) >= (contact - launch) // 2
+
+
+def test_validation_draws_resumed_from_the_unperturbed_state_equal_full_runs():
+    """search_plan starts each validation draw from the unperturbed run's state at
+    VALIDATION_FROM_TICK: exactly the run from tick 0 with the same plan."""
+    import math
+
+    import pybullet as pb
+
+    from sim.episode import (VALIDATION_FROM_TICK, VALIDATION_SIGMA, World, _rollout, joint_limits,
+                             standing_head_height_m)
+    from sim.gait import GaitParams
+    from sim.robot import FALL_FRACTION, Robot
+
+    n_ticks = 150
+    n_plan = n_ticks + PLAN_FUTURE_TICKS + 1
+    threshold = round(FALL_FRACTION * standing_head_height_m(), 4)
+    rng = np.random.default_rng(5)
+    base = gait_waypoints(GaitParams.propose(rng), n_plan, RATE_HZ)
+    world = World()
+    try:
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=world.client)
+        pb.createMultiBody(0, plane, physicsClientId=world.client)
+        robot = Robot(world.client)
+        robot.start_xy, robot.start_yaw, robot.start_dir = np.zeros(2), 0.0, np.array([0.0, -1.0])
+        lo, hi = joint_limits(robot)
+        start = pb.saveState(physicsClientId=world.client)
+        first = _rollout(world, robot, base, n_ticks, threshold, False, None, save_at=VALIDATION_FROM_TICK)
+        eta = rng.normal(0.0, VALIDATION_SIGMA * 4, (len(knot_ticks(n_plan)), len(JOINT_NAMES)))
+        eta[knot_ticks(n_plan) <= VALIDATION_FROM_TICK] = 0.0
+        plan = np.clip(base + knot_deviation(eta, VALIDATION_SIGMA * 4, n_plan), lo, hi)
+        assert np.array_equal(plan[:VALIDATION_FROM_TICK + 1], base[:VALIDATION_FROM_TICK + 1])
+        pb.restoreState(start, physicsClientId=world.client)
+        full = _rollout(world, robot, plan, n_ticks, threshold, False, None)
+        resumed = _rollout(world, robot, plan, n_ticks, threshold, False, None,
+                           resume=(first.saved, VALIDATION_FROM_TICK))
+    finally:
+        world.close()
+    assert np.array_equal(np.array(full.joints[VALIDATION_FROM_TICK:]), np.array(resumed.joints))
+    assert full.heights[VALIDATION_FROM_TICK:] == resumed.heights
+    assert math.isfinite(resumed.heights[-1])
