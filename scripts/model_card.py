@@ -257,6 +257,17 @@ def main() -> int:
         lines += ["### By fall cause (paper protocol, test falls of that cause with the test walks)", "",
                   "| cause | network | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |",
                   *cause_rows, ""]
+    perh = sorted((k for k in evals if k[0].startswith("emp-perh-") and k[1] == "paper"),
+                  key=lambda k: int(k[0].rsplit(".h", 1)[1]))
+    if perh:
+        lines += ["### One network per horizon (paper protocol, seed 1) against the all-horizon EMP", "",
+                  "| horizon | per-horizon accuracy | all-horizon EMP accuracy (seeds) |", "| --- | --- | --- |"]
+        for key in perh:
+            h = protocol(evals[key], "paper")["horizons"][0]
+            full = horizon(evals[("emp", "paper")], "paper", h["horizon_ms"]) if ("emp", "paper") in evals else None
+            lines.append(f"| {h['horizon_ms'] / 1000:g} s | {h['accuracy']['mean']:.3f} | "
+                         f"{fmt_ms(full['accuracy']) if full else '-'} |")
+        lines.append("")
     lines += ["### The daemon's warnings (`fall-guard warnings`, streaming, thresholds chosen on validation)", "",
               *warnings_rows(a.reports, selected), ""]
     a.out.write_text("\n".join(lines) + "\n")

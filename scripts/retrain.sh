@@ -221,6 +221,12 @@ step_evaluate() {
     [ ${#files[@]} -gt 0 ] || continue
     for protocol in paper deployment; do eval_group "$group" "$protocol" "${files[@]}"; done
   done
+  # EMP trained per horizon (paper protocol): each network on its own horizon's windows.
+  local f
+  for f in "$RUNS"/emp-perh-s1.h*.bpk; do
+    [ -e "$f" ] || continue
+    eval_group "$(basename "$f" .bpk)" paper "$f"
+  done
   if [ -e "$RUNS/logreg-s1.json" ]; then
     for protocol in paper deployment; do eval_group logreg "$protocol" "$RUNS/logreg-s1.json"; done
   fi
