@@ -59,6 +59,8 @@ PLAN_PERIOD_NS = 1_000_000_000
 PLAN_PAST_NS = 2_500_000_000
 PLAN_FUTURE_NS = 3_000_000_000
 REGISTERS = ("position", "target", "load", "speed", "voltage", "temperature")
+#: Steps shorter than this are the fast ones of the tracking figures (the real walk's kick: 18-53 ms).
+FAST_STEP_S = 0.1
 #: Joint groups of the tracking figures (sim/README.md).
 GROUPS: dict[str, tuple[str, ...]] = {
     "legs": tuple(n for n in JOINT_NAMES if n[:2] in ("l_", "r_") and ("hip" in n or "knee" in n or "ankle" in n)),
@@ -352,7 +354,8 @@ def simulate_commanded(walk: RealWalk) -> dict:
 def tracking_report(walk: RealWalk) -> dict:
     """The real robot's tracking and the simulator's on the same commanded path, per joint group:
     |position - target| over every sample and over each step's last sample (where the goal
-    should be reached), and |position - commanded path| (the servo's lag behind the ramp)."""
+    should be reached), and |position - commanded path| (the servo's lag behind the ramp),
+    also over the steps shorter than FAST_STEP_S alone (the real walk's kick)."""
     target = model_rad(walk.registers["target"], walk.motor_names)
     real = model_rad(walk.registers["position"], walk.motor_names)
     t_knots, q_knots = walk.knots()
@@ -360,14 +363,19 @@ def tracking_report(walk: RealWalk) -> dict:
     path = np.column_stack([np.interp(times, t_knots, q_knots[:, j]) for j in range(q_knots.shape[1])])
     sim = simulate_commanded(walk)
     ends = np.r_[np.diff(walk.step_of_sample) != 0, True]
+    fast = (walk.step_end_s - walk.step_start_s)[walk.step_of_sample] < FAST_STEP_S
 
     def figures(angles: np.ndarray) -> dict:
-        return {"all_samples": tracking_errors(angles, target),
-                "step_ends": tracking_errors(angles[ends], target[ends]),
-                "from_path": tracking_errors(angles, path)}
+        out = {"all_samples": tracking_errors(angles, target),
+               "step_ends": tracking_errors(angles[ends], target[ends]),
+               "from_path": tracking_errors(angles, path)}
+        if fast.any():
+            out["from_path_fast_steps"] = tracking_errors(angles[fast], path[fast])
+        return out
 
     return {
         "samples": int(len(real)), "steps": int(ends.sum()),
+        "fast_steps": int(np.sum(walk.step_end_s - walk.step_start_s < FAST_STEP_S)),
         "real": figures(real),
         "sim": {**figures(sim["angles"]),
                 "lowest_head_m": round(sim["lowest_head_m"], 4), "fell": bool(sim["fell"])},

@@ -310,3 +310,23 @@ def test_command_line_converts_and_needs_an_output(converted, tmp_path, capsys):
     again = tmp_path / "cli.mcap"
     assert main(["poppy-muffin", "--buffers", str(buf), "--out", str(again), "--commit", "0" * 40]) == 0
     assert again.read_bytes() == out.read_bytes()
+
+
+def test_tracking_compares_the_real_servos_with_the_simulators_on_one_path():
+    # Standing still, commanded: the real positions are the goal plus a known offset.
+    rng = np.random.default_rng(3)
+    zero = np.zeros(25)
+    runs = [[goto_step(rng, zero, zero, 1.0)], [goto_step(rng, zero, zero, 0.5) for _ in range(2)],
+            [goto_step(rng, zero, zero, 0.05)]]
+    for run in runs[1:]:
+        for _, b, _ in run:
+            b["position"][:] = 0.5  # degrees off, every joint
+    walk = pm.walk_from_runs(PYPOT_ORDER, runs)
+    report = pm.tracking_report(walk)
+    assert (report["samples"], report["steps"], report["fast_steps"]) == (30, 3, 1)
+    for group in pm.GROUPS:
+        for measure in ("all_samples", "step_ends", "from_path", "from_path_fast_steps"):
+            assert report["real"][measure][group] == {"mean_deg": 0.5, "p95_deg": 0.5}
+    assert not report["sim"]["fell"]
+    assert report["sim"]["step_ends"]["legs"]["p95_deg"] < 1.0, "the simulator stands in the zero pose"
+    assert sorted(sum(pm.GROUPS.values(), ())) == sorted(JOINT_NAMES)
