@@ -1,5 +1,5 @@
 """PyTorch eager peer of `fall-guard bench --train-only`: the same EMP lite
-network (docs: /work/shared/docs/emp-model.md, code: src/model/), the same
+network (docs/network.md, code: src/model/), the same
 batch-4 Adam step on one thread, reporting training samples/s.
 
 Not part of the project's setup: run it from a throwaway venv with torch

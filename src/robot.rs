@@ -168,7 +168,7 @@ pub struct JointTable {
 
 impl JointTable {
     /// The Poppy Humanoid: 25 servos, ids ascending, as in pypot's
-    /// `poppy_humanoid.json` and `poppy-humanoid.md`.
+    /// `poppy_humanoid.json` and `docs/robot.md`.
     pub fn poppy_humanoid() -> JointTable {
         use Orientation::{Direct as D, Indirect as I};
         use ServoModel::{Ax12, Mx28, Mx64};

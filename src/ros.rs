@@ -1,5 +1,5 @@
 //! The daemon's ROS 2 node: one DDS participant, one node, the QoS profiles
-//! of `interfaces.md` and the topic-name rules, shared by the publishers in
+//! of `docs/ros.md` and the topic-name rules, shared by the publishers in
 //! `outputs::ros` and the subscriptions in `sources::ros`.
 //!
 //! Settings enter from the environment the way every ROS 2 node reads them
@@ -178,7 +178,7 @@ fn latched_limits() -> rustdds::policy::ResourceLimits {
     }
 }
 
-/// The QoS profiles of `interfaces.md`, one function per kind of topic.
+/// The QoS profiles of `docs/ros.md` ("Topics"), one function per kind of topic.
 pub mod qos {
     use super::*;
 
@@ -553,7 +553,7 @@ mod tests {
     }
 
     #[test]
-    fn qos_profiles_follow_interfaces_md() {
+    fn qos_profiles_follow_docs_ros_md() {
         use ros2_client::qos::Reliability;
         assert_eq!(qos::sensor_data().reliability, Reliability::BestEffort);
         assert_eq!(qos::sensor_data().history, History::KeepLast { depth: 5 });

@@ -1,6 +1,6 @@
 //! fall-guard publishes -> a real rclpy subscriber receives: the forecast,
 //! the latched horizons and safety signal, and `/diagnostics`, with the
-//! standard types and QoS-compatible profiles of `interfaces.md`.
+//! standard types and QoS-compatible profiles of `docs/ros.md`.
 //!
 //! Needs the rclpy venv (`bash tests/ros/setup_venv.sh`); skipped loudly
 //! without it unless FALL_GUARD_REQUIRE_ROS is set.

@@ -106,7 +106,7 @@ impl fmt::Display for TrajectoryInput {
     }
 }
 
-/// Sizes of every part of the network (see `docs/emp-model.md`).
+/// Sizes of every part of the network (see `docs/network.md`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ModelConfig {
     /// `lite` or `paper`.

@@ -1,4 +1,4 @@
-//! The EMP network (`docs/emp-model.md`) in burn: encoders, classifier, the
+//! The EMP network (`docs/network.md`) in burn: encoders, classifier, the
 //! model file, fused inference and the per-tick streaming forecaster.
 //!
 //! Training builds an [`Emp`] on an autodiff device; the daemon loads a

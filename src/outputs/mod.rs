@@ -10,7 +10,7 @@
 //! [`OutputSubscription::published`] so that sensor-to-publish latency is
 //! measured at the real publish point.
 //!
-//! Mapping to ROS 2 (see `interfaces.md`):
+//! Mapping to ROS 2 (see `docs/ros.md`):
 //! - `/fall_guard/forecast` (`Float32MultiArray`): `probabilities` when
 //!   `valid`, NaN for every horizon otherwise; one dim labelled
 //!   `horizon_ms` with `horizons_ms.len()` entries; every tick.

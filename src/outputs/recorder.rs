@@ -8,8 +8,9 @@
 //! received, or the V4L2 camera's MJPEG buffer, or one full-size JPEG of a
 //! raw frame), never the network's S x S input, so a recording outlives the
 //! model it was made with (readers decode and resize any JPEG/PNG size).
-//! They leave as the messages of `interfaces.md` through the data plane's
-//! [`RecordingWriter`]: `/joint_states` (`JointState`, radians),
+//! They leave as the messages of `docs/contracts.md` ("Recording
+//! conventions") through the data plane's [`RecordingWriter`]:
+//! `/joint_states` (`JointState`, radians),
 //! `/head_camera/image_raw/compressed` (unchanged: format, header and bytes)
 //! and `/planned_trajectory` (`JointTrajectory`, every point of the plan),
 //! with the sample's stamp as log time (and `header.stamp` of the joints

@@ -5,7 +5,7 @@
 //! Values enter as plain Rust from the service (probabilities per horizon, a
 //! bool, a [`DiagnosticsSnapshot`], a `JointState`; the service's bridge reads them
 //! off its output bus); they leave as the standard messages of
-//! `interfaces.md` with the QoS of [`crate::ros::qos`]. Publishing never
+//! `docs/ros.md` with the QoS of [`crate::ros::qos`]. Publishing never
 //! blocks: a reliable send window that is full fails at once and is counted,
 //! the next tick carries a newer value.
 //!

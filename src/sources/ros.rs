@@ -1,6 +1,6 @@
 //! Input streams from ROS 2: `/joint_states`, `/planned_trajectory` and
 //! `/head_camera/image_raw/compressed`, each subscribed with the QoS of
-//! `interfaces.md` and handed on as the latest value in a
+//! `docs/ros.md` and handed on as the latest value in a
 //! `tokio::sync::watch` channel, never queued.
 //!
 //! Messages enter from DDS on one tokio task per topic; they leave unchanged

@@ -22,7 +22,7 @@ them without parsing ROS text output:
 
 Each subscription is given as TOPIC:TYPE:QOS, with TYPE like
 std_msgs/msg/Bool and QOS one of the profile names of fall-guard's
-interfaces.md: sensor_data, forecast, latched, diagnostics.
+docs/ros.md: sensor_data, forecast, latched, diagnostics.
 
 Keep DDS on the loopback interface: the tests set
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a ROS_DOMAIN_ID per test.
