@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# The soak of issue 13: the daemon replaying at maximum speed for a long
+# The soak: the daemon replaying at maximum speed for a long
 # time (bench-daemon), with its memory sampled from outside once a minute
 # (VmRSS, and its anonymous and file-backed parts, from /proc/PID/status)
 # beside the load average, so that growth can be told from warm-up and from
 # the page cache. A benchmark, not a test: run it on an otherwise idle
-# machine.
+# machine. Figures: docs/performance.md, "The 1-hour soak".
 #   scripts/soak.sh [SECONDS] [OUT_PREFIX] [bench-daemon options, e.g. --config C]
 # Writes OUT_PREFIX.json (bench-daemon's report) and OUT_PREFIX-rss-per-minute.txt.
 set -euo pipefail
