@@ -378,7 +378,7 @@ fn joints_gap_invalidates_forecasts_until_the_window_refills() {
     assert!(lines.last().expect("lines").tick > first_valid + 5);
 }
 
-/// Latch chatter around a network switch (issue 13: four flips in 0.5 s
+/// Latch chatter around a network switch (reported: four flips in 0.5 s
 /// around P -> MP). The shipped networks on the bundled generator-2
 /// episodes with the camera gone (so MP, as `camera = "none"` runs) and
 /// the plan lost from 1.5 s to 3.2 s: MP -> P when the plan goes stale,

@@ -1,4 +1,4 @@
-"""Shared fixtures: one small generated data set per test session (2 episodes of 4 s)."""
+"""Shared fixtures: one small generated data set per pytest run (2 episodes of 4 s)."""
 
 from __future__ import annotations
 
