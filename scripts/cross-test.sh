@@ -12,8 +12,8 @@
 #      (`fall-guard eval --recording`), on aarch64 under qemu and natively,
 #      and fails when a probability differs by more than $TOLERANCE.
 #
-# CROSS_CI=1 is the lean variant sized for CI (a cold build on 2 cores; not
-# in .ci/run yet: README "On the robot's computer" has its time): the same
+# CROSS_CI=1 is the lean variant sized for CI (a cold build on 2 cores; run
+# by .ci/run; docs/performance.md, "aarch64 under qemu-user", has its time): the same
 # steps, but
 #   - profile `cross-ci` (Cargo.toml: dependencies at opt-level 1 except
 #     burn's Flex backend, gemm and pulp at 3; no debug info, no incremental);
@@ -38,8 +38,8 @@ aarch64_dir="${AARCH64_TARGET_DIR:-$PWD/target-aarch64}"
 native_dir="${CARGO_TARGET_DIR:-$PWD/target}"
 out="${OUT_DIR:-out/cross}"
 # Largest |p_aarch64 - p_native| accepted: the two builds sum the GEMMs in
-# different orders (NEON vs AVX2/FMA kernels); README "Cross build" has
-# the differences measured.
+# different orders (NEON vs AVX2/FMA kernels); docs/performance.md
+# ("aarch64 under qemu-user") has the differences measured.
 tolerance="${TOLERANCE:-1e-4}"
 recording=tests/fixtures/gen1/episode_00005.mcap
 mkdir -p "$out"

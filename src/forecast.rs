@@ -318,7 +318,7 @@ impl ModelSet {
         )?
         .with_projection(self.projection);
         // As at start: hand the load's transient heap back to the system,
-        // or the resident memory keeps the load's peak (README "Measured").
+        // or the resident memory keeps the load's peak (`docs/performance.md`).
         release_freed_memory();
         tracing::info!(key = slot.key, file = %slot.path.display(),
             load_ms = format!("{:.1}", started.elapsed().as_secs_f64() * 1e3),
