@@ -24,7 +24,7 @@
 # Speed:  RETRAIN_JOBS generator processes (default: the core count);
 #         RETRAIN_PARALLEL trainings side by side (default 2);
 #         RETRAIN_DEVICE the training device (cpu, cuda, wgpu; a binary built
-#         with that feature, see README "Training on a GPU").
+#         with that feature, see docs/building.md).
 # Scope:  RETRAIN_PAPER=1 also trains the `paper` configuration (last).
 set -euo pipefail
 cd "$(dirname "$0")/.."

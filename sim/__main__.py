@@ -107,8 +107,11 @@ def main(argv: list[str] | None = None) -> int:
             if args.tracking:
                 print(json.dumps(pmf.tracking_report(pmf.load_scratchbuf(args.buffers)), indent=2))
         elif args.command == "build-model":
-            from .build_model import DEFAULT_REFERENCE_DIR, build
-            print(build(args.reference or DEFAULT_REFERENCE_DIR))
+            from .build_model import build
+            if args.reference is None:
+                raise DatasetError("--reference DIR is required: the directory of the reference "
+                                   "poppy_humanoid.pybullet.urdf and its meshes/ (see sim/README.md)")
+            print(build(args.reference))
     except DatasetError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

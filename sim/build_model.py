@@ -1,6 +1,8 @@
 """Derive the simulator's own Poppy Humanoid model from the reference descriptions.
 
-Input: ``/work/shared/robots/poppy_humanoid/reference/`` (or ``--reference DIR``):
+Input: ``--reference DIR``, a directory holding the reference description
+(the Poppy Humanoid PyBullet model as published with the robot's code:
+``poppy_humanoid.pybullet.urdf`` and its ``meshes/``):
 ``poppy_humanoid.pybullet.urdf`` gives masses, inertias, joint origins, axes and
 limits in pypot's sign convention; the ``meshes/*_respondable.*`` collision meshes
 give each link's extent. Output: ``sim/model/poppy_humanoid.urdf`` (committed), in
@@ -8,7 +10,8 @@ which every link's collision and visual shape is one box: the axis-aligned
 bounding box of its reference collision mesh, in the link frame. The feet get
 their box exactly as the mesh; nothing else is tuned by hand.
 
-Run: ``python -m sim build-model [--reference DIR]``.
+Run: ``python -m sim build-model --reference DIR``. The committed model is all
+the simulator needs; the reference is only read to regenerate it.
 """
 
 from __future__ import annotations
@@ -19,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_REFERENCE_DIR = Path("/work/shared/robots/poppy_humanoid/reference")
 MODEL_PATH = Path(__file__).resolve().parent / "model" / "poppy_humanoid.urdf"
 
 
@@ -60,7 +62,7 @@ def link_colour(name: str) -> str:
     return "0.85 0.85 0.82 1"
 
 
-def build(reference_dir: Path = DEFAULT_REFERENCE_DIR, out_path: Path = MODEL_PATH) -> Path:
+def build(reference_dir: Path, out_path: Path = MODEL_PATH) -> Path:
     src = reference_dir / "poppy_humanoid.pybullet.urdf"
     if not src.is_file():
         raise FileNotFoundError(f"{src}: reference URDF not found")

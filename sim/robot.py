@@ -12,7 +12,7 @@ import pybullet as pb
 
 from .build_model import MODEL_PATH
 
-#: The 25 motors in model order (Dynamixel ids ascending), as docs/poppy-humanoid.md.
+#: The 25 motors in model order (Dynamixel ids ascending), as docs/robot.md.
 JOINT_NAMES: tuple[str, ...] = (
     "l_hip_x", "l_hip_z", "l_hip_y", "l_knee_y", "l_ankle_y",
     "r_hip_x", "r_hip_z", "r_hip_y", "r_knee_y", "r_ankle_y",
