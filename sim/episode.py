@@ -154,6 +154,13 @@ class World:
     def close(self):
         pb.disconnect(self.client)
 
+    def add_floor(self) -> int:
+        """A bare floor with the room's friction (plan search, tracking runs)."""
+        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=self.client)
+        floor = pb.createMultiBody(0, plane, physicsClientId=self.client)
+        pb.changeDynamics(floor, -1, lateralFriction=FLOOR_FRICTION, physicsClientId=self.client)
+        return floor
+
 
 _STANDING_HEAD_HEIGHT_M: float | None = None
 
@@ -495,9 +502,7 @@ def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_i
     min_progress_m = MIN_PROGRESS_M * min(1.0, max(0.0, duration_s - 2.0) / 8.0)
     world = World()
     try:
-        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=world.client)
-        floor = pb.createMultiBody(0, plane, physicsClientId=world.client)
-        pb.changeDynamics(floor, -1, lateralFriction=FLOOR_FRICTION, physicsClientId=world.client)
+        world.add_floor()
         robot = Robot(world.client)
         robot.start_xy, robot.start_yaw = np.zeros(2), 0.0
         robot.start_dir = direction = np.array([0.0, -1.0])  # yaw 0 faces -y

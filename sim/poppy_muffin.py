@@ -319,15 +319,12 @@ def simulate_commanded(walk: RealWalk) -> dict:
 
     from .episode import SETTLE_STEPS, World, standing_head_height_m
     from .robot import FALL_FRACTION, PHYSICS_HZ, Robot
-    from .scene import FLOOR_FRICTION
 
     t_knots, q_knots = walk.knots()
     times = sample_ns(walk)
     world = World()
     try:
-        plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=world.client)
-        floor = pb.createMultiBody(0, plane, physicsClientId=world.client)
-        pb.changeDynamics(floor, -1, lateralFriction=FLOOR_FRICTION, physicsClientId=world.client)
+        world.add_floor()
         robot = Robot(world.client)
         robot.place(q_knots[0], (0.0, 0.0), 0.0)
         for _ in range(SETTLE_STEPS):
