@@ -28,13 +28,17 @@
 //!   ([`WindowSpec::joint_names`]); a joint missing from a message is an error.
 //! - **Frames** are decoded and resized to S x S once, when they arrive
 //!   ([`crate::frame::decode_compressed`]), and enter the window as
-//!   `value / 255`.
+//!   `value / 255`. Episodes read for training and evaluation
+//!   ([`FrameStorage::Compressed`]) keep them as recorded instead, checked
+//!   to decode at load, and decode them (to the same bytes) when a window
+//!   is built ([`TickFrame`]).
 
+use std::borrow::Cow;
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use crate::frame::{decode_compressed, Frame, FrameError};
+use crate::frame::{decode_compressed, CompressedFrame, Frame, FrameError};
 use crate::msgs::{CompressedImage, JointState, JointTrajectory};
 use crate::recording::{topics, Recording};
 use crate::sources::{PerStream, StreamKind};
@@ -370,6 +374,67 @@ impl Sample {
 /// Per stream, ns from the last sample to the tick (`None`: no sample yet).
 pub type StreamAges = PerStream<Option<i64>>;
 
+/// The frame a tick holds.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TickFrame {
+    /// Decoded and resized to S x S on arrival (the daemon, live and replay).
+    Decoded(Arc<Frame>),
+    /// As recorded, decoded when a window is built (training and evaluation
+    /// episodes, [`FrameStorage::Compressed`]).
+    Compressed(Arc<CompressedFrame>),
+}
+
+impl TickFrame {
+    /// Width and height of the decoded frame.
+    pub fn dimensions(&self) -> (u32, u32) {
+        match self {
+            TickFrame::Decoded(f) => (f.width, f.height),
+            TickFrame::Compressed(c) => (c.size(), c.size()),
+        }
+    }
+
+    /// The decoded frame: borrowed when it is decoded already.
+    pub fn decoded(&self) -> Result<Cow<'_, Frame>, FrameError> {
+        match self {
+            TickFrame::Decoded(f) => Ok(Cow::Borrowed(f)),
+            TickFrame::Compressed(c) => c.decode().map(Cow::Owned),
+        }
+    }
+
+    /// Whether both hold the very same frame (not a copy of it).
+    pub fn same_as(&self, other: &TickFrame) -> bool {
+        match (self, other) {
+            (TickFrame::Decoded(a), TickFrame::Decoded(b)) => Arc::ptr_eq(a, b),
+            (TickFrame::Compressed(a), TickFrame::Compressed(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        }
+    }
+}
+
+impl From<Arc<Frame>> for TickFrame {
+    fn from(frame: Arc<Frame>) -> TickFrame {
+        TickFrame::Decoded(frame)
+    }
+}
+
+impl From<Frame> for TickFrame {
+    fn from(frame: Frame) -> TickFrame {
+        TickFrame::Decoded(Arc::new(frame))
+    }
+}
+
+/// How an episode read from a recording holds its frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FrameStorage {
+    /// Decoded once at load, as the daemon holds them (what a tick-by-tick
+    /// replay through the streaming forecaster reads fastest).
+    #[default]
+    Decoded,
+    /// As recorded (JPEG or PNG bytes, ~10 times smaller), checked to decode
+    /// at load, decoded when a window is built: the splits of a data set.
+    Compressed,
+}
+
 /// One tick of resampled inputs (zero-order hold: last sample at or before the tick).
 #[derive(Debug, Clone, PartialEq)]
 pub struct TickInput {
@@ -377,8 +442,8 @@ pub struct TickInput {
     pub stamp_ns: i64,
     /// `C` values in model order; `None` until the first sample.
     pub joints_rad: Option<Vec<f32>>,
-    /// Latest frame, already S x S.
-    pub frame: Option<Arc<Frame>>,
+    /// Latest frame, S x S once decoded.
+    pub frame: Option<TickFrame>,
     /// Latest plan.
     pub plan: Option<Arc<Plan>>,
     pub age_ns: StreamAges,
@@ -419,7 +484,7 @@ pub struct Resampler {
     grid: TickGrid,
     next_tick: Option<i64>,
     joints: Option<(i64, Vec<f32>)>,
-    frame: Option<(i64, Arc<Frame>)>,
+    frame: Option<(i64, TickFrame)>,
     plan: Option<(i64, Arc<Plan>)>,
     dropped: u64,
 }
@@ -470,7 +535,7 @@ impl Resampler {
             }
             Sample::Frame { stamp_ns, frame } => {
                 if newer(self.frame.as_ref().map(|x| x.0)) {
-                    self.frame = Some((stamp_ns, frame));
+                    self.frame = Some((stamp_ns, TickFrame::Decoded(frame)));
                 } else {
                     self.dropped += 1;
                 }
@@ -482,6 +547,18 @@ impl Resampler {
                     self.dropped += 1;
                 }
             }
+        }
+    }
+
+    /// Feed one frame as [`push`](Self::push) feeds a `Sample::Frame`, held
+    /// as it is given (compressed or decoded).
+    pub fn push_frame(&mut self, stamp_ns: i64, frame: TickFrame, out: &mut Vec<TickInput>) {
+        self.start_or_jump(stamp_ns);
+        self.emit_while(out, |stamp| stamp < stamp_ns);
+        if self.frame.as_ref().is_none_or(|(t, _)| stamp_ns >= *t) {
+            self.frame = Some((stamp_ns, frame));
+        } else {
+            self.dropped += 1;
         }
     }
 
@@ -520,7 +597,7 @@ impl Resampler {
                 tick,
                 stamp_ns,
                 joints_rad: self.joints.as_ref().map(|(_, j)| j.clone()),
-                frame: self.frame.as_ref().map(|(_, f)| Arc::clone(f)),
+                frame: self.frame.as_ref().map(|(_, f)| f.clone()),
                 plan: self.plan.as_ref().map(|(_, p)| Arc::clone(p)),
                 age_ns: StreamAges {
                     joints: self.joints.as_ref().map(|(t, _)| stamp_ns - t),
@@ -622,16 +699,24 @@ impl Window {
         if needs.camera {
             let plane = s * s;
             frames = vec![0f32; 3 * n * plane];
+            // A compressed frame held over several ticks is decoded once.
+            let mut last: Option<(&TickFrame, Cow<'_, Frame>)> = None;
             for (i, t) in ticks.clone().enumerate() {
-                let f = t.frame.as_ref().ok_or_else(|| missing("frames", t.tick))?;
-                if f.width as usize != s || f.height as usize != s {
+                let held = t.frame.as_ref().ok_or_else(|| missing("frames", t.tick))?;
+                let (w, h) = held.dimensions();
+                if w as usize != s || h as usize != s {
                     return Err(WindowError::BadSpec {
-                        reason: format!(
-                            "tick {} has a {}x{} frame, spec wants {s}x{s}",
-                            t.tick, f.width, f.height
-                        ),
+                        reason: format!("tick {} has a {w}x{h} frame, spec wants {s}x{s}", t.tick),
                     });
                 }
+                if !last.as_ref().is_some_and(|(f, _)| f.same_as(held)) {
+                    let decoded = held.decoded().map_err(|source| WindowError::Frame {
+                        topic: topics::HEAD_CAMERA,
+                        source,
+                    })?;
+                    last = Some((held, decoded));
+                }
+                let f = &last.as_ref().expect("decoded above").1;
                 // channel c of tick i starts at (c * N + i) * S * S
                 f.write_chw(&mut frames[i * plane..], n * plane);
             }
@@ -738,13 +823,29 @@ impl EpisodeTicks {
     /// last message's log time. Needs `/joint_states`; the fall onset comes
     /// from the episode metadata (absent metadata = no fall).
     pub fn from_recording(rec: &Recording, spec: &WindowSpec) -> Result<EpisodeTicks, WindowError> {
-        let samples = samples_from_recording(rec, spec)?;
+        Self::from_recording_as(rec, spec, FrameStorage::Decoded)
+    }
+
+    /// [`from_recording`](Self::from_recording) with the frames held as
+    /// `storage` says: the same ticks, and windows of the same bytes.
+    pub fn from_recording_as(
+        rec: &Recording,
+        spec: &WindowSpec,
+        storage: FrameStorage,
+    ) -> Result<EpisodeTicks, WindowError> {
+        let inputs = match storage {
+            FrameStorage::Decoded => samples_from_recording(rec, spec)?
+                .into_iter()
+                .map(EpisodeInput::Sample)
+                .collect(),
+            FrameStorage::Compressed => inputs_with_compressed_frames(rec, spec)?,
+        };
         let end_ns = rec.end_ns().ok_or_else(|| WindowError::NoSamples {
             path: rec.path.clone(),
             topic: topics::JOINT_STATES,
         })?;
         let onset = rec.episode.as_ref().and_then(|m| m.fall_onset_ns);
-        Self::from_samples(&rec.path, samples, end_ns, onset, spec)
+        Self::from_inputs(&rec.path, inputs, end_ns, onset, spec)
     }
 
     /// Resamples time-ordered samples up to `end_ns`.
@@ -755,10 +856,26 @@ impl EpisodeTicks {
         fall_onset_ns: Option<i64>,
         spec: &WindowSpec,
     ) -> Result<EpisodeTicks, WindowError> {
+        let inputs = samples.into_iter().map(EpisodeInput::Sample).collect();
+        Self::from_inputs(path, inputs, end_ns, fall_onset_ns, spec)
+    }
+
+    fn from_inputs(
+        path: &Path,
+        inputs: Vec<EpisodeInput>,
+        end_ns: i64,
+        fall_onset_ns: Option<i64>,
+        spec: &WindowSpec,
+    ) -> Result<EpisodeTicks, WindowError> {
         let mut resampler = Resampler::new(spec)?;
         let mut ticks = Vec::new();
-        for sample in samples {
-            resampler.push(sample, &mut ticks);
+        for input in inputs {
+            match input {
+                EpisodeInput::Sample(sample) => resampler.push(sample, &mut ticks),
+                EpisodeInput::Frame { stamp_ns, frame } => {
+                    resampler.push_frame(stamp_ns, frame, &mut ticks)
+                }
+            }
         }
         resampler.advance_to(end_ns, &mut ticks);
         let grid = resampler.grid();
@@ -766,6 +883,8 @@ impl EpisodeTicks {
         if let Some(cut) = ticks.windows(2).rposition(|w| w[1].tick != w[0].tick + 1) {
             ticks.drain(..=cut);
         }
+        // Held for the whole run (a data set's splits): no spare capacity.
+        ticks.shrink_to_fit();
         Ok(EpisodeTicks {
             path: path.to_path_buf(),
             grid,
@@ -855,6 +974,99 @@ pub fn samples_from_recording(
         .collect()
 }
 
+/// What a recording's episode is resampled from: a sample, or a frame held
+/// as it is (compressed).
+enum EpisodeInput {
+    Sample(Sample),
+    Frame { stamp_ns: i64, frame: TickFrame },
+}
+
+/// [`samples_from_recording`] with the camera's frames kept as recorded
+/// (checked to decode, [`CompressedFrame::new`]): the same inputs in the same
+/// order, and the same error for a message that does not convert.
+fn inputs_with_compressed_frames(
+    rec: &Recording,
+    spec: &WindowSpec,
+) -> Result<Vec<EpisodeInput>, WindowError> {
+    if rec.joint_states.is_empty() {
+        return Err(WindowError::NoSamples {
+            path: rec.path.clone(),
+            topic: topics::JOINT_STATES,
+        });
+    }
+    struct Converted {
+        topic: &'static str,
+        stamp_ns: i64,
+        file_order: u64,
+        input: Result<EpisodeInput, WindowError>,
+    }
+    let mut out = Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
+    for m in &rec.joint_states {
+        let stamp_ns = m.log_time_ns;
+        out.push(Converted {
+            topic: topics::JOINT_STATES,
+            stamp_ns,
+            file_order: m.file_order,
+            input: joint_sample(&m.msg, stamp_ns, spec).map(EpisodeInput::Sample),
+        });
+    }
+    for m in &rec.images {
+        let stamp_ns = m.log_time_ns;
+        let frame = CompressedFrame::new(&m.msg.format, m.msg.data.clone(), spec.frame_size)
+            .map_err(|source| WindowError::Frame {
+                topic: topics::HEAD_CAMERA,
+                source,
+            });
+        out.push(Converted {
+            topic: topics::HEAD_CAMERA,
+            stamp_ns,
+            file_order: m.file_order,
+            input: frame.map(|f| EpisodeInput::Frame {
+                stamp_ns,
+                frame: TickFrame::Compressed(Arc::new(f)),
+            }),
+        });
+    }
+    for m in &rec.plans {
+        let stamp_ns = m.log_time_ns;
+        out.push(Converted {
+            topic: topics::PLANNED_TRAJECTORY,
+            stamp_ns,
+            file_order: m.file_order,
+            input: plan_sample(&m.msg, stamp_ns, spec).map(EpisodeInput::Sample),
+        });
+    }
+    out.sort_by_key(|c| (c.stamp_ns, c.file_order));
+    out.into_iter()
+        .map(|c| {
+            c.input.map_err(|e| WindowError::InRecording {
+                path: rec.path.clone(),
+                topic: c.topic,
+                log_time_ns: c.stamp_ns,
+                source: Box::new(e),
+            })
+        })
+        .collect()
+}
+
+fn joint_sample(msg: &JointState, stamp_ns: i64, spec: &WindowSpec) -> Result<Sample, WindowError> {
+    joints_from_msg(msg, &spec.joint_names).map(|positions_rad| Sample::Joints {
+        stamp_ns,
+        positions_rad,
+    })
+}
+
+fn plan_sample(
+    msg: &JointTrajectory,
+    stamp_ns: i64,
+    spec: &WindowSpec,
+) -> Result<Sample, WindowError> {
+    Plan::from_msg(msg, &spec.joint_names).map(|plan| Sample::Plan {
+        stamp_ns,
+        plan: Arc::new(plan),
+    })
+}
+
 /// One recorded message of an input stream in model form, or why it is
 /// not one.
 #[derive(Debug)]
@@ -880,12 +1092,7 @@ pub fn recorded_samples(rec: &Recording, spec: &WindowSpec) -> Vec<RecordedSampl
             topic: topics::JOINT_STATES,
             stamp_ns,
             file_order: m.file_order,
-            sample: joints_from_msg(&m.msg, &spec.joint_names).map(|positions_rad| {
-                Sample::Joints {
-                    stamp_ns,
-                    positions_rad,
-                }
-            }),
+            sample: joint_sample(&m.msg, stamp_ns, spec),
         });
     }
     for m in &rec.images {
@@ -908,10 +1115,7 @@ pub fn recorded_samples(rec: &Recording, spec: &WindowSpec) -> Vec<RecordedSampl
             topic: topics::PLANNED_TRAJECTORY,
             stamp_ns,
             file_order: m.file_order,
-            sample: Plan::from_msg(&m.msg, &spec.joint_names).map(|plan| Sample::Plan {
-                stamp_ns,
-                plan: Arc::new(plan),
-            }),
+            sample: plan_sample(&m.msg, stamp_ns, spec),
         });
     }
     out.sort_by_key(|r| (r.stamp_ns, r.file_order));

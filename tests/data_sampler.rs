@@ -26,7 +26,7 @@ fn episode(len: usize, present_from: usize, onset: Option<i64>) -> EpisodeTicks 
                 tick: k as i64,
                 stamp_ns: grid.stamp_ns(k as i64),
                 joints_rad: has.then(|| vec![k as f32; 2]),
-                frame: has.then(|| frame.clone()),
+                frame: has.then(|| frame.clone().into()),
                 plan: has.then(|| plan.clone()),
                 age_ns: Default::default(),
             }

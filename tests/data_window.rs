@@ -162,7 +162,7 @@ proptest! {
                 tick,
                 stamp_ns: TickGrid::new(30.0).unwrap().stamp_ns(tick),
                 joints_rad: Some(vec![tick as f32; c]),
-                frame: Some(Arc::new(Frame::solid(4, 4, [tick as u8, 1, 2]))),
+                frame: Some(Frame::solid(4, 4, [tick as u8, 1, 2]).into()),
                 plan: Some(Arc::new(Plan { stamp_ns: 0, times_ns: vec![0], positions_rad: vec![0.5; c], n_joints: c })),
                 age_ns: Default::default(),
             };
@@ -204,7 +204,7 @@ fn window_layout_is_time_major_and_channel_planes() {
             tick: k,
             stamp_ns: TickGrid::new(30.0).unwrap().stamp_ns(k),
             joints_rad: Some(vec![k as f32, -(k as f32)]),
-            frame: Some(Arc::new(Frame::solid(4, 4, [k as u8, 100, 255]))),
+            frame: Some(Frame::solid(4, 4, [k as u8, 100, 255]).into()),
             plan: Some(Arc::new(Plan {
                 stamp_ns: 0,
                 times_ns: vec![0],
@@ -398,4 +398,59 @@ fn episode_ticks_from_synthetic_recording() {
         ticks.window_ending_at(5, &sp, Streams::ALL),
         Err(WindowError::TickOutOfRange { .. })
     ));
+}
+
+/// An episode read with its frames kept compressed (how a data set's splits
+/// are held) has the ticks of the decoded one, and every window built from
+/// it is the same bytes, at the recorded size and resized.
+#[test]
+fn compressed_frames_give_the_windows_of_decoded_ones() {
+    use fall_guard::window::{FrameStorage, TickFrame};
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/gen1/episode_00005.mcap");
+    let rec = Recording::open(&path).unwrap();
+    for size in [64u32, 40] {
+        let sp = WindowSpec {
+            n_ticks: 60,
+            max_horizon_ticks: 60,
+            rate_hz: 30.0,
+            joint_names: fall_guard::robot::JointTable::poppy_humanoid().names(),
+            frame_size: size,
+        };
+        let decoded = EpisodeTicks::from_recording_as(&rec, &sp, FrameStorage::Decoded).unwrap();
+        let compressed =
+            EpisodeTicks::from_recording_as(&rec, &sp, FrameStorage::Compressed).unwrap();
+        assert_eq!(decoded.ticks.len(), compressed.ticks.len());
+        assert_eq!(decoded.fall_onset_tick, compressed.fall_onset_tick);
+        let (mut held, mut frames) = (0usize, 0usize);
+        for (d, c) in decoded.ticks.iter().zip(&compressed.ticks) {
+            assert_eq!(
+                (d.tick, d.stamp_ns, &d.joints_rad, &d.plan, d.age_ns),
+                (c.tick, c.stamp_ns, &c.joints_rad, &c.plan, c.age_ns)
+            );
+            match (&d.frame, &c.frame) {
+                (Some(TickFrame::Decoded(f)), Some(TickFrame::Compressed(z))) => {
+                    assert_eq!(**f, z.decode().unwrap(), "tick {}", d.tick);
+                    held += z.compressed_len();
+                    frames += f.rgb.len();
+                }
+                (None, None) => {}
+                other => panic!("tick {}: {other:?}", d.tick),
+            }
+        }
+        // At the recorded 64 x 64 a JPEG is ~1.4 KB, the frame 12 KB.
+        assert!(
+            size != 64 || held * 8 < frames,
+            "{held} bytes compressed, {frames} decoded"
+        );
+        let first = decoded.first_complete_end_tick(60, Streams::ALL).unwrap();
+        let last = decoded.last_tick().unwrap();
+        for end in (first..=last).step_by(7).chain([last]) {
+            assert_eq!(
+                decoded.window_ending_at(end, &sp, Streams::ALL).unwrap(),
+                compressed.window_ending_at(end, &sp, Streams::ALL).unwrap(),
+                "window ending at {end}, frames {size} px"
+            );
+        }
+    }
 }

@@ -26,16 +26,21 @@ impl StreamingForecaster {
             .as_ref()
             .ok_or_else(|| ModelError::Input(format!("tick {tick}: no joint angles yet")))?;
         let frame = if meta.ablation.uses_vision() {
-            let f = input
+            let held = input
                 .frame
                 .as_ref()
                 .ok_or_else(|| ModelError::Input(format!("tick {tick}: no camera frame yet")))?;
-            if f.width as usize != s || f.height as usize != s {
+            let (w, h) = held.dimensions();
+            if w as usize != s || h as usize != s {
                 return Err(ModelError::Input(format!(
-                    "tick {tick}: frame is {}x{}, the model needs {s}x{s}",
-                    f.width, f.height
+                    "tick {tick}: frame is {w}x{h}, the model needs {s}x{s}"
                 )));
             }
+            // Decoded on arrival in the daemon (borrowed here); an episode
+            // read with compressed frames decodes it now.
+            let f = held
+                .decoded()
+                .map_err(|e| ModelError::Input(format!("tick {tick}: frame: {e}")))?;
             let mut chw = vec![0.0f32; 3 * s * s];
             f.write_chw(&mut chw, s * s);
             Some(chw)
