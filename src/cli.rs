@@ -305,6 +305,11 @@ pub struct TrainArgs {
     /// (feature `wgpu`). The model file is the same whichever trains it.
     #[arg(long, default_value = "cpu")]
     pub device: TrainDevice,
+    /// Where the run's checkpoints go (default: next to --out, `OUT.ckpt`).
+    /// One per epoch; stopped and rerun with the same arguments, training
+    /// resumes from the last; removed once the model is written.
+    #[arg(long)]
+    pub checkpoint_dir: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -332,6 +337,7 @@ impl From<TrainArgs> for TrainOptions {
             per_horizon: a.per_horizon,
             trajectory: a.trajectory.into(),
             device: a.device,
+            checkpoint_dir: a.checkpoint_dir,
             quiet: a.quiet,
         }
     }

@@ -301,7 +301,11 @@ fn paper_protocol_window_sets_do_not_depend_on_the_other_horizons() {
         SplitWindows::new(episodes, &spec(10, 30), needs, &[30], 5, Protocol::Paper).unwrap();
     let key =
         |w: &fall_guard::train::LabeledWindow, k: usize| (w.episode, w.joints.clone(), w.labels[k]);
-    let (a, b) = (all.epoch().unwrap(), one.epoch().unwrap());
+    let build = |set: fall_guard::train::cli::SplitEpoch| {
+        use fall_guard::train::WindowSet;
+        set.build(0..set.len(), true).unwrap()
+    };
+    let (a, b) = (build(all.epoch()), build(one.epoch()));
     let mut from_all: Vec<_> = a
         .iter()
         .filter(|w| w.scored_horizon == Some(1))

@@ -407,11 +407,20 @@ pub fn save_model_as(
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(io)?;
     }
-    // Write then rename, so a reader never sees half a file.
-    let tmp = path.with_extension("partial");
+    // Write `NAME.partial` then rename, so a reader never sees half a file.
+    let tmp = partial_path(path);
     std::fs::write(&tmp, &out).map_err(io)?;
     std::fs::rename(&tmp, path).map_err(io)?;
     Ok(())
+}
+
+/// `NAME.partial` next to `path` (`models/emp.h15.bpk` ->
+/// `models/emp.h15.bpk.partial`): where a file is written before it is
+/// renamed to `path`.
+pub fn partial_path(path: &Path) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".partial");
+    path.with_file_name(name)
 }
 
 /// Reads a model file: metadata and the trainable network on `device`.

@@ -10,8 +10,9 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context};
 
-use super::cli::{needs_of_model, SplitWindows};
+use super::cli::{needs_of_model, SplitWindows, EVAL_BATCH};
 use super::dataset::{Dataset, Split};
+use super::fit::for_each_batch;
 use super::metrics::ece;
 use super::sampler::Protocol;
 use crate::model::file::{load_emp, sigmoid};
@@ -193,12 +194,16 @@ pub fn run_calibrate(args: &CalibrateOptions) -> anyhow::Result<()> {
         args.protocol,
     )?;
     let (mut logits, mut labels, mut scored) = (Vec::new(), Vec::new(), Vec::new());
+    // Built a batch at a time: only the logits and labels stay.
     for _ in 0..args.draws.max(1) {
-        for w in windows.epoch()? {
-            logits.push(model.logits_arrays(&w.joints, &w.plan, &w.frames)?);
-            labels.push(w.labels.iter().map(|&l| l > 0.5).collect::<Vec<bool>>());
-            scored.push(w.scored_horizon);
-        }
+        for_each_batch(&windows.epoch(), EVAL_BATCH, true, |batch| {
+            for w in batch {
+                logits.push(model.logits_arrays(&w.joints, &w.plan, &w.frames)?);
+                labels.push(w.labels.iter().map(|&l| l > 0.5).collect::<Vec<bool>>());
+                scored.push(w.scored_horizon);
+            }
+            Ok(())
+        })?;
     }
     if logits.is_empty() {
         bail!(

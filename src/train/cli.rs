@@ -10,9 +10,13 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 
+use super::checkpoint::{write_atomically, Checkpoint};
 use super::device::TrainDevice;
 use super::eval::{predict, report, EvalReport, Predictions};
-use super::fit::{fit, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError};
+use super::fit::{
+    fit, for_each_batch, EncoderRates, EpochSource, FitOptions, LabeledWindow, TrainError,
+    WindowSet, WindowTruth,
+};
 use super::logreg::LogRegModel;
 use super::plots;
 use crate::model::{
@@ -22,6 +26,10 @@ use crate::model::{
 use crate::train::dataset::{Dataset, Split};
 use crate::train::sampler::{labels_at, Protocol, SamplerConfig, SamplerError, WindowSampler};
 use crate::window::{EpisodeTicks, Streams, WindowSpec};
+
+/// Windows built at a time by `eval` and `calibrate` (each 2.9 MB as `f32`
+/// for N = 60 at 64 x 64): what bounds their memory, whatever the split.
+pub const EVAL_BATCH: usize = 16;
 
 /// Arguments of `fall-guard train`.
 #[derive(Debug, Clone)]
@@ -70,6 +78,10 @@ pub struct TrainOptions {
     /// Where the network trains: cpu, cuda, cuda:N (feature `cuda`) or wgpu
     /// (feature `wgpu`). The model file is the same whichever trains it.
     pub device: TrainDevice,
+    /// Where the checkpoints of the run go (default `<out>.ckpt`, next to
+    /// the output): one per epoch; a rerun with the same arguments resumes
+    /// from the last.
+    pub checkpoint_dir: Option<PathBuf>,
     /// No progress bar.
     pub quiet: bool,
 }
@@ -149,6 +161,100 @@ fn paper_seed(seed: u64, horizon_ticks: usize) -> u64 {
     seed ^ (horizon_ticks as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
 }
 
+/// One drawn window of a split: its episode, where it ends, its labels,
+/// the horizon it is scored at.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SplitPick {
+    /// Index of the episode in its split.
+    pub episode: usize,
+    pub end_tick: i64,
+    /// Every horizon's truth: fallen at `end_tick + h`.
+    pub labels: Vec<bool>,
+    /// See [`LabeledWindow::scored_horizon`].
+    pub scored_horizon: Option<usize>,
+}
+
+/// Windows drawn from a split ([`SplitWindows::epoch`]): the picks, their
+/// arrays built a batch at a time from the split's episodes ([`WindowSet`]).
+#[derive(Clone)]
+pub struct SplitEpoch {
+    episodes: Arc<Vec<EpisodeTicks>>,
+    spec: WindowSpec,
+    needs: Streams,
+    picks: Vec<SplitPick>,
+}
+
+impl SplitEpoch {
+    /// The windows, in order.
+    pub fn picks(&self) -> &[SplitPick] {
+        &self.picks
+    }
+
+    /// Appends the windows of another draw of the same split.
+    pub fn extend(&mut self, other: SplitEpoch) {
+        debug_assert!(Arc::ptr_eq(&self.episodes, &other.episodes));
+        self.picks.extend(other.picks);
+    }
+
+    fn window(&self, pick: &SplitPick, needs: Streams) -> Result<LabeledWindow, TrainError> {
+        let ep = &self.episodes[pick.episode];
+        let w = ep
+            .window_ending_at(pick.end_tick, &self.spec, needs)
+            .map_err(|e| {
+                TrainError::Data(format!(
+                    "{} at tick {}: {e}",
+                    ep.path.display(),
+                    pick.end_tick
+                ))
+            })?;
+        Ok(LabeledWindow {
+            joints: w.joints,
+            plan: w.plan,
+            frames: w.frames,
+            labels: labels_f32(&pick.labels),
+            episode: pick.episode,
+            scored_horizon: pick.scored_horizon,
+        })
+    }
+}
+
+fn labels_f32(labels: &[bool]) -> Vec<f32> {
+    labels.iter().map(|&b| f32::from(u8::from(b))).collect()
+}
+
+impl WindowSet for SplitEpoch {
+    fn len(&self) -> usize {
+        self.picks.len()
+    }
+
+    fn build(
+        &self,
+        range: std::ops::Range<usize>,
+        frames: bool,
+    ) -> Result<Vec<LabeledWindow>, TrainError> {
+        let needs = Streams {
+            camera: self.needs.camera && frames,
+            ..self.needs
+        };
+        let picks = self.picks.get(range.clone()).ok_or_else(|| {
+            TrainError::Data(format!("windows {range:?} of {}", self.picks.len()))
+        })?;
+        picks.iter().map(|p| self.window(p, needs)).collect()
+    }
+
+    fn truths(&self) -> Result<Vec<WindowTruth>, TrainError> {
+        Ok(self
+            .picks
+            .iter()
+            .map(|p| WindowTruth {
+                labels: labels_f32(&p.labels),
+                episode: p.episode,
+                scored_horizon: p.scored_horizon,
+            })
+            .collect())
+    }
+}
+
 /// Labelled windows of a split under one [`Protocol`]: per epoch, one
 /// window per usable episode (deployment), or one per usable episode and
 /// horizon (paper: each horizon's own balanced set, its windows marked with
@@ -219,55 +325,67 @@ impl SplitWindows {
         })
     }
 
-    /// The next epoch of windows.
-    pub fn epoch(&mut self) -> Result<Vec<LabeledWindow>, TrainError> {
-        let mut out = Vec::new();
+    /// The next epoch of windows: which they are, not yet their arrays.
+    pub fn epoch(&mut self) -> SplitEpoch {
+        let mut picks = Vec::new();
         for (scored, sampler) in &mut self.sets {
             for pick in sampler.epoch() {
-                let ep = &self.episodes[pick.episode];
-                let w = ep
-                    .window_ending_at(pick.end_tick, &self.spec, self.needs)
-                    .map_err(|e| {
-                        TrainError::Data(format!(
-                            "{} at tick {}: {e}",
-                            ep.path.display(),
-                            pick.end_tick
-                        ))
-                    })?;
                 // Every horizon's truth (the paper's picks carry only the
                 // scored one's).
                 let labels = match scored {
                     None => pick.labels,
-                    Some(_) => labels_at(ep.fall_onset_tick, pick.end_tick, &self.horizons),
+                    Some(_) => labels_at(
+                        self.episodes[pick.episode].fall_onset_tick,
+                        pick.end_tick,
+                        &self.horizons,
+                    ),
                 };
-                out.push(LabeledWindow {
-                    joints: w.joints,
-                    plan: w.plan,
-                    frames: w.frames,
-                    labels: labels.iter().map(|&b| f32::from(u8::from(b))).collect(),
+                picks.push(SplitPick {
                     episode: pick.episode,
+                    end_tick: pick.end_tick,
+                    labels,
                     scored_horizon: *scored,
                 });
             }
         }
         if self.sets.len() > 1 {
-            out.shuffle(&mut self.rng);
+            picks.shuffle(&mut self.rng);
         }
-        Ok(out)
+        SplitEpoch {
+            episodes: self.episodes.clone(),
+            spec: self.spec.clone(),
+            needs: self.needs,
+            picks,
+        }
     }
 }
 
+/// Training windows: epoch `e` is the sampler's `e`-th draw, whichever
+/// epoch is asked for first (a resumed run replays the draws of the epochs
+/// it skips: picks only, no window is built).
 struct DatasetSource {
     train: SplitWindows,
-    validation: Vec<LabeledWindow>,
+    drawn: usize,
+    validation: SplitEpoch,
 }
 
 impl EpochSource for DatasetSource {
-    fn train_epoch(&mut self, _epoch: usize) -> Result<Vec<LabeledWindow>, TrainError> {
-        self.train.epoch()
+    fn train_epoch(&mut self, epoch: usize) -> Result<Box<dyn WindowSet>, TrainError> {
+        if epoch <= self.drawn {
+            return Err(TrainError::Data(format!(
+                "training epoch {epoch} asked for after epoch {}: the sampler only draws forward",
+                self.drawn
+            )));
+        }
+        while self.drawn + 1 < epoch {
+            self.train.epoch();
+            self.drawn += 1;
+        }
+        self.drawn += 1;
+        Ok(Box::new(self.train.epoch()))
     }
-    fn validation(&mut self) -> Result<Vec<LabeledWindow>, TrainError> {
-        Ok(self.validation.clone())
+    fn validation(&mut self) -> Result<Box<dyn WindowSet>, TrainError> {
+        Ok(Box::new(self.validation.clone()))
     }
 }
 
@@ -333,18 +451,41 @@ pub fn run_train(args: &TrainOptions) -> anyhow::Result<()> {
         frame_size: args.frame_size,
     };
     let needs = needs_of(ablation, cfg.trajectory);
+    let runs: Vec<(String, Vec<usize>, PathBuf)> = if args.per_horizon {
+        cfg.horizons_ticks
+            .iter()
+            .map(|&h| (format!("h{h}"), vec![h], per_horizon_path(&args.out, h)))
+            .collect()
+    } else {
+        vec![(
+            "model".to_string(),
+            cfg.horizons_ticks.clone(),
+            args.out.clone(),
+        )]
+    };
+    // The logistic baseline trains in one go: nothing to checkpoint.
+    let run = match ablation {
+        Some(_) => {
+            let names: Vec<String> = runs.iter().map(|r| r.0.clone()).collect();
+            Some(RunCheckpoint::open(args, &dataset, names)?)
+        }
+        None => None,
+    };
     // Read once; every per-horizon network cuts its windows from them.
     let train_eps = load_split_episodes(&dataset, Split::Train, &spec, needs)?;
     let val_eps = load_split_episodes(&dataset, Split::Validation, &spec, needs)?;
-    let runs: Vec<(Vec<usize>, PathBuf)> = if args.per_horizon {
-        cfg.horizons_ticks
-            .iter()
-            .map(|&h| (vec![h], per_horizon_path(&args.out, h)))
-            .collect()
-    } else {
-        vec![(cfg.horizons_ticks.clone(), args.out.clone())]
-    };
-    for (horizons, out) in runs {
+    for (name, horizons, out) in runs {
+        let net = run.as_ref().map(|r| r.network(&name));
+        if let Some(net) = &net {
+            if net.is_done() && out.is_file() {
+                eprintln!(
+                    "{} already written by this run (checkpoint {}): skipped",
+                    out.display(),
+                    net.checkpoint.dir().display()
+                );
+                continue;
+            }
+        }
         let mut cfg = cfg.clone();
         cfg.horizons_ticks = horizons;
         let spec = WindowSpec {
@@ -372,21 +513,170 @@ pub fn run_train(args: &TrainOptions) -> anyhow::Result<()> {
             args.protocol,
         )
         .map_err(|e| data(e, Split::Validation))?
-        .epoch()?;
-        train_one(args, ablation, cfg, &joint_names, train, validation, &out)?;
+        .epoch();
+        train_one(
+            args,
+            ablation,
+            cfg,
+            &joint_names,
+            train,
+            validation,
+            &out,
+            net.as_ref(),
+        )?;
+        if let Some(net) = &net {
+            net.finish()?;
+        }
+    }
+    if let Some(run) = run {
+        run.remove()?;
     }
     Ok(())
 }
 
-/// Trains and writes one model of `cfg`'s horizons.
+/// Where `train` checkpoints when `--checkpoint-dir` is not given:
+/// `models/emp.bpk` -> `models/emp.bpk.ckpt`.
+pub fn default_checkpoint_dir(out: &Path) -> PathBuf {
+    let mut name = out.file_name().unwrap_or_default().to_os_string();
+    name.push(".ckpt");
+    out.with_file_name(name)
+}
+
+/// The checkpoint directory of one `train` run: `args.json` (the
+/// arguments and the data set's manifest it was started with) and one
+/// [`Checkpoint`] per network, with a `NAME.done` marker once that
+/// network's model file is written.
+struct RunCheckpoint {
+    dir: PathBuf,
+    networks: Vec<String>,
+}
+
+/// One network of a [`RunCheckpoint`].
+struct NetworkCheckpoint {
+    checkpoint: Checkpoint,
+    done: PathBuf,
+}
+
+impl NetworkCheckpoint {
+    fn is_done(&self) -> bool {
+        self.done.is_file()
+    }
+
+    /// Its model file is written: marks it done and removes its epochs.
+    fn finish(&self) -> anyhow::Result<()> {
+        write_atomically(&self.done, b"")?;
+        self.checkpoint.remove()?;
+        Ok(())
+    }
+}
+
+/// What a run is checked against when it resumes: every argument that
+/// changes what it trains, and the data set's manifest.
+pub(crate) fn run_arguments(args: &TrainOptions, dataset: &Dataset) -> serde_json::Value {
+    serde_json::json!({
+        "data": args.data,
+        "manifest": {
+            "train": dataset.manifest.train,
+            "validation": dataset.manifest.validation,
+            "test": dataset.manifest.test,
+        },
+        "ablation": args.ablation,
+        "config": args.config,
+        "seed": args.seed,
+        "out": args.out,
+        "epochs": args.epochs,
+        "patience": args.patience,
+        "batch": args.batch,
+        "rates": args.rates,
+        "n_ticks": args.n_ticks,
+        "horizons": args.horizons,
+        "rate_hz": args.rate_hz,
+        "frame_size": args.frame_size,
+        "joint_names": args.joint_names,
+        "trained_on": args.trained_on,
+        "protocol": args.protocol.name(),
+        "per_horizon": args.per_horizon,
+        "trajectory": args.trajectory.to_string(),
+        "device": args.device.to_string(),
+    })
+}
+
+impl RunCheckpoint {
+    /// The run's checkpoint: resumed when `args.json` holds these
+    /// arguments, refused when it holds others, started otherwise.
+    fn open(
+        args: &TrainOptions,
+        dataset: &Dataset,
+        networks: Vec<String>,
+    ) -> anyhow::Result<RunCheckpoint> {
+        let dir = args
+            .checkpoint_dir
+            .clone()
+            .unwrap_or_else(|| default_checkpoint_dir(&args.out));
+        let path = dir.join("args.json");
+        let want = run_arguments(args, dataset);
+        match std::fs::read(&path) {
+            Ok(bytes) => {
+                let have: serde_json::Value = serde_json::from_slice(&bytes)
+                    .with_context(|| format!("reading {}", path.display()))?;
+                if have != want {
+                    let differ: Vec<&str> = want
+                        .as_object()
+                        .into_iter()
+                        .flatten()
+                        .filter(|&(k, v)| have.get(k.as_str()) != Some(v))
+                        .map(|(k, _)| k.as_str())
+                        .collect();
+                    bail!(
+                        "{} holds the checkpoint of a run with other arguments (they differ in: {}): rerun with that run's arguments to resume it, remove the directory to start afresh, or give another --checkpoint-dir",
+                        dir.display(),
+                        differ.join(", ")
+                    );
+                }
+                eprintln!("resuming the run checkpointed in {}", dir.display());
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                std::fs::create_dir_all(&dir)
+                    .with_context(|| format!("creating {}", dir.display()))?;
+                write_atomically(&path, &serde_json::to_vec_pretty(&want)?)?;
+            }
+            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+        }
+        Ok(RunCheckpoint { dir, networks })
+    }
+
+    fn network(&self, name: &str) -> NetworkCheckpoint {
+        NetworkCheckpoint {
+            checkpoint: Checkpoint::new(self.dir.join(name)),
+            done: self.dir.join(format!("{name}.done")),
+        }
+    }
+
+    /// The run is over: its files go, then the directory if left empty.
+    fn remove(self) -> anyhow::Result<()> {
+        for name in &self.networks {
+            Checkpoint::new(self.dir.join(name)).remove()?;
+            let _ = std::fs::remove_file(self.dir.join(format!("{name}.done")));
+        }
+        std::fs::remove_file(self.dir.join("args.json"))
+            .with_context(|| format!("removing {}", self.dir.display()))?;
+        let _ = std::fs::remove_dir(&self.dir);
+        Ok(())
+    }
+}
+
+/// Trains and writes one model of `cfg`'s horizons (a network checkpointed
+/// in `checkpoint` every epoch).
+#[allow(clippy::too_many_arguments)]
 fn train_one(
     args: &TrainOptions,
     ablation: Option<Ablation>,
     cfg: ModelConfig,
     joint_names: &[String],
     mut train: SplitWindows,
-    validation: Vec<LabeledWindow>,
+    validation: SplitEpoch,
     out: &Path,
+    checkpoint: Option<&NetworkCheckpoint>,
 ) -> anyhow::Result<()> {
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent)
@@ -394,7 +684,9 @@ fn train_one(
     }
     match ablation {
         None => {
-            let windows = train.epoch()?;
+            // Joints and plan only: the whole epoch fits in memory.
+            let epoch = train.epoch();
+            let windows = epoch.build(0..epoch.len(), false)?;
             let mut m = LogRegModel::fit(
                 &windows,
                 cfg.horizons_ticks.clone(),
@@ -423,8 +715,13 @@ fn train_one(
                 rates,
                 progress: !args.quiet,
                 device: args.device,
+                checkpoint: checkpoint.map(|c| c.checkpoint.dir().to_path_buf()),
             };
-            let mut source = DatasetSource { train, validation };
+            let mut source = DatasetSource {
+                train,
+                drawn: 0,
+                validation,
+            };
             let (meta, model) = fit(meta, &mut source, &opts)?;
             save_model(out, &meta, &model)?;
             eprintln!(
@@ -538,7 +835,7 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
     let mut order = vec![args.protocol];
     order.extend(Protocol::ALL.into_iter().filter(|&p| p != args.protocol));
     let mut sections = Vec::new();
-    let mut primary: Option<(Vec<LabeledWindow>, Vec<Predictions>)> = None;
+    let mut primary: Option<(Vec<WindowTruth>, Vec<Predictions>)> = None;
     for protocol in order {
         let mut split_windows = SplitWindows::new(
             episodes.clone(),
@@ -555,33 +852,47 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
                 data.display()
             )
         })?;
-        let mut windows = Vec::new();
-        for _ in 0..args.draws.max(1) {
-            windows.extend(split_windows.epoch()?);
+        let mut windows = split_windows.epoch();
+        for _ in 1..args.draws.max(1) {
+            windows.extend(split_windows.epoch());
         }
-        let preds: Vec<Predictions> = models
+        // Built and forecast a batch at a time: only the probabilities stay.
+        let mut preds: Vec<Predictions> = models
             .iter()
-            .map(|m| match m {
-                AnyModel::Network(m) => predict(m, &windows),
-                AnyModel::LogReg(m, p) => Ok(Predictions {
-                    model: p.display().to_string(),
-                    probabilities: windows
-                        .iter()
-                        .map(|w| m.predict(w))
-                        .collect::<Result<_, _>>()?,
-                }),
+            .map(|m| Predictions {
+                model: match m {
+                    AnyModel::Network(m) => m.path.display().to_string(),
+                    AnyModel::LogReg(_, p) => p.display().to_string(),
+                },
+                probabilities: Vec::with_capacity(windows.len()),
             })
-            .collect::<Result<_, TrainError>>()?;
+            .collect();
+        for_each_batch(&windows, EVAL_BATCH, true, |batch| {
+            for (m, p) in models.iter().zip(&mut preds) {
+                match m {
+                    AnyModel::Network(m) => {
+                        p.probabilities.extend(predict(m, batch)?.probabilities)
+                    }
+                    AnyModel::LogReg(m, _) => {
+                        for w in batch {
+                            p.probabilities.push(m.predict(w)?);
+                        }
+                    }
+                }
+            }
+            Ok(())
+        })?;
+        let truths = windows.truths()?;
         sections.push(report(
             &preds,
-            &windows,
+            &truths,
             &horizons,
             rate_hz,
             protocol,
             args.sample_seed,
         ));
         if primary.is_none() {
-            primary = Some((windows, preds));
+            primary = Some((truths, preds));
         }
     }
     let rep = EvalReport::new(

@@ -2,10 +2,12 @@
 //! labelled windows, written as JSON and a Markdown table, plus PNG plots.
 //!
 //! In: models and [`LabeledWindow`]s (from the data plane's sampler on the
-//! test split), once per sampling protocol. Out: an [`EvalReport`] with one
+//! test split, built and forecast a batch at a time), once per sampling
+//! protocol; the windows' truths ([`WindowTruth`]) and the probabilities are
+//! what is kept. Out: an [`EvalReport`] with one
 //! [`ProtocolReport`] per protocol (deployment and paper, both always) and
 //! files under the output directory. Horizon `k` is scored on the windows
-//! that score it ([`LabeledWindow::scores`]): all of them under the
+//! that score it ([`WindowTruth::scores`]): all of them under the
 //! deployment protocol, horizon `k`'s own set under the paper's. The ECE
 //! comes with a 95% bootstrap interval that resamples episodes.
 
@@ -13,7 +15,7 @@ use std::path::Path;
 
 use serde::Serialize;
 
-use super::fit::{LabeledWindow, TrainError};
+use super::fit::{LabeledWindow, TrainError, WindowTruth};
 use super::metrics::{ece_bootstrap, metrics, EceInterval, Metrics};
 use super::sampler::Protocol;
 use crate::model::LoadedModel;
@@ -134,7 +136,7 @@ pub fn predict(model: &LoadedModel, windows: &[LabeledWindow]) -> Result<Predict
 /// the ECE bootstrap deterministic.
 pub fn report(
     preds: &[Predictions],
-    windows: &[LabeledWindow],
+    windows: &[WindowTruth],
     horizons_ticks: &[usize],
     rate_hz: f64,
     protocol: Protocol,

@@ -2,15 +2,27 @@
 //! batch 4, early stopping on validation loss, the best epoch kept.
 //!
 //! In: labelled windows from an [`EpochSource`] (one i.i.d. window per episode
-//! per epoch, built by the data plane's sampler). Out: the trained [`Emp`] and
-//! its [`ModelMeta`] (standardisation statistics, history), ready for
-//! [`crate::model::save_model`].
+//! per epoch, drawn by the data plane's sampler): each epoch a [`WindowSet`],
+//! which says which windows it holds and builds their arrays a batch at a
+//! time, so memory does not grow with the number of windows. Out: the
+//! trained [`Emp`] and its [`ModelMeta`] (standardisation statistics,
+//! history), ready for [`crate::model::save_model`].
+//!
+//! With [`FitOptions::checkpoint`], every epoch is checkpointed and a rerun
+//! resumes from the last one ([`super::checkpoint`]); burn's generator is
+//! reseeded at each epoch ([`epoch_seed`]) so that a resumed run trains as
+//! an uninterrupted one.
 
+use std::ops::Range;
+use std::path::PathBuf;
+
+use burn::module::{Module, ModuleMapper, Param, ParamId};
 use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::prelude::*;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::adam::FusedAdam;
+use super::checkpoint::{Checkpoint, EpochState};
 use super::device::{DeviceError, TrainDevice};
 use crate::model::file::build_input;
 use crate::model::{cpu_device, Ablation, Emp, EpochRecord, ModelConfig, ModelError, ModelMeta};
@@ -40,6 +52,112 @@ impl LabeledWindow {
     pub fn scores(&self, k: usize) -> bool {
         self.scored_horizon.is_none_or(|s| s == k)
     }
+
+    /// What it is scored against, without its arrays.
+    pub fn truth(&self) -> WindowTruth {
+        WindowTruth {
+            labels: self.labels.clone(),
+            episode: self.episode,
+            scored_horizon: self.scored_horizon,
+        }
+    }
+}
+
+/// A window's labels, episode and scored horizon: what metrics need of it
+/// once it has been forecast (see [`LabeledWindow`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct WindowTruth {
+    /// `K` labels: 1 if fallen at `t + h_k`.
+    pub labels: Vec<f32>,
+    /// The episode it was cut from (index in its split).
+    pub episode: usize,
+    /// See [`LabeledWindow::scored_horizon`].
+    pub scored_horizon: Option<usize>,
+}
+
+impl WindowTruth {
+    /// Whether label `k` of this window is scored.
+    pub fn scores(&self, k: usize) -> bool {
+        self.scored_horizon.is_none_or(|s| s == k)
+    }
+}
+
+/// Labelled windows in a fixed order whose arrays are built when asked for,
+/// a few at a time: an epoch of a data set holds which windows it has (a
+/// few bytes each), not their frames (2.9 MB each as `f32` for N = 60 at
+/// 64 x 64).
+pub trait WindowSet {
+    /// How many windows.
+    fn len(&self) -> usize;
+
+    /// Whether there is none.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Windows `range`, in order. With `frames` false their frames are left
+    /// empty (for statistics of the joints and the plan).
+    fn build(&self, range: Range<usize>, frames: bool) -> Result<Vec<LabeledWindow>, TrainError>;
+
+    /// Every window's truth, in order.
+    fn truths(&self) -> Result<Vec<WindowTruth>, TrainError> {
+        let mut out = Vec::with_capacity(self.len());
+        for start in (0..self.len()).step_by(256) {
+            let batch = self.build(start..(start + 256).min(self.len()), false)?;
+            out.extend(batch.iter().map(LabeledWindow::truth));
+        }
+        Ok(out)
+    }
+}
+
+/// Windows already built (synthetic data, tests).
+impl WindowSet for Vec<LabeledWindow> {
+    fn len(&self) -> usize {
+        self.as_slice().len()
+    }
+
+    fn build(&self, range: Range<usize>, frames: bool) -> Result<Vec<LabeledWindow>, TrainError> {
+        let part = self.get(range.clone()).ok_or_else(|| {
+            TrainError::Data(format!(
+                "windows {range:?} of a set of {}",
+                self.as_slice().len()
+            ))
+        })?;
+        Ok(part
+            .iter()
+            .map(|w| LabeledWindow {
+                frames: if frames { w.frames.clone() } else { Vec::new() },
+                ..w.clone_without_frames()
+            })
+            .collect())
+    }
+}
+
+impl LabeledWindow {
+    fn clone_without_frames(&self) -> LabeledWindow {
+        LabeledWindow {
+            joints: self.joints.clone(),
+            plan: self.plan.clone(),
+            frames: Vec::new(),
+            labels: self.labels.clone(),
+            episode: self.episode,
+            scored_horizon: self.scored_horizon,
+        }
+    }
+}
+
+/// Calls `f` on consecutive batches of at most `batch` windows of `set`.
+pub fn for_each_batch(
+    set: &dyn WindowSet,
+    batch: usize,
+    frames: bool,
+    mut f: impl FnMut(&[LabeledWindow]) -> Result<(), TrainError>,
+) -> Result<(), TrainError> {
+    let (n, b) = (set.len(), batch.max(1));
+    for start in (0..n).step_by(b) {
+        f(&set.build(start..(start + b).min(n), frames)?)?;
+    }
+    Ok(())
 }
 
 /// Errors of training.
@@ -58,10 +176,12 @@ pub enum TrainError {
 
 /// Where the windows come from.
 pub trait EpochSource {
-    /// The training windows of epoch `epoch` (1-based), in training order.
-    fn train_epoch(&mut self, epoch: usize) -> Result<Vec<LabeledWindow>, TrainError>;
+    /// The training windows of epoch `epoch` (1-based), in training order:
+    /// the same for an epoch whichever epoch is asked for first (a resumed
+    /// run starts at a later one).
+    fn train_epoch(&mut self, epoch: usize) -> Result<Box<dyn WindowSet>, TrainError>;
     /// The validation windows (the same every epoch).
-    fn validation(&mut self) -> Result<Vec<LabeledWindow>, TrainError>;
+    fn validation(&mut self) -> Result<Box<dyn WindowSet>, TrainError>;
 }
 
 /// Learning rate and weight decay of one encoder.
@@ -149,6 +269,10 @@ pub struct FitOptions {
     pub progress: bool,
     /// Where the steps run (CPU unless a GPU backend is compiled in and asked for).
     pub device: TrainDevice,
+    /// Checkpoint every epoch in this directory and resume from it when it
+    /// holds one ([`super::checkpoint`]); the caller removes it once the
+    /// model is written.
+    pub checkpoint: Option<PathBuf>,
 }
 
 impl Default for FitOptions {
@@ -161,6 +285,7 @@ impl Default for FitOptions {
             rates: EncoderRates::sim(),
             progress: true,
             device: TrainDevice::Cpu,
+            checkpoint: None,
         }
     }
 }
@@ -188,36 +313,63 @@ pub fn keep_freed_memory() {
     }
 }
 
-/// Per-joint mean and standard deviation of `joints` and `plan` over `windows`.
-pub fn standardisation(meta: &mut ModelMeta, windows: &[LabeledWindow]) {
-    let c = meta.config.n_joints;
-    let stats = |get: &dyn Fn(&LabeledWindow) -> &[f32]| {
-        let mut sum = vec![0.0f64; c];
-        let mut sq = vec![0.0f64; c];
-        let mut count = 0usize;
-        for w in windows {
-            for row in get(w).chunks_exact(c) {
-                for (j, &v) in row.iter().enumerate() {
-                    sum[j] += v as f64;
-                    sq[j] += (v as f64) * (v as f64);
-                }
-                count += 1;
-            }
+/// Per-joint sums of one input over windows, in window order.
+struct Moments {
+    sum: Vec<f64>,
+    sq: Vec<f64>,
+    count: usize,
+}
+
+impl Moments {
+    fn new(c: usize) -> Moments {
+        Moments {
+            sum: vec![0.0; c],
+            sq: vec![0.0; c],
+            count: 0,
         }
-        let n = count.max(1) as f64;
-        let mean: Vec<f32> = sum.iter().map(|s| (s / n) as f32).collect();
-        let std: Vec<f32> = sq
+    }
+
+    fn add(&mut self, values: &[f32]) {
+        for row in values.chunks_exact(self.sum.len()) {
+            for (j, &v) in row.iter().enumerate() {
+                self.sum[j] += v as f64;
+                self.sq[j] += (v as f64) * (v as f64);
+            }
+            self.count += 1;
+        }
+    }
+
+    fn mean_std(&self) -> (Vec<f32>, Vec<f32>) {
+        let n = self.count.max(1) as f64;
+        let mean: Vec<f32> = self.sum.iter().map(|s| (s / n) as f32).collect();
+        let std: Vec<f32> = self
+            .sq
             .iter()
-            .zip(&sum)
+            .zip(&self.sum)
             .map(|(q, s)| ((q / n - (s / n).powi(2)).max(0.0).sqrt() as f32).max(1e-3))
             .collect();
         (mean, std)
-    };
-    (meta.joint_mean, meta.joint_std) = stats(&|w| &w.joints);
-    // The trajectory encoder's input as the model reads it (the planned
-    // window, its past part only, or the measured joints).
+    }
+}
+
+/// Per-joint mean and standard deviation of `joints` and `plan` over
+/// `windows` (built a batch at a time, without their frames).
+pub fn standardisation(meta: &mut ModelMeta, windows: &dyn WindowSet) -> Result<(), TrainError> {
+    let c = meta.config.n_joints;
     let cfg = meta.config.clone();
-    (meta.plan_mean, meta.plan_std) = stats(&|w| cfg.trajectory_rows(&w.joints, &w.plan));
+    let (mut joints, mut plan) = (Moments::new(c), Moments::new(c));
+    for_each_batch(windows, 256, false, |batch| {
+        for w in batch {
+            joints.add(&w.joints);
+            // The trajectory encoder's input as the model reads it (the
+            // planned window, its past part only, or the measured joints).
+            plan.add(cfg.trajectory_rows(&w.joints, &w.plan));
+        }
+        Ok(())
+    })?;
+    (meta.joint_mean, meta.joint_std) = joints.mean_std();
+    (meta.plan_mean, meta.plan_std) = plan.mean_std();
+    Ok(())
 }
 
 /// Numerically stable binary cross-entropy with logits, mean over batch and horizons.
@@ -299,7 +451,7 @@ fn input_for(
 pub fn evaluate_loss(
     model: &Emp,
     meta: &ModelMeta,
-    windows: &[LabeledWindow],
+    windows: &dyn WindowSet,
     batch_size: usize,
     device: &Device,
 ) -> Result<(f64, f64), TrainError> {
@@ -307,7 +459,7 @@ pub fn evaluate_loss(
     let model = model.valid();
     let k = meta.config.k();
     let (mut loss_sum, mut correct, mut count) = (0.0f64, 0usize, 0usize);
-    for batch in windows.chunks(batch_size.max(1)) {
+    for_each_batch(windows, batch_size, true, |batch| {
         let logits = model.forward(input_for(meta, batch, &device)?);
         let loss: f32 = batch_loss(logits.clone(), batch, k, &device)?.into_scalar();
         loss_sum += loss as f64 * batch.len() as f64;
@@ -323,9 +475,37 @@ pub fn evaluate_loss(
                 }
             }
         }
-    }
+        Ok(())
+    })?;
     let n = windows.len().max(1) as f64;
     Ok((loss_sum / n, correct as f64 / count.max(1) as f64))
+}
+
+/// The seed of burn's generator for epoch `epoch` of a run seeded `seed`:
+/// each epoch's dropout depends on these two only, so a run resumed at an
+/// epoch draws what an uninterrupted one draws there.
+pub fn epoch_seed(seed: u64, epoch: usize) -> u64 {
+    // splitmix64 of the pair
+    let mut z = seed ^ (epoch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Gives every parameter of `model` an id fixed by its position (burn draws
+/// them at random). The optimizer states are keyed by these ids, and the
+/// model file stores them: with fixed ids a checkpoint's states find their
+/// parameters again, and two runs with the same seed write the same bytes.
+pub fn stable_param_ids(model: Emp) -> Emp {
+    struct Renumber(u64);
+    impl ModuleMapper for Renumber {
+        fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            let (_, tensor, mapper) = param.consume();
+            self.0 += 1;
+            Param::from_mapped_value(ParamId::from(self.0), tensor, mapper)
+        }
+    }
+    model.map(&mut Renumber(0xFA11_0000_0000))
 }
 
 /// Trains `meta.ablation` on `source`. `meta` carries the config and input
@@ -350,7 +530,7 @@ pub fn fit(
     let cfg: ModelConfig = meta.config.clone();
     let ablation: Ablation = meta.ablation;
     let k = cfg.k();
-    let mut model = Emp::new(&cfg, ablation, &device);
+    let mut model = stable_param_ids(Emp::new(&cfg, ablation, &device));
     let adam = |r: Rate| -> ModuleOptimizer { FusedAdam::new(Some(r.weight_decay)).init() };
     let r = opts.rates;
     let (mut opt_m, mut opt_t, mut opt_v, mut opt_c) = (
@@ -359,21 +539,60 @@ pub fn fit(
         adam(r.vision),
         adam(r.classifier),
     );
-
-    let validation = source.validation()?;
-    let mut first_epoch = Some(source.train_epoch(1)?);
-    if let Some(w) = &first_epoch {
-        if w.is_empty() {
-            return Err(TrainError::Data(
-                "the training split gave no windows".into(),
-            ));
-        }
-        standardisation(&mut meta, w);
-    }
     meta.seed = opts.seed;
     meta.history.clear();
+
+    let checkpoint = opts.checkpoint.as_ref().map(Checkpoint::new);
+    let resumed = match &checkpoint {
+        Some(c) => c.load(&mut meta, &device, &base)?,
+        None => None,
+    };
+    let validation = source.validation()?;
+    let mut first_epoch = None;
     let mut best: Option<(f64, Emp)> = None;
     let mut since_best = 0usize;
+    let mut start = 1;
+    let mut stopped = false;
+    match resumed {
+        Some(r) => {
+            model = r.model;
+            let load = |opt: ModuleOptimizer, bytes: burn::tensor::Bytes| {
+                opt.from_bytes(bytes)
+                    .map_err(|e| TrainError::Data(format!("checkpoint optimizer state: {e}")))
+            };
+            let [m, t, v, c] = r.optimizers;
+            (opt_m, opt_t, opt_v, opt_c) = (
+                load(opt_m, m)?,
+                load(opt_t, t)?,
+                load(opt_v, v)?,
+                load(opt_c, c)?,
+            );
+            let (best_epoch, best_loss, best_model) = r.best;
+            best = Some((best_loss, best_model));
+            meta.best_epoch = best_epoch;
+            meta.history = r.history;
+            since_best = r.since_best;
+            start = r.epoch + 1;
+            stopped = r.stopped;
+            if opts.progress {
+                eprintln!(
+                    "resuming from the checkpoint in {} after epoch {}",
+                    opts.checkpoint.as_ref().expect("resumed").display(),
+                    r.epoch
+                );
+            }
+        }
+        None => {
+            let first = source.train_epoch(1)?;
+            if first.is_empty() {
+                return Err(TrainError::Data(
+                    "the training split gave no windows".into(),
+                ));
+            }
+            standardisation(&mut meta, first.as_ref())?;
+            first_epoch = Some(first);
+        }
+    }
     let bar = if opts.progress {
         ProgressBar::new(0)
     } else {
@@ -385,21 +604,30 @@ pub fn fit(
         )
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    for epoch in 1..=opts.max_epochs {
+    for epoch in start..=opts.max_epochs {
+        if stopped {
+            break;
+        }
         let windows = match first_epoch.take() {
             Some(w) => w,
             None => source.train_epoch(epoch)?,
         };
-        let steps = windows.len().div_ceil(opts.batch_size.max(1));
+        device.seed(epoch_seed(opts.seed, epoch));
+        let b = opts.batch_size.max(1);
+        let n = windows.len();
+        let steps = n.div_ceil(b);
         bar.set_length(steps as u64);
         bar.set_position(0);
         bar.set_prefix(format!("{epoch}/{}", opts.max_epochs));
         let mut loss_sum = 0.0f64;
-        for (step, batch) in windows.chunks(opts.batch_size.max(1)).enumerate() {
-            let input = input_for(&meta, batch, &device)?;
-            let loss = batch_loss(model.forward(input), batch, k, &device)?;
+        for step in 0..steps {
+            let batch = windows.build(step * b..((step + 1) * b).min(n), true)?;
+            let input = input_for(&meta, &batch, &device)?;
+            let loss = batch_loss(model.forward(input), &batch, k, &device)?;
+            let len = batch.len();
+            drop(batch);
             let loss_value: f32 = loss.clone().into_scalar();
-            loss_sum += loss_value as f64 * batch.len() as f64;
+            loss_sum += loss_value as f64 * len as f64;
             let mut grads = loss.backward();
             let g_m = GradientsParams::from_module(&mut grads, &model.motion);
             let g_c = GradientsParams::from_module(&mut grads, &model.classifier);
@@ -428,11 +656,13 @@ pub fn fit(
             bar.set_position(step as u64 + 1);
             bar.set_message(format!(
                 "loss {:.4}",
-                loss_sum / ((step + 1) * opts.batch_size).min(windows.len()) as f64
+                loss_sum / ((step + 1) * b).min(n) as f64
             ));
         }
-        let train_loss = loss_sum / windows.len().max(1) as f64;
-        let (val_loss, val_accuracy) = evaluate_loss(&model, &meta, &validation, 16, &base)?;
+        drop(windows);
+        let train_loss = loss_sum / n.max(1) as f64;
+        let (val_loss, val_accuracy) =
+            evaluate_loss(&model, &meta, validation.as_ref(), 16, &base)?;
         meta.history.push(EpochRecord {
             epoch,
             train_loss,
@@ -454,8 +684,20 @@ pub fn fit(
                     "early stop: no better validation loss for {} epochs",
                     opts.patience
                 ));
-                break;
+                stopped = true;
             }
+        }
+        if let Some(c) = &checkpoint {
+            let (_, best_model) = best.as_ref().expect("set above");
+            c.save(&EpochState {
+                epoch,
+                meta: &meta,
+                model: &model,
+                best: (meta.best_epoch, best_model),
+                since_best,
+                stopped: stopped || epoch == opts.max_epochs,
+                optimizers: [&opt_m, &opt_t, &opt_v, &opt_c],
+            })?;
         }
     }
     bar.finish_and_clear();

@@ -144,11 +144,10 @@ impl LogRegModel {
             .collect())
     }
 
-    /// Writes the model as JSON.
+    /// Writes the model as JSON (as `NAME.partial`, then renamed).
     pub fn save(&self, path: &Path) -> Result<(), TrainError> {
         let s = serde_json::to_string(self).map_err(|e| TrainError::Data(e.to_string()))?;
-        std::fs::write(path, s)
-            .map_err(|e| TrainError::Data(format!("writing {}: {e}", path.display())))
+        super::checkpoint::write_atomically(path, s.as_bytes())
     }
 
     /// Reads a model written by [`save`](Self::save); `None` if the file is not one.

@@ -2,7 +2,7 @@
 //! the training loop (in this crate and in `tests/`), never for a model that
 //! ships.
 
-use super::fit::{EpochSource, LabeledWindow, TrainError};
+use super::fit::{EpochSource, LabeledWindow, TrainError, WindowSet};
 use crate::model::ModelConfig;
 
 /// Episodes with a lean that ramps up before the fall: joint 0 rises
@@ -72,10 +72,10 @@ impl RampEpisodes {
 }
 
 impl EpochSource for RampEpisodes {
-    fn train_epoch(&mut self, epoch: usize) -> Result<Vec<LabeledWindow>, TrainError> {
-        Ok(self.windows(self.per_epoch, 100 + epoch as u64))
+    fn train_epoch(&mut self, epoch: usize) -> Result<Box<dyn WindowSet>, TrainError> {
+        Ok(Box::new(self.windows(self.per_epoch, 100 + epoch as u64)))
     }
-    fn validation(&mut self) -> Result<Vec<LabeledWindow>, TrainError> {
-        Ok(self.windows(64, 1))
+    fn validation(&mut self) -> Result<Box<dyn WindowSet>, TrainError> {
+        Ok(Box::new(self.windows(64, 1)))
     }
 }

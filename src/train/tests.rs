@@ -120,6 +120,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         protocol: super::sampler::Protocol::Deployment,
         per_horizon: false,
         trajectory: crate::model::TrajectoryInput::Planned,
+        checkpoint_dir: None,
     };
     run_train(&args).unwrap();
     let out = dir.path().join("eval");
@@ -237,9 +238,17 @@ fn per_horizon_paper_training_on_the_fixtures() {
         protocol: Protocol::Paper,
         per_horizon: true,
         trajectory: TrajectoryInput::Planned,
+        checkpoint_dir: None,
     };
     run_train(&args).unwrap();
     assert!(!out.exists(), "no all-horizon file with --per-horizon");
+    let ckpt = super::cli::default_checkpoint_dir(&out);
+    assert_eq!(ckpt, dir.path().join("mp.bpk.ckpt"));
+    assert!(
+        !ckpt.exists(),
+        "the checkpoint is removed once every file is written"
+    );
+    resume_skips_the_written_horizons(&args, &horizons);
     for &h in &horizons {
         let path = per_horizon_path(&out, h);
         assert_eq!(path, dir.path().join(format!("mp.h{h}.bpk")));
@@ -284,6 +293,54 @@ fn per_horizon_paper_training_on_the_fixtures() {
             "{md}"
         );
     }
+}
+
+/// A per-horizon run stopped after its first network resumes at the
+/// second: the first, marked done in the checkpoint, is not trained again
+/// (its file is left as it is), the second is trained as before (the same
+/// bytes: training is deterministic); the checkpoint goes at the end. A
+/// checkpoint of other arguments is refused, naming them.
+fn resume_skips_the_written_horizons(args: &super::cli::TrainOptions, horizons: &[usize]) {
+    use super::cli::{default_checkpoint_dir, per_horizon_path, run_arguments, run_train};
+    let ckpt = default_checkpoint_dir(&args.out);
+    let (first, second) = (
+        per_horizon_path(&args.out, horizons[0]),
+        per_horizon_path(&args.out, horizons[1]),
+    );
+    let (first_bytes, second_bytes) = (
+        std::fs::read(&first).unwrap(),
+        std::fs::read(&second).unwrap(),
+    );
+    // The state a run stopped while training the second network leaves
+    // (its epochs aside): the first written and marked done. The first's
+    // file is replaced by another model to show it is not rewritten.
+    std::fs::create_dir_all(&ckpt).unwrap();
+    let dataset = super::dataset::Dataset::open(&args.data).unwrap();
+    std::fs::write(
+        ckpt.join("args.json"),
+        serde_json::to_vec(&run_arguments(args, &dataset)).unwrap(),
+    )
+    .unwrap();
+    std::fs::write(ckpt.join(format!("h{}.done", horizons[0])), b"").unwrap();
+    std::fs::copy(&second, &first).unwrap();
+    run_train(args).unwrap();
+    assert_eq!(
+        std::fs::read(&first).unwrap(),
+        second_bytes,
+        "first retrained"
+    );
+    assert_eq!(std::fs::read(&second).unwrap(), second_bytes);
+    assert!(!ckpt.exists());
+    // Another run's checkpoint in the way: refused.
+    std::fs::create_dir_all(&ckpt).unwrap();
+    let mut other = run_arguments(args, &dataset);
+    other["seed"] = serde_json::json!(args.seed + 1);
+    std::fs::write(ckpt.join("args.json"), serde_json::to_vec(&other).unwrap()).unwrap();
+    let e = format!("{:#}", run_train(args).unwrap_err());
+    assert!(e.contains("other arguments") && e.contains("seed"), "{e}");
+    std::fs::remove_dir_all(&ckpt).unwrap();
+    // The first network back for the checks that follow.
+    std::fs::write(&first, first_bytes).unwrap();
 }
 
 /// The shipped networks with their input projection in int8 forecast what
