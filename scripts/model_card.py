@@ -5,7 +5,7 @@
 
 Reads, under DIR: eval-GROUP-PROTOCOL/metrics.json (`fall-guard eval`),
 warnings-ABL-SET-SPLIT.json (`fall-guard warnings`), ABL-thresholds.json,
-selected.txt, simv3-stats.json and walk-stats.json (`python -m sim stats`).
+selected.txt, simv4-stats.json and walk-stats.json (`python -m sim stats`).
 Writes Markdown: the data, the paper and deployment protocols (seeds as mean
 +- std), the checks the card makes (each with its figure, and by how much a
 target is missed), by fall cause, and the daemon's warnings. Standard library
@@ -184,7 +184,7 @@ def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     rows = ["| network | trigger / release | test falls warned | warned >= 0.5 s ahead | lead median | "
             "false alarms / min (walking set) | walking minutes |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for abl, name in selected:
-        test = load(reports / f"warnings-{abl}-simv3-test.json")
+        test = load(reports / f"warnings-{abl}-simv4-test.json")
         walks = [load(reports / f"warnings-{abl}-walk-{s}.json") for s in ("train", "validation", "test")]
         if not test:
             continue
@@ -240,7 +240,7 @@ def main() -> int:
     if sel.exists():
         selected = [tuple(line.split()[:2]) for line in sel.read_text().splitlines() if line.strip()]
     lines = ["<!-- Written by scripts/model_card.py from the reports of scripts/retrain.sh. -->", "",
-             "### Data (simulated)", "", *stats_rows(load(a.reports / "simv3-stats.json"), "Training set"), "",
+             "### Data (simulated)", "", *stats_rows(load(a.reports / "simv4-stats.json"), "Training set"), "",
              *stats_rows(load(a.reports / "walk-stats.json"), "Walking set (false alarms)"), "",
              "### Paper protocol (test split)", "", *protocol_table(evals, "paper"), "",
              "### Checks", "", *checks(evals), "",

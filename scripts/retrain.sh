@@ -36,7 +36,7 @@ PARALLEL=${RETRAIN_PARALLEL:-2}
 DEVICE=${RETRAIN_DEVICE:-cpu}
 FG=${FALL_GUARD_BIN:-$REPO/target/release/fall-guard}
 PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
-SET=$DATA_ROOT/simv3                # the 2,000-episode set (seed 1)
+SET=$DATA_ROOT/simv4                # the 2,000-episode set (seed 1)
 WALK=$DATA_ROOT/walk                # low sigma, no ball: false alarms per minute
 RUNS=$DATA_ROOT/runs
 REPORTS=$DATA_ROOT/reports
@@ -90,8 +90,8 @@ step_data() {
   "$PY" -m sim generate --out "$WALK" --episodes 200 --seed 3 --jobs "$JOBS" --sigmas 0.005,0.01 \
     --ball-probability 0 --quiet >>"$LOG"
   touch "$WALK/.complete"
-  "$PY" -m sim stats "$SET" --counterfactual 60 --jobs "$JOBS" >"$REPORTS/simv3-stats.json.partial"
-  mv "$REPORTS/simv3-stats.json.partial" "$REPORTS/simv3-stats.json"
+  "$PY" -m sim stats "$SET" --counterfactual 150 --jobs "$JOBS" >"$REPORTS/simv4-stats.json.partial"
+  mv "$REPORTS/simv4-stats.json.partial" "$REPORTS/simv4-stats.json"
   "$PY" -m sim stats "$WALK" >"$REPORTS/walk-stats.json.partial"
   mv "$REPORTS/walk-stats.json.partial" "$REPORTS/walk-stats.json"
   log "data: done"
@@ -113,7 +113,7 @@ train_one() {
   # --out .partial: the run writes there, checkpoints beside it; renamed when whole.
   local partial="${out%.*}.partial.${out##*.}"
   if /usr/bin/time -v -o "$RUNS/$name.time.txt" "$FG" train --data "$SET" "$@" "${device[@]}" \
-      --out "$partial" --trained-on "simv3 (sim generator 3, 2,000 episodes, seed 1; simulated data)" \
+      --out "$partial" --trained-on "simv4 (sim generator 4, 2,000 episodes, seed 1; simulated data)" \
       --quiet >>"$RUNS/$name.log" 2>&1; then
     local f
     for f in "$RUNS/${name}".partial*; do
@@ -259,7 +259,7 @@ r = json.load(open(sys.argv[1]))
 c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
 print(c['trigger'], c['release'])" "$REPORTS/$abl-thresholds.json")
     # Test split of the set; every split of the walking set (no choice is made on it).
-    for target in simv3:test walk:train walk:validation walk:test; do
+    for target in simv4:test walk:train walk:validation walk:test; do
       local set=${target%%:*} split=${target##*:} data=$SET
       [ "$set" = walk ] && data=$WALK
       local out="$REPORTS/warnings-$abl-$set-$split.json"

@@ -59,7 +59,7 @@ SETTLE_STEPS = 60                      # physics steps holding the first pose be
 SIGMAS = (0.005, 0.010, 0.035, 0.040)
 RAMP_A = 90.0
 RAMP_B = 0.125
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
 #: One perturbation knot every this many ticks (1/3 s); rho counts physics steps.
 KNOT_TICKS = 10
 #: Radians of knot deviation per unit of eta (chosen by measurement, see sim/README.md).
