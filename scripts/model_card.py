@@ -201,6 +201,54 @@ def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     return rows
 
 
+def cause_lead_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
+    rows = []
+    for cause in ("collision", "perturbation"):
+        for abl, name in selected:
+            r = load(reports / f"warnings-{abl}-{cause}-test.json")
+            if not r:
+                continue
+            t = r["grid"][0]
+            early = t.get("warned_by_0_5s_share")
+            early_txt = "-" if early is None else f"{100 * early:.0f}%"
+            lead_txt = "-" if t["lead_median_s"] is None else f"{t['lead_median_s']:.2f} s"
+            rows.append(f"| {cause} | {abl.upper()} | {t['warned']}/{t['falling_episodes']} "
+                        f"({100 * t['warned_share']:.0f}%) | {early_txt} | {lead_txt} |")
+    if not rows:
+        return []
+    return ["| cause | network | falls warned | warned >= 0.5 s ahead | lead median |",
+            "| --- | --- | --- | --- | --- |", *rows]
+
+
+def warning_checks(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
+    """The daemon-path targets, for the shipped EMP: >= 95% of test falls warned >= 0.5 s
+    ahead, median lead >= 1.5 s, <= 0.1 false alarms per minute over >= 30 min of walking."""
+    name = dict(selected).get("emp")
+    test = load(reports / "warnings-emp-simv4-test.json")
+    if not (name and test):
+        return []
+    t = test["grid"][0]
+    walks = [load(reports / f"warnings-emp-walk-{s}.json") for s in ("train", "validation", "test")]
+    alarms = sum(w["grid"][0]["false_alarms"] for w in walks if w)
+    minutes = sum(w["grid"][0]["non_falling_minutes"] for w in walks if w)
+    out = []
+    early = t.get("warned_by_0_5s_share")
+    if early is not None:
+        out.append(f"- EMP test falls warned >= 0.5 s ahead: {100 * early:.1f}% (target >= 95%): "
+                   + ("met" if early >= 0.95 else f"missed by {100 * (0.95 - early):.1f} points"))
+    lead = t["lead_median_s"]
+    if lead is not None:
+        out.append(f"- EMP median lead: {lead:.2f} s (target >= 1.5 s): "
+                   + ("met" if lead >= 1.5 else f"missed by {1.5 - lead:.2f} s"))
+    if minutes:
+        rate = alarms / minutes
+        ok = rate <= 0.1 and minutes >= 30
+        out.append(f"- EMP false alarms: {rate:.3f} per minute ({alarms} in {minutes:.1f} min of walking; target "
+                   f"<= 0.1 over >= 30 min): " + ("met" if ok else
+                                                  f"missed ({'rate' if rate > 0.1 else 'too few minutes'})"))
+    return out
+
+
 def stats_rows(stats: dict | None, title: str) -> list[str]:
     if not stats:
         return [f"({title}: no stats yet)"]
@@ -257,6 +305,10 @@ def main() -> int:
         lines += ["### By fall cause (paper protocol, test falls of that cause with the test walks)", "",
                   "| cause | network | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |",
                   *cause_rows, ""]
+    lead_rows = cause_lead_rows(a.reports, selected)
+    if lead_rows:
+        lines += ["### Warnings by fall cause (`fall-guard warnings` on the test falls of that cause)", "",
+                  *lead_rows, ""]
     perh = sorted((k for k in evals if k[0].startswith("emp-perh-") and k[1] == "paper"),
                   key=lambda k: int(k[0].rsplit(".h", 1)[1]))
     if perh:
@@ -269,7 +321,7 @@ def main() -> int:
                          f"{fmt_ms(full['accuracy']) if full else '-'} |")
         lines.append("")
     lines += ["### The daemon's warnings (`fall-guard warnings`, streaming, thresholds chosen on validation)", "",
-              *warnings_rows(a.reports, selected), ""]
+              *warnings_rows(a.reports, selected), "", *warning_checks(a.reports, selected), ""]
     a.out.write_text("\n".join(lines) + "\n")
     return 0
 

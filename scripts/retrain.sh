@@ -9,7 +9,8 @@
 #   evaluate  eval on test (both protocols, seeds as mean +- std), warnings on
 #             test and on the long walking set, by fall cause
 #   card      the model card's tables (models/card/) from those reports
-#   ship      copy the selected networks (f16) and their tables into models/
+#   ship      copy the selected networks (f16) and their tables into models/,
+#             each network's thresholds into config/ (scripts/ship_thresholds.py)
 #
 # `bash scripts/retrain.sh` runs every step in turn; `bash scripts/retrain.sh
 # STEP` runs one. Stop it at any point and run it again: every step writes
@@ -258,10 +259,14 @@ import json, sys
 r = json.load(open(sys.argv[1]))
 c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
 print(c['trigger'], c['release'])" "$REPORTS/$abl-thresholds.json")
-    # Test split of the set; every split of the walking set (no choice is made on it).
-    for target in simv4:test walk:train walk:validation walk:test; do
+    # Test split of the set; every split of the walking set (no choice is made
+    # on it); the test falls of each cause with the test walks.
+    for target in simv4:test walk:train walk:validation walk:test collision:test perturbation:test; do
       local set=${target%%:*} split=${target##*:} data=$SET
-      [ "$set" = walk ] && data=$WALK
+      case $set in
+        walk) data=$WALK ;;
+        collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
+      esac
       local out="$REPORTS/warnings-$abl-$set-$split.json"
       newer "$out" "$model" "$REPORTS/$abl-thresholds.json" && continue
       log "warnings $abl on $set $split (trigger $trig, release $rel)"
@@ -286,6 +291,9 @@ step_ship() {
     mv "$REPO/models/$abl.bpk.partial" "$REPO/models/$abl.bpk"
   done <"$REPORTS/selected.txt"
   cp "$REPORTS/card.md" "$REPO/models/card.md"
+  # Each network's latch thresholds, chosen for it on validation, into the configs.
+  "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" \
+    "$REPO/config/replay.toml" "$REPO/config/poppy_humanoid.toml" | tee -a "$LOG"
 }
 
 all_steps=(data train calibrate select thresholds evaluate card)
