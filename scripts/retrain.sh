@@ -62,11 +62,18 @@ need_binary() {
 }
 
 # The training plan: NAME and the `fall-guard train` arguments. Order is
-# priority (a cut drops from the end): EMP, MP and P seeds first.
+# priority (a cut drops from the end): EMP, MP and P seeds first, taken in
+# turn, so that a run stopped early still has two seeds of each to compare.
 plan() {
-  for s in 1 2 3 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
-  for s in 1 2 3; do echo "mp-s$s --ablation MP --seed $s"; done
-  for s in 1 2 3; do echo "p-s$s --ablation P --seed $s"; done
+  for s in 1 2; do
+    echo "emp-s$s --ablation EMP --seed $s"
+    echo "mp-s$s --ablation MP --seed $s"
+    echo "p-s$s --ablation P --seed $s"
+  done
+  echo "emp-s3 --ablation EMP --seed 3"
+  echo "mp-s3 --ablation MP --seed 3"
+  echo "p-s3 --ablation P --seed 3"
+  for s in 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
   for s in 1 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
   echo "logreg-s1 --ablation logreg --seed 1"
   for s in 1 2 3; do echo "emp-hist-s$s --ablation EMP --seed $s --trajectory historical-only"; done
