@@ -533,6 +533,15 @@ impl Config {
                 Some(d) if d.buses.is_empty() => {
                     return Err(self.value_error("[dynamixel].buses", "needs at least one bus"))
                 }
+                Some(d) if !(0.0..=1.0).contains(&d.warn_missed_share) => {
+                    return Err(self.value_error(
+                        "[dynamixel].warn_missed_share",
+                        format!(
+                            "expected a share of the read cycles in 0..1, got {}",
+                            d.warn_missed_share
+                        ),
+                    ))
+                }
                 Some(_) => {}
             }
         }
@@ -750,6 +759,37 @@ mod tests {
         let config = Config::load(&path).expect("robot config parses");
         assert_eq!(config.streams.joints, JointsSource::Dynamixel);
         assert_eq!(config.dynamixel.expect("buses").buses.len(), 2);
+    }
+
+    #[test]
+    fn the_missed_read_share_of_a_failing_motor_is_checked() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/poppy_humanoid.toml");
+        let text = std::fs::read_to_string(path).expect("robot config");
+        let config = parse(&text).expect("robot config parses");
+        assert_eq!(config.dynamixel.expect("buses").warn_missed_share, 0.2);
+        for bad in ["1.5", "-0.1", "nan"] {
+            let text = with_line(
+                &text,
+                "warn_missed_share",
+                &format!("warn_missed_share = {bad}"),
+            );
+            let err = parse(&text).expect_err(bad);
+            assert_eq!(
+                err.key(),
+                Some("[dynamixel].warn_missed_share"),
+                "{bad}: {err}"
+            );
+        }
+        // Left out: the default.
+        let text = with_line(&text, "warn_missed_share", "");
+        assert_eq!(
+            parse(&text)
+                .expect("default")
+                .dynamixel
+                .expect("buses")
+                .warn_missed_share,
+            0.2
+        );
     }
 
     #[test]

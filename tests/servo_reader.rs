@@ -5,7 +5,7 @@
 use std::time::{Duration, Instant};
 
 use fall_guard::robot::{JointTable, ServoModel};
-use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
+use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses, ReplyNoise};
 use fall_guard::sources::dynamixel::{
     DynamixelConfig, JointReading, ServoErrorKind, ServoReader, ServoStatsSnapshot,
 };
@@ -400,4 +400,136 @@ fn emulator_answers_write_data_and_the_reader_sees_the_new_goal() {
     let joint = &rig.table.joints()[rig.table.index_of("l_shoulder_y").unwrap()];
     let got = reading.positions_rad[rig.table.index_of("l_shoulder_y").unwrap()].unwrap();
     assert!((got - joint.raw_to_rad(3000) as f32).abs() < 1e-6);
+}
+
+/// The noise of a bus that lost every forecast under a gap-per-cycle rule:
+/// 5% of each motor's replies dropped, 2% with a bad checksum, 5% with
+/// garbage bytes before them.
+fn noise(seed: u64) -> ReplyNoise {
+    ReplyNoise {
+        seed,
+        p_drop: 0.05,
+        p_corrupt: 0.02,
+        p_garbage: 0.05,
+    }
+}
+
+#[test]
+fn seeded_reply_noise_repeats_and_a_sync_read_asks_again_for_the_motors_lost() {
+    let rig = rig();
+    let raws = rig.set_distinct_positions();
+    const CYCLES: i64 = 60;
+    let run = || {
+        rig.buses.lower.set_noise(Some(noise(3)));
+        rig.buses.upper.set_noise(Some(noise(4)));
+        let sync_before = rig.buses.upper.requests().sync_reads;
+        let mut reader = rig.reader(true);
+        let mut read = Vec::new();
+        for stamp in 0..CYCLES {
+            let reading = reader.read_cycle(stamp);
+            // Every position read is the motor's own: a faulted reply is
+            // never taken as a position.
+            for ((joint, raw), got) in rig
+                .table
+                .joints()
+                .iter()
+                .zip(&raws)
+                .zip(&reading.positions_rad)
+            {
+                if let Some(got) = got {
+                    assert_eq!(*got, joint.raw_to_rad(*raw) as f32, "{}", joint.name);
+                }
+            }
+            read.push(
+                reading
+                    .positions_rad
+                    .iter()
+                    .map(Option::is_some)
+                    .collect::<Vec<_>>(),
+            );
+        }
+        let sync_reads = rig.buses.upper.requests().sync_reads - sync_before;
+        (
+            read,
+            rig.buses.upper.noise_counts(),
+            sync_reads,
+            reader.stats().snapshot(),
+        )
+    };
+    let (first, counts, sync_reads, stats) = run();
+    let (again, counts_again, _, _) = run();
+    // The same seed, the same requests: the same faults and readings.
+    assert_eq!(counts, counts_again);
+    assert_eq!(first, again);
+    assert!(
+        counts.dropped > 0 && counts.corrupted > 0 && counts.garbage > 0,
+        "{counts:?}"
+    );
+    let faulted = counts.dropped + counts.corrupted + counts.garbage;
+    // A motor's faulted reply gives FF bytes in a well-formed adapter
+    // reply (no host-side error), and the lost ones are asked for again.
+    let upper = &stats.buses[1];
+    assert_eq!(
+        upper.bad_checksums + upper.timeouts + upper.bad_packets,
+        0,
+        "{upper:?}"
+    );
+    assert!(
+        sync_reads > CYCLES as u64,
+        "{sync_reads} sync reads in {CYCLES} cycles"
+    );
+    let missed: u64 = upper.motor_missed.iter().sum();
+    assert!(
+        missed * 4 < faulted,
+        "{missed} motor reads missed after asking again, {faulted} faulted replies"
+    );
+    assert_eq!(missed, upper.missing_motor_reads);
+}
+
+#[test]
+fn seeded_reply_noise_on_per_motor_reads_is_counted_by_kind() {
+    let rig = rig();
+    let raws = rig.set_distinct_positions();
+    let mut reader = rig.reader(false);
+    rig.buses.upper.set_noise(Some(noise(5)));
+    for stamp in 0..12 {
+        let reading = reader.read_cycle(stamp);
+        for ((joint, raw), got) in rig
+            .table
+            .joints()
+            .iter()
+            .zip(&raws)
+            .zip(&reading.positions_rad)
+        {
+            if let Some(got) = got {
+                assert_eq!(*got, joint.raw_to_rad(*raw) as f32, "{}", joint.name);
+            }
+        }
+    }
+    let counts = rig.buses.upper.noise_counts();
+    let upper = &reader.stats().snapshot().buses[1];
+    // Seen by the host as they are: a dropped reply is a timeout, a
+    // corrupted one a bad checksum, one after garbage a packet rustypot
+    // cannot frame (the rest of it drained and counted as garbage).
+    assert_eq!(counts.replies, 12 * 15);
+    assert!(
+        counts.dropped > 0 && counts.corrupted + counts.garbage > 0,
+        "{counts:?}"
+    );
+    assert_eq!(upper.timeouts, counts.dropped, "{counts:?} {upper:?}");
+    assert_eq!(
+        upper.bad_checksums, counts.corrupted,
+        "{counts:?} {upper:?}"
+    );
+    assert_eq!(upper.bad_packets, counts.garbage, "{counts:?} {upper:?}");
+    assert_eq!(
+        upper.missing_motor_reads,
+        counts.dropped + counts.corrupted + counts.garbage,
+        "{counts:?} {upper:?}"
+    );
+    assert_eq!(
+        upper.garbage_bytes > 0,
+        counts.garbage > 0,
+        "{counts:?} {upper:?}"
+    );
 }

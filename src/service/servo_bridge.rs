@@ -5,14 +5,19 @@
 //!
 //! A reading in which some motors did not answer is forwarded too, with NaN
 //! for those joints: `/joint_states` then carries the joints that were read,
-//! and the tick marks the forecast not valid, naming the joints, until a
-//! whole window of complete readings has come back (see `tick.rs`).
+//! and the tick keeps each missing joint's last value while it is younger
+//! than `[streams].joints_stale_ms`; older, the forecast is not valid,
+//! naming the joint, until a whole window of fresh ticks has come back (see
+//! `tick.rs`).
 //!
 //! Every 500 ms the bus counters become a [`DeviceDiagnostics`] per bus
 //! ([`ServoHealth`]): port, adapter mode, read rate, missing ids and joints,
+//! per motor the age of its last position and its share of missed reads,
 //! error rates over the last [`ERROR_WINDOW_S`] seconds, reopens, the last
-//! error. Its level is judged on the window, so it returns to OK once the
-//! fault is gone; a plain (non-USB2AX) adapter is a mode, not a fault.
+//! error. A motor missing in more than `[dynamixel].warn_missed_share` of
+//! the window's cycles is named at WARN. The level is judged on the window,
+//! so it returns to OK once the fault is gone; a plain (non-USB2AX) adapter
+//! is a mode, not a fault.
 
 use std::time::{Duration, Instant};
 
@@ -57,6 +62,31 @@ pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String
     (errors, details)
 }
 
+/// How a bus status is judged besides its counters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BusJudgement {
+    /// The clock now (the readings' clock), ns: the age of each motor's
+    /// last position is taken from it.
+    pub now_ns: i64,
+    /// `[dynamixel].warn_missed_share`.
+    pub warn_missed_share: f64,
+}
+
+/// Per motor of `now`: its share of the cycles in the window in which it
+/// gave no position (`None` when the window holds no cycle).
+fn missed_shares(now: &BusStatsSnapshot, base: Option<&BusStatsSnapshot>) -> Vec<Option<f64>> {
+    let cycles = now.cycles.saturating_sub(base.map_or(0, |b| b.cycles));
+    (0..now.motors.len())
+        .map(|i| {
+            let missed = now.motor_missed.get(i).copied().unwrap_or(0);
+            let before = base
+                .and_then(|b| b.motor_missed.get(i).copied())
+                .unwrap_or(0);
+            (cycles > 0).then(|| missed.saturating_sub(before) as f64 / cycles as f64)
+        })
+        .collect()
+}
+
 /// The status of one bus from its counters now and at the start of the
 /// window (`base`, `None`: the reader's start, all zeros), `window_s`
 /// seconds apart.
@@ -64,6 +94,7 @@ pub fn bus_status(
     now: &BusStatsSnapshot,
     base: Option<&BusStatsSnapshot>,
     window_s: f64,
+    judgement: BusJudgement,
 ) -> DeviceDiagnostics {
     let delta = |f: fn(&BusStatsSnapshot) -> u64| f(now).saturating_sub(base.map_or(0, f));
     let per_s = |n: u64| {
@@ -97,6 +128,19 @@ pub fn bus_status(
         .collect();
     let last_error = now.last_error.clone().unwrap_or_default();
     let window = ERROR_WINDOW_S;
+    let shares = missed_shares(now, base);
+    // Motors whose reads fail persistently: named even while the forecast
+    // holds their last values and stays valid.
+    let failing: Vec<(String, f64)> = now
+        .motors
+        .iter()
+        .zip(&shares)
+        .filter_map(|((id, name), share)| {
+            share
+                .filter(|&s| s > judgement.warn_missed_share)
+                .map(|s| (format!("{id} ({name})"), s))
+        })
+        .collect();
     let mut faults: Vec<String> = [
         (timeouts, "timeouts"),
         (checksums, "bad checksums"),
@@ -128,21 +172,31 @@ pub fn bus_status(
             DiagnosticLevel::Error,
             format!("no motor answers ({} configured)", now.motors.len()),
         )
-    } else if !missing_named.is_empty() {
-        (
-            DiagnosticLevel::Warn,
-            format!(
+    } else if !failing.is_empty() || !missing_named.is_empty() || !faults.is_empty() {
+        let mut parts = Vec::new();
+        if !failing.is_empty() {
+            parts.push(format!(
+                "reads failing persistently (more than {:.0}% of the cycles of the last {window} s missed): {}",
+                judgement.warn_missed_share * 100.0,
+                failing
+                    .iter()
+                    .map(|(m, share)| format!("{m} {:.0}%", share * 100.0))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        if !missing_named.is_empty() {
+            parts.push(format!(
                 "{} of {} motors not answering: {}",
                 missing_named.len(),
                 now.motors.len(),
                 missing_named.join(", ")
-            ),
-        )
-    } else if !faults.is_empty() {
-        (
-            DiagnosticLevel::Warn,
-            format!("in the last {window} s: {}", faults.join(", ")),
-        )
+            ));
+        }
+        if !faults.is_empty() {
+            parts.push(format!("in the last {window} s: {}", faults.join(", ")));
+        }
+        (DiagnosticLevel::Warn, parts.join("; "))
     } else {
         (
             DiagnosticLevel::Ok,
@@ -188,10 +242,39 @@ pub fn bus_status(
         ("reopens", now.reopens.to_string()),
         ("open_failures", now.open_failures.to_string()),
         ("last_error", last_error),
+        (
+            "warn_missed_share",
+            format!("{}", judgement.warn_missed_share),
+        ),
+        (
+            "failing_motors",
+            failing
+                .iter()
+                .map(|(m, _)| m.as_str())
+                .collect::<Vec<_>>()
+                .join(", "),
+        ),
     ]
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
-    .collect();
+    .collect::<Vec<(String, String)>>();
+    // Per motor: the age of its last position and its share of missed reads
+    // over the window.
+    let mut values = values;
+    for (i, (_, name)) in now.motors.iter().enumerate() {
+        let age = now
+            .motor_last_read_ns
+            .get(i)
+            .copied()
+            .flatten()
+            .map_or_else(
+                || "never".to_string(),
+                |t| format!("{:.0}", (judgement.now_ns - t).max(0) as f64 / 1e6),
+            );
+        let share = shares[i].map_or_else(|| "none".to_string(), |s| format!("{s:.3}"));
+        values.push((format!("age_ms.{name}"), age));
+        values.push((format!("missed_share.{name}"), share));
+    }
     DeviceDiagnostics {
         name: format!("servo bus {}", now.name),
         hardware_id: now.port.clone(),
@@ -202,21 +285,38 @@ pub fn bus_status(
 }
 
 /// Bus statuses judged over a sliding window of counter snapshots.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct ServoHealth {
     /// (seconds since the reader started, counters), oldest first; the
     /// first entry is the newest one at or before the window's start.
     history: CounterWindow<f64, ServoStatsSnapshot>,
+    /// `[dynamixel].warn_missed_share`.
+    warn_missed_share: f64,
 }
 
 impl ServoHealth {
-    pub fn new() -> ServoHealth {
-        ServoHealth::default()
+    /// Bus statuses that name a motor missing in more than
+    /// `warn_missed_share` of the window's cycles.
+    pub fn new(warn_missed_share: f64) -> ServoHealth {
+        ServoHealth {
+            history: CounterWindow::default(),
+            warn_missed_share,
+        }
     }
 
     /// Add the counters at `t_s` seconds after the reader started (non-
-    /// decreasing) and return one status per bus.
-    pub fn update(&mut self, t_s: f64, snapshot: ServoStatsSnapshot) -> Vec<DeviceDiagnostics> {
+    /// decreasing), the readings' clock being at `now_ns`, and return one
+    /// status per bus.
+    pub fn update(
+        &mut self,
+        t_s: f64,
+        now_ns: i64,
+        snapshot: ServoStatsSnapshot,
+    ) -> Vec<DeviceDiagnostics> {
+        let judgement = BusJudgement {
+            now_ns,
+            warn_missed_share: self.warn_missed_share,
+        };
         let window = ERROR_WINDOW_S as f64;
         self.history.push(t_s, window, snapshot);
         let (base_t, base) = match self.history.window_start(t_s, window) {
@@ -235,6 +335,7 @@ impl ServoHealth {
                     bus,
                     base.and_then(|b| b.buses.get(i)),
                     (t_s - base_t).max(0.0),
+                    judgement,
                 )
             })
             .collect()
@@ -254,10 +355,11 @@ pub fn start(
     let source = DynamixelSource::spawn(section, &JointTable::poppy_humanoid(), shutdown.watch())
         .map_err(|e| ServiceError::Usage(format!("{}: [dynamixel].{e}", config.origin)))?;
     let started = Instant::now();
+    let warn_missed_share = section.warn_missed_share;
     let task = tokio::spawn(async move {
         let mut readings = source.readings.clone();
         let mut refresh = tokio::time::interval(Duration::from_millis(500));
-        let mut health = ServoHealth::new();
+        let mut health = ServoHealth::new(warn_missed_share);
         loop {
             tokio::select! {
                 changed = readings.changed() => {
@@ -277,7 +379,7 @@ pub fn start(
                     let snapshot = source.stats.snapshot();
                     let (errors, details) = servo_details(&snapshot);
                     feed.stats().set_external(errors, details);
-                    let buses = health.update(started.elapsed().as_secs_f64(), snapshot);
+                    let buses = health.update(started.elapsed().as_secs_f64(), crate::tick::unix_now_ns(), snapshot);
                     feed.stats().set_devices(buses);
                 }
                 () = shutdown.recv() => break,
@@ -291,6 +393,11 @@ pub fn start(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    const JUDGE: BusJudgement = BusJudgement {
+        now_ns: 0,
+        warn_missed_share: 0.2,
+    };
 
     fn bus(connected: bool) -> BusStatsSnapshot {
         BusStatsSnapshot {
@@ -313,6 +420,8 @@ mod tests {
             sync_probe_timeouts: 0,
             last_ok_ns: None,
             motors: vec![(36, "head_z".into()), (37, "head_y".into())],
+            motor_missed: vec![0, 0],
+            motor_last_read_ns: vec![None, None],
             sync_read_configured: true,
             last_error: None,
         }
@@ -341,7 +450,7 @@ mod tests {
         let mut b = bus(true);
         b.cycles = 500;
         b.ok_cycles = 500;
-        let d = bus_status(&b, None, 10.0);
+        let d = bus_status(&b, None, 10.0, JUDGE);
         assert_eq!(d.level, DiagnosticLevel::Ok, "{}", d.message);
         assert_eq!(d.name, "servo bus upper");
         assert_eq!(d.hardware_id, "/dev/ttyACM1");
@@ -356,7 +465,7 @@ mod tests {
         b.cycles = 500;
         b.missing_ids = vec![36];
         b.last_error = Some("motor 36 (head_z) gave no position".into());
-        let d = bus_status(&b, None, 10.0);
+        let d = bus_status(&b, None, 10.0, JUDGE);
         assert_eq!(d.level, DiagnosticLevel::Warn);
         assert!(d.message.contains("36 (head_z)"), "{}", d.message);
         assert_eq!(value(&d, "missing_joints"), "head_z");
@@ -365,14 +474,17 @@ mod tests {
             "motor 36 (head_z) gave no position"
         );
         b.missing_ids = vec![36, 37];
-        assert_eq!(bus_status(&b, None, 10.0).level, DiagnosticLevel::Error);
+        assert_eq!(
+            bus_status(&b, None, 10.0, JUDGE).level,
+            DiagnosticLevel::Error
+        );
     }
 
     #[test]
     fn a_closed_port_is_an_error_that_says_why() {
         let mut b = bus(false);
         b.last_error = Some("cannot open /dev/ttyACM1: No such file".into());
-        let d = bus_status(&b, None, 10.0);
+        let d = bus_status(&b, None, 10.0, JUDGE);
         assert_eq!(d.level, DiagnosticLevel::Error);
         assert!(d.message.contains("No such file"), "{}", d.message);
     }
@@ -385,20 +497,20 @@ mod tests {
         b.sync_probe_timeouts = 3;
         b.cycles = 500;
         b.ok_cycles = 497;
-        let d = bus_status(&b, None, 10.0);
+        let d = bus_status(&b, None, 10.0, JUDGE);
         assert_eq!(d.level, DiagnosticLevel::Ok, "{}", d.message);
         assert_eq!(value(&d, "adapter_mode"), "read_data_fallback");
         assert_eq!(value(&d, "timeouts_per_s"), "0.00");
         b.sync_read_configured = false;
         assert_eq!(
-            bus_status(&b, None, 10.0).message,
+            bus_status(&b, None, 10.0, JUDGE).message,
             "ok: 2 motors at 50.0 Hz (read_data)"
         );
     }
 
     #[test]
     fn errors_warn_while_in_the_window_and_the_level_returns_to_ok() {
-        let mut health = ServoHealth::new();
+        let mut health = ServoHealth::new(0.2);
         let mut b = bus(true);
         let mut levels = Vec::new();
         // 1 Hz snapshots, 50 cycles a second; bad checksums during seconds 3..5.
@@ -408,7 +520,7 @@ mod tests {
             if (3..5).contains(&t) {
                 b.bad_checksums += 5;
             }
-            let d = health.update(t as f64, snapshot(b.clone())).remove(0);
+            let d = health.update(t as f64, 0, snapshot(b.clone())).remove(0);
             if t == 4 {
                 assert!(d.message.contains("10 bad checksums"), "{}", d.message);
                 assert_eq!(value(&d, "checksum_errors_per_s"), "2.50");
@@ -421,5 +533,74 @@ mod tests {
         // WARN from the first bad checksum until it left the 10 s window.
         assert_eq!(warn, (3..=13).collect::<Vec<_>>(), "{levels:?}");
         assert_eq!(levels[20], DiagnosticLevel::Ok);
+    }
+
+    #[test]
+    fn each_motor_reports_its_age_and_missed_share_and_a_failing_one_is_named() {
+        let mut health = ServoHealth::new(0.2);
+        let mut b = bus(true);
+        let at = |health: &mut ServoHealth, t: u64, b: &BusStatsSnapshot| {
+            health
+                .update(t as f64, t as i64 * 1_000_000_000, snapshot(b.clone()))
+                .remove(0)
+        };
+        // 50 cycles a second; head_y misses 10% of its reads (held, the
+        // forecast stays valid), head_z 30%.
+        for t in 0..=10u64 {
+            b.cycles = 50 * t;
+            b.motor_missed = vec![15 * t, 5 * t];
+            b.missing_motor_reads = 20 * t;
+            b.motor_last_read_ns = vec![
+                Some(t as i64 * 1_000_000_000 - 60_000_000),
+                Some(t as i64 * 1_000_000_000 - 20_000_000),
+            ];
+            let d = at(&mut health, t, &b);
+            if t == 10 {
+                assert_eq!(value(&d, "missed_share.head_z"), "0.300");
+                assert_eq!(value(&d, "missed_share.head_y"), "0.100");
+                assert_eq!(value(&d, "age_ms.head_z"), "60");
+                assert_eq!(value(&d, "age_ms.head_y"), "20");
+                assert_eq!(value(&d, "failing_motors"), "36 (head_z)");
+                assert_eq!(value(&d, "warn_missed_share"), "0.2");
+                assert_eq!(d.level, DiagnosticLevel::Warn, "{}", d.message);
+                assert!(
+                    d.message.contains("reads failing persistently")
+                        && d.message.contains("36 (head_z) 30%")
+                        && !d.message.contains("head_y"),
+                    "{}",
+                    d.message
+                );
+            }
+        }
+        // head_z answers every read again: below the share once enough of
+        // the window is clean (OK: nothing else is wrong).
+        for t in 11..=30u64 {
+            b.cycles = 50 * t;
+            b.motor_missed[1] += 5;
+            b.motor_last_read_ns = vec![Some(t as i64 * 1_000_000_000); 2];
+            let d = at(&mut health, t, &b);
+            if t == 30 {
+                assert_eq!(value(&d, "failing_motors"), "");
+                assert_eq!(value(&d, "missed_share.head_z"), "0.000");
+                assert_eq!(d.level, DiagnosticLevel::Ok, "{}", d.message);
+            }
+        }
+        // A stricter share names head_y too; a motor never read says so.
+        let strict = BusJudgement {
+            now_ns: 0,
+            warn_missed_share: 0.05,
+        };
+        b.motor_last_read_ns[0] = None;
+        let d = bus_status(&b, None, 30.0, strict);
+        assert_eq!(value(&d, "failing_motors"), "36 (head_z), 37 (head_y)");
+        assert_eq!(value(&d, "age_ms.head_z"), "never");
+        assert_eq!(
+            bus_status(&bus(true), None, 0.0, JUDGE)
+                .values
+                .iter()
+                .find(|(k, _)| k == "missed_share.head_z")
+                .map(|(_, v)| v.as_str()),
+            Some("none")
+        );
     }
 }

@@ -13,7 +13,10 @@
 //! Faults never stop the reader: a timeout, a bad checksum, garbage bytes
 //! (skipped up to the next `FF FF`), a servo error bit or a position out of
 //! range is counted, logged at warn the first time per kind and bus, and that
-//! motor (or bus) is left out of the cycle. A port that fails (adapter
+//! motor (or bus) is left out of the cycle. The motors a sync read's reply
+//! gives no position for (`FF` bytes: the adapter did not get their reply)
+//! are asked for once more in the same cycle, with a sync read of just
+//! those ids. A port that fails (adapter
 //! unplugged) is closed and reopened with exponential backoff
 //! (`reopen_backoff_ms`, doubling up to `reopen_backoff_max_ms`) while the
 //! other bus keeps being read.
@@ -25,6 +28,7 @@
 //!
 //! ```toml
 //! rate_hz = 50                      # read cycles per second (default 50, as pypot)
+//! warn_missed_share = 0.2           # a motor missing in more of the last 10 s's cycles: WARN
 //! [buses.lower]
 //! port = "/dev/serial/by-id/usb-Xevel_USB2AX_..."   # required
 //! baud = 1000000                    # default 1000000
@@ -75,6 +79,9 @@ fn default_backoff_ms() -> u64 {
 fn default_backoff_max_ms() -> u64 {
     5_000
 }
+fn default_warn_missed_share() -> f64 {
+    0.2
+}
 
 /// The servo source's config section.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -83,6 +90,12 @@ pub struct DynamixelConfig {
     /// Read cycles per second (all buses once per cycle). Default 50.
     #[serde(default = "default_rate_hz")]
     pub rate_hz: f64,
+    /// A motor that gave no position in more than this share of the read
+    /// cycles of the last 10 s is named at WARN on its bus's status, even
+    /// while the forecast stays valid (the joint's last value is held while
+    /// it is young enough). 0 to 1, default 0.2.
+    #[serde(default = "default_warn_missed_share")]
+    pub warn_missed_share: f64,
     /// The buses by name; a name is also the joint table's bus name used
     /// when `ids` is left out (`lower`, `upper` on Poppy).
     pub buses: BTreeMap<String, BusConfig>,
@@ -151,6 +164,7 @@ impl DynamixelConfig {
         buses.insert("upper".to_string(), BusConfig::new(upper_port));
         DynamixelConfig {
             rate_hz: default_rate_hz(),
+            warn_missed_share: default_warn_missed_share(),
             buses,
         }
     }
@@ -227,6 +241,12 @@ impl ServoReader {
             return Err(config_error(
                 "rate_hz",
                 format!("{} is not a rate in (0, 1000] Hz", config.rate_hz),
+            ));
+        }
+        if !(0.0..=1.0).contains(&config.warn_missed_share) {
+            return Err(config_error(
+                "warn_missed_share",
+                format!("{} is not a share in 0..1", config.warn_missed_share),
             ));
         }
         if config.buses.is_empty() {

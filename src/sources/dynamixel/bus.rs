@@ -334,14 +334,19 @@ impl BusReader {
             Ok(data) => {
                 self.sync_ok_since_open = true;
                 self.silent_sync_reads = 0;
+                let mut lost = Vec::new();
                 for i in 0..self.motors.len() {
                     let value = u16::from_le_bytes([data[2 * i], data[2 * i + 1]]);
                     // 0xFFFF: the adapter got no (good) answer from that motor.
                     raw[i] = if value == 0xFFFF {
+                        lost.push(i);
                         None
                     } else {
                         self.checked(stats, i, value)
                     };
+                }
+                if !lost.is_empty() {
+                    self.retry_sync(stats, raw, &lost);
                 }
             }
             Err(failure) => {
@@ -358,6 +363,47 @@ impl BusReader {
                     }
                 }
             }
+        }
+    }
+
+    /// Asks the adapter once more, in the same cycle, for the motors whose
+    /// answer it did not get (`FF` bytes): one SYNC_READ of just those ids.
+    /// On a noisy bus a lost reply is then a lost cycle only when it is lost
+    /// twice. A failure here is counted as any other; the motors stay
+    /// without a position for this cycle.
+    fn retry_sync(&mut self, stats: &BusStats, raw: &mut [Option<u16>], lost: &[usize]) {
+        let ids: Vec<u8> = lost.iter().map(|&i| self.motors[i].joint.id).collect();
+        let Ok(request) =
+            protocol::sync_read_request(PRESENT_POSITION_ADDR, PRESENT_POSITION_LEN, &ids)
+        else {
+            return;
+        };
+        let Some(port) = self.port.as_mut() else {
+            return;
+        };
+        let mut garbage = 0;
+        let result = drain(port.as_mut()).and_then(|stale| {
+            garbage += stale;
+            sync_read(
+                port.as_mut(),
+                &request,
+                ids.len(),
+                self.config.timeout(),
+                &mut self.buf,
+                &mut garbage,
+            )
+        });
+        self.garbage(stats, garbage);
+        match result {
+            Ok(data) => {
+                for (k, &i) in lost.iter().enumerate() {
+                    let value = u16::from_le_bytes([data[2 * k], data[2 * k + 1]]);
+                    if value != 0xFFFF {
+                        raw[i] = self.checked(stats, i, value);
+                    }
+                }
+            }
+            Err(failure) => self.fail(stats, failure, "sync read (again, for the motors lost)"),
         }
     }
 

@@ -16,11 +16,22 @@
 //!   0x82 is ignored, as the servos and the adapter ignore it.
 //!
 //! Test hooks: positions ([`BusEmulator::set_raw_position`]), missing
-//! motors, servo error bits, reply faults ([`Fault`]: no reply, bad
-//! checksum, garbage before the reply), an adapter without 0x84
-//! ([`BusEmulator::set_sync_read_supported`]), unplugging (the pty is closed
-//! and the link removed) and replugging (a new pty behind the same link), and
-//! an optional 1 Mbaud wire-time delay.
+//! motors, servo error bits, reply faults applied to every reply ([`Fault`]:
+//! no reply, bad checksum, garbage before the reply), seeded random faults
+//! of each motor's reply on its own ([`ReplyNoise`]), an adapter without
+//! 0x84 ([`BusEmulator::set_sync_read_supported`]), unplugging (the pty is
+//! closed and the link removed) and replugging (a new pty behind the same
+//! link), and an optional 1 Mbaud wire-time delay.
+//!
+//! Inside a sync read, a motor's reply is the adapter's exchange with that
+//! servo, not bytes the host sees. The USB2AX firmware (`AX.c`,
+//! `axReadPacket`) reads a fixed-length status packet (`L + 6` bytes) from
+//! the servo's first byte within its receive timeout and checks its
+//! checksum, with no search for the `FF FF` header; whatever fails (no
+//! reply, a bad checksum, garbage bytes before the packet, which shift it)
+//! gives `FF` bytes for that id in an otherwise well-formed reply. The
+//! emulator does the same with a [`ReplyNoise`] fault of a motor's reply in
+//! a sync read.
 
 use std::collections::BTreeMap;
 use std::io::{self, Read, Write};
@@ -76,6 +87,98 @@ pub enum Fault {
     BadChecksum,
     /// These bytes are sent before each reply.
     Garbage(Vec<u8>),
+}
+
+/// Seeded random faults of each motor's reply, drawn per reply (a motor's
+/// status packet to a PING, READ_DATA or WRITE_DATA, or its part of a USB2AX
+/// sync read): dropped with probability `p_drop`, else its checksum
+/// corrupted with `p_corrupt`, else 1 to 4 garbage bytes (never `FF`) sent
+/// before it with `p_garbage`. The same seed and the same requests give the
+/// same faults.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReplyNoise {
+    /// Seed of the draws.
+    pub seed: u64,
+    /// Probability that a reply is lost.
+    pub p_drop: f64,
+    /// Probability that a reply's checksum is corrupted.
+    pub p_corrupt: f64,
+    /// Probability that garbage bytes come before a reply.
+    pub p_garbage: f64,
+}
+
+/// What [`ReplyNoise`] did to one reply.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum ReplyFate {
+    Clean,
+    Dropped,
+    Corrupted,
+    Garbage(Vec<u8>),
+}
+
+/// The draws of a [`ReplyNoise`]: SplitMix64, so that a seed gives the
+/// same faults on every platform and version.
+#[derive(Debug, Clone)]
+struct Noise {
+    config: ReplyNoise,
+    state: u64,
+    /// Replies faulted so far: (dropped, corrupted, garbage).
+    counts: NoiseCounts,
+}
+
+/// How many replies a [`ReplyNoise`] faulted, by kind.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct NoiseCounts {
+    /// Motor replies drawn for (faulted or not).
+    pub replies: u64,
+    /// Dropped.
+    pub dropped: u64,
+    /// Checksum corrupted.
+    pub corrupted: u64,
+    /// Garbage bytes before them.
+    pub garbage: u64,
+}
+
+impl Noise {
+    fn new(config: ReplyNoise) -> Noise {
+        Noise {
+            config,
+            state: config.seed,
+            counts: NoiseCounts::default(),
+        }
+    }
+
+    fn next_u64(&mut self) -> u64 {
+        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1).
+    fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// The fate of the next motor reply.
+    fn draw(&mut self) -> ReplyFate {
+        self.counts.replies += 1;
+        let c = self.config;
+        if self.unit() < c.p_drop {
+            self.counts.dropped += 1;
+            ReplyFate::Dropped
+        } else if self.unit() < c.p_corrupt {
+            self.counts.corrupted += 1;
+            ReplyFate::Corrupted
+        } else if self.unit() < c.p_garbage {
+            self.counts.garbage += 1;
+            let n = 1 + (self.next_u64() % 4) as usize;
+            ReplyFate::Garbage((0..n).map(|_| (self.next_u64() % 0xFF) as u8).collect())
+        } else {
+            ReplyFate::Clean
+        }
+    }
 }
 
 /// How many requests the emulator received, by kind.
@@ -166,6 +269,7 @@ impl EmulatedMotor {
 struct State {
     motors: BTreeMap<u8, EmulatedMotor>,
     fault: Option<Fault>,
+    noise: Option<Noise>,
     sync_read_supported: bool,
     plugged: bool,
     pty_open: bool,
@@ -204,6 +308,7 @@ impl BusEmulator {
                 .map(|&(id, model)| (id, EmulatedMotor::new(id, model)))
                 .collect(),
             fault: None,
+            noise: None,
             sync_read_supported: true,
             plugged: true,
             pty_open: true,
@@ -293,6 +398,21 @@ impl BusEmulator {
     /// Apply `fault` to every reply from now on (`None`: answer normally).
     pub fn set_fault(&self, fault: Option<Fault>) {
         lock(&self.state).fault = fault;
+    }
+
+    /// Fault each motor's reply at random from now on, as `noise` says
+    /// (`None`: no random faults). The draws start again from the seed.
+    pub fn set_noise(&self, noise: Option<ReplyNoise>) {
+        lock(&self.state).noise = noise.map(Noise::new);
+    }
+
+    /// Replies the current [`ReplyNoise`] drew for and faulted (zeros
+    /// without one).
+    pub fn noise_counts(&self) -> NoiseCounts {
+        lock(&self.state)
+            .noise
+            .as_ref()
+            .map_or_else(NoiseCounts::default, |n| n.counts)
     }
 
     /// false: behave like an adapter without the USB2AX firmware (0x84 is
@@ -458,13 +578,22 @@ fn answer(state: &mut State, request: &Packet) -> Option<(Vec<u8>, Duration)> {
             let (addr, len) = (request.params[0], request.params[1]);
             let mut data = Vec::new();
             for id in &request.params[2..] {
-                match state
+                let read = state
                     .motors
                     .get(id)
                     .filter(|m| m.present)
                     .and_then(|m| m.read(addr, len))
-                {
-                    Some(bytes) => data.extend_from_slice(bytes),
+                    .map(<[u8]>::to_vec);
+                // A motor that answers, and whose answer the adapter takes:
+                // any fault of it gives FF bytes (see the module doc).
+                let taken = read.filter(|_| {
+                    state
+                        .noise
+                        .as_mut()
+                        .is_none_or(|n| n.draw() == ReplyFate::Clean)
+                });
+                match taken {
+                    Some(bytes) => data.extend_from_slice(&bytes),
                     None => data.extend(std::iter::repeat_n(0xFF, usize::from(len))),
                 }
             }
@@ -519,6 +648,19 @@ fn answer(state: &mut State, request: &Packet) -> Option<(Vec<u8>, Duration)> {
             };
             let reply = protocol::packet(id, error, &params).ok()?;
             let wire = request_len + reply.len();
+            let mut reply = reply;
+            match state.noise.as_mut().map(Noise::draw) {
+                None | Some(ReplyFate::Clean) => {}
+                Some(ReplyFate::Dropped) => return None,
+                Some(ReplyFate::Corrupted) => {
+                    if let Some(last) = reply.last_mut() {
+                        *last ^= 0x5A;
+                    }
+                }
+                Some(ReplyFate::Garbage(garbage)) => {
+                    reply.splice(0..0, garbage);
+                }
+            }
             (reply, wire)
         }
     };

@@ -92,6 +92,10 @@ pub struct BusStats {
     missing_ids: Mutex<Vec<u8>>,
     /// (id, joint name) of every motor of the bus, in read order.
     motors: Vec<(u8, String)>,
+    /// Per motor (read order): cycles in which it gave no position.
+    motor_missed: Vec<AtomicU64>,
+    /// Per motor: stamp of the latest cycle in which it gave a position.
+    motor_last_read_ns: Vec<AtomicI64>,
     sync_read_configured: bool,
     last_error: Mutex<Option<String>>,
 }
@@ -124,6 +128,8 @@ impl BusStats {
             sync_probe_timeouts: AtomicU64::new(0),
             last_ok_ns: AtomicI64::new(NEVER),
             missing_ids: Mutex::new(Vec::new()),
+            motor_missed: motors.iter().map(|_| AtomicU64::new(0)).collect(),
+            motor_last_read_ns: motors.iter().map(|_| AtomicI64::new(NEVER)).collect(),
             motors,
             sync_read_configured: sync_read,
             last_error: Mutex::new(None),
@@ -160,6 +166,13 @@ impl BusStats {
     pub(crate) fn end_cycle(&self, missing_ids: Vec<u8>, stamp_ns: i64) {
         Self::add(&self.cycles, 1);
         Self::add(&self.missing_motor_reads, missing_ids.len() as u64);
+        for (i, (id, _)) in self.motors.iter().enumerate() {
+            if missing_ids.contains(id) {
+                Self::add(&self.motor_missed[i], 1);
+            } else {
+                self.motor_last_read_ns[i].store(stamp_ns, Ordering::Relaxed);
+            }
+        }
         if missing_ids.is_empty() {
             Self::add(&self.ok_cycles, 1);
             self.last_ok_ns.store(stamp_ns, Ordering::Relaxed);
@@ -204,6 +217,12 @@ impl BusStats {
             sync_probe_timeouts: load(&self.sync_probe_timeouts),
             last_ok_ns: (last_ok != NEVER).then_some(last_ok),
             motors: self.motors.clone(),
+            motor_missed: self.motor_missed.iter().map(load).collect(),
+            motor_last_read_ns: self
+                .motor_last_read_ns
+                .iter()
+                .map(|t| Some(t.load(Ordering::Relaxed)).filter(|&t| t != NEVER))
+                .collect(),
             sync_read_configured: self.sync_read_configured,
             last_error: self.last_error.lock().ok().and_then(|l| l.clone()),
         }
@@ -256,6 +275,12 @@ pub struct BusStatsSnapshot {
     pub last_ok_ns: Option<i64>,
     /// (id, joint name) of every motor of the bus.
     pub motors: Vec<(u8, String)>,
+    /// Per motor (the order of `motors`): cycles in which it gave no
+    /// position (missing, `0xFFFF` in a sync read, any failure).
+    pub motor_missed: Vec<u64>,
+    /// Per motor: stamp of the latest cycle in which it gave a position
+    /// (`None`: never).
+    pub motor_last_read_ns: Vec<Option<i64>>,
     /// Whether the config asked for the USB2AX sync read.
     pub sync_read_configured: bool,
     /// The latest fault seen on this bus, one line (None: none yet).
