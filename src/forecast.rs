@@ -12,11 +12,13 @@
 //! that overruns makes the tick loop skip ticks and count them, never queue.
 //!
 //! Model choice ([`ModelChoice`]): camera lost -> MP, plan lost -> EP, both
-//! -> P; a lost stream counts as back once it has been fresh for a whole
-//! window (N ticks), so that the bigger network never sees a window of held,
-//! stale values. The same rule makes a forecast valid again after a gap in
-//! a stream the active network reads ([`ModelChoice::refilled`]). Each
-//! switch is logged and counted.
+//! -> P; a lost camera counts as back once it has been fresh for a whole
+//! window (N ticks), so that the bigger network never sees a window holding
+//! stale frames; a lost plan as soon as a fresh plan message is there (the
+//! window's plan is cut from the newest tick's message alone). The same rule
+//! makes a forecast valid again after a stale input the active network
+//! reads ([`ModelChoice::refilled`]): the joints, too, need N fresh ticks.
+//! Each switch is logged and counted.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -360,7 +362,9 @@ pub struct ModelChoice {
     active: Ablation,
     /// Consecutive fresh ticks of each stream (0 on a stale tick).
     runs: crate::sources::PerStream<usize>,
-    window_ticks: usize,
+    /// Fresh ticks after which a stream counts as back
+    /// ([`ModelChoice::refill_ticks`]).
+    refill: crate::sources::PerStream<usize>,
     switches: u64,
 }
 
@@ -382,7 +386,11 @@ impl ModelChoice {
             available,
             active: Ablation::EMP,
             runs: Default::default(),
-            window_ticks,
+            refill: crate::sources::PerStream {
+                joints: window_ticks,
+                camera: window_ticks,
+                plan: 1,
+            },
             switches: 0,
         }
     }
@@ -400,11 +408,20 @@ impl ModelChoice {
         self.runs[stream]
     }
 
-    /// True when the last N ticks (a whole window) of `stream` were all
-    /// fresh: a stream that was stale or absent counts as back only then,
-    /// so that no window of held values is trusted.
+    /// How many consecutive fresh ticks make `stream` usable again after it
+    /// was stale: the joints and the camera frames are read over the whole
+    /// window, so N (every tick of the window fresh again); the plan is read
+    /// from the newest tick's plan message only (which holds the window's
+    /// past and future plan), so 1: a fresh plan message is usable at once.
+    pub fn refill_ticks(&self, stream: StreamKind) -> usize {
+        self.refill[stream]
+    }
+
+    /// True when `stream` has been fresh for [`ModelChoice::refill_ticks`]
+    /// ticks: a stream that was stale or absent counts as back only then,
+    /// so that no window holding a stale value is trusted.
     pub fn refilled(&self, stream: StreamKind) -> bool {
-        self.fresh_ticks(stream) >= self.window_ticks
+        self.fresh_ticks(stream) >= self.refill_ticks(stream)
     }
 
     /// Update with one tick's freshness; returns the new ablation if it changed.
@@ -942,11 +959,40 @@ mod tests {
         assert_eq!(choice.update(no_plan), None);
         assert_eq!(choice.update(no_plan), None);
         assert_eq!(choice.update(no_plan), Some(Ablation::EP));
-        // Plan back for 3 ticks: EMP again.
-        assert_eq!(choice.update(FRESH), None);
-        assert_eq!(choice.update(FRESH), None);
+        // Plan back: its newest message is the whole plan input, so EMP
+        // again at once.
         assert_eq!(choice.update(FRESH), Some(Ablation::EMP));
         assert_eq!(choice.switches(), 4);
+        // The camera lost again and back: a whole window first.
+        assert_eq!(choice.update(no_camera), Some(Ablation::MP));
+        assert_eq!(choice.update(FRESH), None);
+        assert_eq!(choice.update(FRESH), None);
+        assert!(!choice.refilled(StreamKind::Camera));
+        assert_eq!(choice.update(FRESH), Some(Ablation::EMP));
+        assert!(choice.refilled(StreamKind::Camera) && choice.refilled(StreamKind::Plan));
+    }
+
+    #[test]
+    fn the_joints_and_camera_refill_a_window_the_plan_one_tick() {
+        let mut choice = ModelChoice::new(all(), 4);
+        let stale = Freshness {
+            joints: false,
+            camera: false,
+            plan: false,
+        };
+        choice.update(stale);
+        choice.update(FRESH);
+        assert!(choice.refilled(StreamKind::Plan));
+        assert!(!choice.refilled(StreamKind::Joints));
+        assert!(!choice.refilled(StreamKind::Camera));
+        assert_eq!(choice.fresh_ticks(StreamKind::Joints), 1);
+        assert_eq!(choice.refill_ticks(StreamKind::Joints), 4);
+        assert_eq!(choice.refill_ticks(StreamKind::Camera), 4);
+        assert_eq!(choice.refill_ticks(StreamKind::Plan), 1);
+        for _ in 0..3 {
+            choice.update(FRESH);
+        }
+        assert!(choice.refilled(StreamKind::Joints) && choice.refilled(StreamKind::Camera));
     }
 
     #[test]

@@ -137,7 +137,8 @@ pub struct TickLoop {
     last_reason: String,
 }
 
-/// Names of the joints a tick has no (finite) angle for.
+/// Names of the joints a tick has no angle for: never read (a motor that
+/// has not answered since the start).
 fn unread_joints(tick: &TickInput, names: &[String]) -> Vec<String> {
     tick.joints_rad.as_ref().map_or_else(Vec::new, |j| {
         j.iter()
@@ -148,7 +149,48 @@ fn unread_joints(tick: &TickInput, names: &[String]) -> Vec<String> {
     })
 }
 
-/// Whether a tick has every joint angle, finite.
+/// The joints whose value is older than `stale_ns` at this tick, with
+/// their ages in ns, oldest first (joints never read are
+/// [`unread_joints`]).
+fn stale_joints(tick: &TickInput, names: &[String], stale_ns: i64) -> Vec<(String, i64)> {
+    let mut stale: Vec<(String, i64)> = names
+        .iter()
+        .enumerate()
+        .filter_map(|(i, n)| {
+            tick.joint_age_ns(i)
+                .filter(|&age| age > stale_ns)
+                .map(|age| (n.clone(), age))
+        })
+        .collect();
+    stale.sort_by_key(|(_, age)| std::cmp::Reverse(*age));
+    stale
+}
+
+/// The joints of [`stale_joints`] for a message: `head_z 140 ms, abs_x 120
+/// ms`, or `all 25 joints` when every joint is.
+fn stale_joints_text(stale: &[(String, i64)], n_joints: usize) -> String {
+    if stale.len() == n_joints {
+        return format!("all {n_joints} joints");
+    }
+    stale
+        .iter()
+        .map(|(n, age)| format!("{n} {} ms", age / 1_000_000))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Whether a tick's joints are all usable: every joint read, none older
+/// than `stale_ns` (the tick's joints age is its oldest joint's).
+fn joints_fresh(tick: &TickInput, stale_ns: i64) -> bool {
+    tick.age_ns.joints.is_some_and(|age| age <= stale_ns)
+        && tick
+            .joints_rad
+            .as_ref()
+            .is_some_and(|j| j.iter().all(|v| v.is_finite()))
+}
+
+/// Whether a tick has a finite angle for every joint (what the network
+/// can be fed, however old).
 fn joints_complete(tick: &TickInput) -> bool {
     tick.joints_rad
         .as_ref()
@@ -156,17 +198,20 @@ fn joints_complete(tick: &TickInput) -> bool {
 }
 
 /// Why a tick's forecast is not valid (`None`: valid). Valid means: the
-/// ring holds N ticks, and every stream the active network reads was fresh
-/// in each of them. A stream back after a gap therefore keeps the forecast
-/// invalid until N fresh ticks have refilled the window, as a lost camera or
-/// plan must before the model choice takes it back.
+/// ring holds N ticks, and every input the active network reads is within
+/// its bound (`[streams].*_stale_ms`) over what the network reads of it:
+/// the joints and the camera frames of every tick of the window, the plan
+/// of the newest tick only (the window's plan, past and future, is cut from
+/// the newest tick's plan message). So after a joints or camera value older
+/// than its bound the window must refill (N fresh ticks), while a fresh
+/// plan message is usable at once ([`ModelChoice::refilled`]).
 ///
-/// A joints tick counts as fresh only when it has every joint: a motor
-/// that does not answer (NaN from the servo source) makes the forecast not
-/// valid, naming the joints, and once it answers again N complete ticks
-/// must refill the window. No angle is substituted (the planned one, say):
-/// the networks were never trained on a window with a substituted joint,
-/// so a forecast from one would be a number nobody measured the worth of.
+/// The joints are judged per joint: a joint whose motor did not answer in a
+/// cycle keeps its last value while that is younger than
+/// `joints_stale_ms`; older than that it makes the forecast not valid,
+/// naming it. No angle is substituted (the planned one, say): the networks
+/// were never trained on a window with a substituted joint, so a forecast
+/// from one would be a number nobody measured the worth of.
 fn invalid_reason(
     ring: &Ring,
     tick: &TickInput,
@@ -187,23 +232,38 @@ fn invalid_reason(
         camera: active.uses_vision(),
         plan: active.uses_plan(),
     };
-    let window = ring.capacity();
     let not_ready: Vec<String> = StreamKind::ALL
         .into_iter()
         .filter(|&kind| used[kind] && !choice.refilled(kind))
-        .map(|kind| match tick.age_ns[kind] {
-            None => format!("no {kind} sample yet"),
-            Some(age) if age > slots[kind].stale_ns => {
-                format!("{kind} stale ({} ms old)", age / 1_000_000)
+        .map(|kind| {
+            let stale_ns = slots[kind].stale_ns;
+            let unread = if kind == StreamKind::Joints {
+                unread_joints(tick, joint_names)
+            } else {
+                Vec::new()
+            };
+            match tick.age_ns[kind] {
+                None => format!("no {kind} sample yet"),
+                Some(_) if !unread.is_empty() => {
+                    format!("joints not read: {}", unread.join(", "))
+                }
+                Some(age) if age > stale_ns && kind == StreamKind::Joints => format!(
+                    "joints stale ({} ms old): {}",
+                    age / 1_000_000,
+                    stale_joints_text(
+                        &stale_joints(tick, joint_names, stale_ns),
+                        joint_names.len()
+                    )
+                ),
+                Some(age) if age > stale_ns => {
+                    format!("{kind} stale ({} ms old)", age / 1_000_000)
+                }
+                Some(_) => format!(
+                    "{kind} back, window refilling ({}/{} fresh ticks)",
+                    choice.fresh_ticks(kind),
+                    choice.refill_ticks(kind)
+                ),
             }
-            Some(_) if kind == StreamKind::Joints && !joints_complete(tick) => format!(
-                "joints not read: {}",
-                unread_joints(tick, joint_names).join(", ")
-            ),
-            Some(_) => format!(
-                "{kind} back, window refilling ({}/{window} fresh ticks)",
-                choice.fresh_ticks(kind)
-            ),
         })
         .collect();
     (!not_ready.is_empty()).then(|| not_ready.join(", "))
@@ -295,10 +355,9 @@ impl TickLoop {
         self.counters.ticks += 1;
         self.watchdog.tick();
         let slots = &self.settings.streams;
-        let complete = joints_complete(&tick);
-        let fresh: Freshness = PerStream::from_fn(|kind| {
-            tick.age_ns[kind].is_some_and(|age| age <= slots[kind].stale_ns)
-                && (kind != StreamKind::Joints || complete)
+        let fresh: Freshness = PerStream::from_fn(|kind| match kind {
+            StreamKind::Joints => joints_fresh(&tick, slots[kind].stale_ns),
+            _ => tick.age_ns[kind].is_some_and(|age| age <= slots[kind].stale_ns),
         });
         self.choice.update(fresh);
         let (tick_index, stamp_ns) = (tick.tick, tick.stamp_ns);
@@ -314,10 +373,14 @@ impl TickLoop {
             if lockstep {
                 self.inference.wait_idle().await;
             }
-            // A window with a joint not read is not run (the network would
-            // refuse it anyway): the forecast is not valid and says why.
-            // While the ring fills, the ticks so far go to the network
-            // (vision slices prepared ahead of the first forecast).
+            // A window with a joint never read is not run (the network
+            // would refuse it): the forecast is not valid and says why.
+            // Every other window goes to the network, valid or not, so that
+            // its forecaster follows the ring tick by tick and a window
+            // refilling after a stale input costs one tick's work when it
+            // becomes valid again. While the ring fills, the ticks so far go
+            // to the network (vision slices prepared ahead of the first
+            // forecast).
             let ticks = if self.ring.iter().all(joints_complete) {
                 self.ring.iter().cloned().collect()
             } else {
@@ -404,11 +467,14 @@ impl TickLoop {
             } else {
                 String::new()
             };
-            let unread = if kind == StreamKind::Joints {
-                latest.map_or_else(Vec::new, |t| unread_joints(t, &self.joint_names))
-            } else {
-                Vec::new()
+            let (unread, stale) = match (kind, latest) {
+                (StreamKind::Joints, Some(t)) => (
+                    unread_joints(t, &self.joint_names),
+                    stale_joints(t, &self.joint_names, slot.stale_ns),
+                ),
+                _ => (Vec::new(), Vec::new()),
             };
+            let n_joints = self.joint_names.len();
             let (level, message) = if !slot.configured {
                 (DiagnosticLevel::Ok, "not configured".to_string())
             } else {
@@ -416,6 +482,16 @@ impl TickLoop {
                     None => (
                         DiagnosticLevel::Stale,
                         format!("no sample yet{rejected_note}"),
+                    ),
+                    // Some joints older than the bound, the others read.
+                    Some(_) if !stale.is_empty() && stale.len() < n_joints => (
+                        DiagnosticLevel::Stale,
+                        format!(
+                            "stale: {} of {n_joints} joints older than {} ms: {}",
+                            stale.len(),
+                            slot.stale_ns / 1_000_000,
+                            stale_joints_text(&stale, n_joints)
+                        ),
                     ),
                     Some(age) if age > slot.stale_ns => (
                         DiagnosticLevel::Stale,
@@ -428,9 +504,8 @@ impl TickLoop {
                     Some(_) if !unread.is_empty() => (
                         DiagnosticLevel::Warn,
                         format!(
-                            "{} of {} joints not read: {}",
+                            "{} of {n_joints} joints not read: {}",
                             unread.len(),
-                            self.joint_names.len(),
                             unread.join(", ")
                         ),
                     ),
@@ -460,6 +535,8 @@ impl TickLoop {
             }
             if kind == StreamKind::Joints {
                 details.push(("joints_not_read".to_string(), unread.join(",")));
+                let stale: Vec<&str> = stale.iter().map(|(n, _)| n.as_str()).collect();
+                details.push(("joints_stale".to_string(), stale.join(",")));
             }
             devices.extend(stats.devices.iter().cloned());
             streams.push(StreamDiagnostics {
@@ -693,6 +770,118 @@ mod tests {
         feed.offer_at(now, now + 1, Ok(vec![1.0]))
             .expect("admitted");
         assert_eq!(take_new(&tap, &mut seen).map(|s| s.seq), Some(2));
+    }
+
+    /// Ticks at 30 Hz of a 3-joint servo reading every 20 ms, `missed(k, j)`
+    /// saying whether joint `j` missed reading `k`.
+    fn servo_ticks(readings: i64, missed: impl Fn(i64, usize) -> bool) -> Vec<TickInput> {
+        let spec = crate::window::WindowSpec {
+            n_ticks: 4,
+            max_horizon_ticks: 1,
+            rate_hz: 30.0,
+            joint_names: vec!["a".into(), "b".into(), "c".into()],
+            frame_size: 4,
+        };
+        let mut resampler = Resampler::new(&spec).expect("spec");
+        let mut out = Vec::new();
+        for k in 0..readings {
+            let positions_rad = (0..3)
+                .map(|j| {
+                    if missed(k, j) {
+                        f32::NAN
+                    } else {
+                        0.1 * j as f32
+                    }
+                })
+                .collect();
+            resampler.push(
+                Sample::Joints {
+                    stamp_ns: k * 20_000_000,
+                    positions_rad,
+                },
+                &mut out,
+            );
+        }
+        out
+    }
+
+    /// The reason of each tick's forecast with the P network (joints only)
+    /// and `joints_stale_ms` = 100, as the tick loop judges them.
+    fn reasons(ticks: Vec<TickInput>) -> Vec<Option<String>> {
+        let names: Vec<String> = vec!["a".into(), "b".into(), "c".into()];
+        let slots = PerStream::from_fn(|kind| StreamSlot {
+            kind,
+            source: "test".into(),
+            configured: kind == StreamKind::Joints,
+            stale_ns: 100_000_000,
+            stats: Arc::default(),
+        });
+        let mut ring = Ring::new(4);
+        let mut choice = ModelChoice::new(vec![Ablation::P], 4);
+        ticks
+            .into_iter()
+            .map(|tick| {
+                choice.update(PerStream::from_fn(|kind| {
+                    kind == StreamKind::Joints && joints_fresh(&tick, 100_000_000)
+                }));
+                ring.push(tick);
+                let latest = ring.latest().expect("a tick").clone();
+                invalid_reason(&ring, &latest, &choice, &slots, &names)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_joint_missed_now_and_then_keeps_the_forecast_valid() {
+        // Joint b misses every other reading, c three in a row: never
+        // older than 100 ms.
+        let r = reasons(servo_ticks(60, |k, j| {
+            (j == 1 && k % 2 == 1) || (j == 2 && (10..13).contains(&k))
+        }));
+        assert_eq!(r[2].as_deref(), Some("ring filling (3/4 ticks)"));
+        assert!(r[3..].iter().all(Option::is_none), "{r:?}");
+    }
+
+    #[test]
+    fn a_joint_older_than_its_bound_is_named_and_the_window_refills() {
+        // Joint c not read in readings 10..=17 (200 ms to 340 ms): its value
+        // of 180 ms is older than 100 ms from tick 9 (300 ms) to tick 10
+        // (333 ms); reading 18 (360 ms) brings it back at tick 11.
+        let r = reasons(servo_ticks(45, |k, j| j == 2 && (10..18).contains(&k)));
+        let at = |tick: usize| r[tick].as_deref().unwrap_or("valid");
+        assert_eq!(at(8), "valid");
+        assert_eq!(at(9), "joints stale (120 ms old): c 120 ms");
+        assert_eq!(at(10), "joints stale (153 ms old): c 153 ms");
+        assert_eq!(at(11), "joints back, window refilling (1/4 fresh ticks)");
+        assert_eq!(at(13), "joints back, window refilling (3/4 fresh ticks)");
+        // Valid once the window's four ticks are all fresh.
+        assert_eq!(at(14), "valid");
+    }
+
+    #[test]
+    fn a_joint_never_read_and_a_stopped_stream_say_so() {
+        let r = reasons(servo_ticks(20, |_, j| j == 0));
+        assert!(
+            r[3..]
+                .iter()
+                .all(|x| x.as_deref() == Some("joints not read: a")),
+            "{r:?}"
+        );
+        // Every joint's value older than the bound: the whole stream stopped.
+        let mut ticks = servo_ticks(10, |_, _| false);
+        let last = ticks.last().cloned().expect("ticks");
+        for k in 1..=4 {
+            let mut t = last.clone();
+            t.tick += k;
+            t.stamp_ns += k * 33_333_333;
+            t.age_ns.joints = t.age_ns.joints.map(|a| a + k * 33_333_333);
+            ticks.push(t);
+        }
+        let r = reasons(ticks);
+        assert_eq!(
+            r.last().cloned().flatten().as_deref(),
+            Some("joints stale (139 ms old): all 3 joints")
+        );
     }
 
     #[test]

@@ -18,8 +18,11 @@
 //!   [`Resampler`] emits is the first grid tick at or after the first time it
 //!   is given (a sample's stamp or an `advance_to` time).
 //! - **Resampling**: zero-order hold for every stream: a tick sees the last
-//!   sample whose stamp is at or before the tick's stamp. Joints are not
-//!   interpolated.
+//!   sample whose stamp is at or before the tick's stamp. Joints are held
+//!   per joint: a joints sample with NaN for a joint (a motor that did not
+//!   answer that cycle) leaves that joint's earlier value and stamp, so a
+//!   tick's joints age is the age of its oldest joint
+//!   ([`TickInput::joint_age_ns`] per joint). Joints are not interpolated.
 //! - **Plan**: the latest plan message at tick `t` is evaluated at the stamps
 //!   of ticks `t-N+1 ..= t+hK` by linear interpolation between its points
 //!   (point time = `header.stamp + time_from_start`), holding the first and
@@ -446,7 +449,33 @@ pub struct TickInput {
     pub frame: Option<TickFrame>,
     /// Latest plan.
     pub plan: Option<Arc<Plan>>,
+    /// Per stream, ns from the sample held to the tick; for the joints, the
+    /// age of the oldest joint value held.
     pub age_ns: StreamAges,
+    /// Per joint (model order), the stamp of the value held, when the
+    /// joints' values were not all read at once (a servo reading that
+    /// missed some motors keeps their earlier values); `None` when every
+    /// value is from the latest joints sample (`age_ns.joints`).
+    pub joint_stamps_ns: Option<Arc<[Option<i64>]>>,
+}
+
+impl TickInput {
+    /// Age at this tick of joint `index`'s value, ns (`None`: never read).
+    pub fn joint_age_ns(&self, index: usize) -> Option<i64> {
+        match &self.joint_stamps_ns {
+            Some(stamps) => stamps
+                .get(index)
+                .copied()
+                .flatten()
+                .map(|s| self.stamp_ns - s),
+            None => self
+                .joints_rad
+                .as_ref()
+                .and_then(|j| j.get(index))
+                .filter(|v| v.is_finite())
+                .and(self.age_ns.joints),
+        }
+    }
 }
 
 /// Which streams a window must hold (an ablation without vision does not
@@ -469,6 +498,66 @@ impl PerStream<bool> {
     }
 }
 
+/// The joints a [`Resampler`] holds: each joint's latest finite angle and
+/// the stamp it was read at. A joints sample with NaN for a joint (the servo
+/// source: that motor did not answer this cycle) updates the others only.
+#[derive(Debug, Clone)]
+struct JointHold {
+    /// Stamp of the latest joints sample.
+    latest_ns: i64,
+    values: Vec<f32>,
+    /// Per joint, when its value was read (`None`: never).
+    stamps: Vec<Option<i64>>,
+    /// `stamps` as the ticks share it, when some value is older than the
+    /// latest sample; `None` when every joint was read in it.
+    shared: Option<Arc<[Option<i64>]>>,
+}
+
+impl JointHold {
+    fn new(stamp_ns: i64, positions_rad: Vec<f32>) -> JointHold {
+        let stamps = vec![None; positions_rad.len()];
+        let mut hold = JointHold {
+            latest_ns: stamp_ns,
+            values: vec![f32::NAN; positions_rad.len()],
+            stamps,
+            shared: None,
+        };
+        hold.update(stamp_ns, &positions_rad);
+        hold
+    }
+
+    /// Takes the finite values of a sample stamped `stamp_ns`.
+    fn update(&mut self, stamp_ns: i64, positions_rad: &[f32]) {
+        if positions_rad.len() != self.values.len() {
+            // Another joint count: nothing earlier applies.
+            self.values = vec![f32::NAN; positions_rad.len()];
+            self.stamps = vec![None; positions_rad.len()];
+        }
+        self.latest_ns = stamp_ns;
+        for ((value, stamp), &v) in self
+            .values
+            .iter_mut()
+            .zip(&mut self.stamps)
+            .zip(positions_rad)
+        {
+            if v.is_finite() {
+                *value = v;
+                *stamp = Some(stamp_ns);
+            }
+        }
+        self.shared = (!self.stamps.iter().all(|s| *s == Some(stamp_ns)))
+            .then(|| Arc::from(self.stamps.as_slice()));
+    }
+
+    /// Age at `stamp_ns` of the oldest value held (`None`: no joint read yet).
+    fn age_ns(&self, stamp_ns: i64) -> Option<i64> {
+        if self.shared.is_none() {
+            return Some(stamp_ns - self.latest_ns);
+        }
+        self.stamps.iter().flatten().min().map(|s| stamp_ns - s)
+    }
+}
+
 /// Turns time-ordered samples into one [`TickInput`] per grid tick.
 ///
 /// [`push`](Self::push) a sample: every tick strictly before its stamp is
@@ -483,7 +572,7 @@ impl PerStream<bool> {
 pub struct Resampler {
     grid: TickGrid,
     next_tick: Option<i64>,
-    joints: Option<(i64, Vec<f32>)>,
+    joints: Option<JointHold>,
     frame: Option<(i64, TickFrame)>,
     plan: Option<(i64, Arc<Plan>)>,
     dropped: u64,
@@ -527,10 +616,12 @@ impl Resampler {
                 stamp_ns,
                 positions_rad,
             } => {
-                if newer(self.joints.as_ref().map(|x| x.0)) {
-                    self.joints = Some((stamp_ns, positions_rad));
-                } else {
+                if !newer(self.joints.as_ref().map(|x| x.latest_ns)) {
                     self.dropped += 1;
+                } else if let Some(hold) = self.joints.as_mut() {
+                    hold.update(stamp_ns, &positions_rad);
+                } else {
+                    self.joints = Some(JointHold::new(stamp_ns, positions_rad));
                 }
             }
             Sample::Frame { stamp_ns, frame } => {
@@ -596,14 +687,15 @@ impl Resampler {
             out.push(TickInput {
                 tick,
                 stamp_ns,
-                joints_rad: self.joints.as_ref().map(|(_, j)| j.clone()),
+                joints_rad: self.joints.as_ref().map(|h| h.values.clone()),
                 frame: self.frame.as_ref().map(|(_, f)| f.clone()),
                 plan: self.plan.as_ref().map(|(_, p)| Arc::clone(p)),
                 age_ns: StreamAges {
-                    joints: self.joints.as_ref().map(|(t, _)| stamp_ns - t),
+                    joints: self.joints.as_ref().and_then(|h| h.age_ns(stamp_ns)),
                     camera: self.frame.as_ref().map(|(t, _)| stamp_ns - t),
                     plan: self.plan.as_ref().map(|(t, _)| stamp_ns - t),
                 },
+                joint_stamps_ns: self.joints.as_ref().and_then(|h| h.shared.clone()),
             });
             tick += 1;
         }

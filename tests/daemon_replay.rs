@@ -382,8 +382,10 @@ fn joints_gap_invalidates_forecasts_until_the_window_refills() {
 /// around P -> MP). The shipped networks on the bundled generator-2
 /// episodes with the camera gone (so MP, as `camera = "none"` runs) and
 /// the plan lost from 1.5 s to 3.2 s: MP -> P when the plan goes stale,
-/// P -> MP once it has been fresh for a whole window again. Around every
-/// switch the safety signal changes at most once per 0.5 s (15 ticks).
+/// P -> MP on the tick a fresh plan message is there again (the window's
+/// plan is cut from the newest message alone: no refill), valid at once.
+/// Around every switch the safety signal changes at most once per 0.5 s
+/// (15 ticks).
 #[test]
 fn network_switches_do_not_make_the_latch_chatter() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -433,6 +435,21 @@ fn network_switches_do_not_make_the_latch_chatter() {
         assert!(
             names.ends_with(&["P", "MP"]),
             "{episode}: switches {switches:?}"
+        );
+        let (back, _) = switches[switches.len() - 1];
+        let back_line = lines.iter().find(|l| l.tick == back).expect("switch tick");
+        assert!(
+            back_line.valid,
+            "{episode}: MP back but not valid: {back_line:?}"
+        );
+        // The plan returns at 3.2 s: MP on the first tick whose plan
+        // message is fresh again, not a window later.
+        let t0_s = t0 as f64 / 1e9;
+        assert!(
+            back_line.stamp_s < t0_s + 3.2 + 1.1,
+            "{episode}: MP back at {} s, the plan at {} s",
+            back_line.stamp_s - t0_s,
+            3.2
         );
         let flips: Vec<i64> = lines
             .windows(2)

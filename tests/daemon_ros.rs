@@ -11,8 +11,8 @@
 //!   so on `/diagnostics`;
 //!   a SIGTERM stops it with no ERROR and no DDS chatter in its log;
 //! - a joints gap in a replay: NaN on `/fall_guard/forecast` from the
-//!   stale tick until N fresh ticks have refilled the window, and
-//!   `fall_imminent` asserted meanwhile;
+//!   first tick whose joints are older than `joints_stale_ms` until N fresh
+//!   ticks have refilled the window, and `fall_imminent` asserted meanwhile;
 //! - `record` then `label` then `replay` of live ROS 2 streams; `record`
 //!   keeps the camera's messages byte for byte (a 320x240 JPEG) and runs
 //!   with a config whose network files do not exist;
@@ -22,9 +22,16 @@
 //!   keeps running and recovers;
 //! - one servo that does not answer (and a plain, non-USB2AX adapter on the
 //!   other bus): `/joint_states` goes on with the other 24 joints, the
-//!   forecast is NaN and `fall_imminent` asserted, `/diagnostics` names the
-//!   motor on the joints and the bus status; when it answers again, and
-//!   after garbage on the bus, every level returns to OK.
+//!   forecast is NaN once its last value is older than `joints_stale_ms`
+//!   and `fall_imminent` asserted, `/diagnostics` names the motor on the
+//!   joints and the bus status; when it answers again, and after garbage on
+//!   the bus, every level returns to OK;
+//! - both buses noisy (seeded faults of each motor's reply: 5% dropped, 2%
+//!   bad checksums, 5% garbage before it) with a ROS 2 planner: at least
+//!   95% of the forecasts valid on held joint values, every position on
+//!   `/joint_states` one a motor held, each motor's age and missed-read
+//!   share on its bus status and the failing ones named at WARN; a bus
+//!   unplugged makes every forecast from 0.5 s on NaN.
 
 #[path = "ros/heard.rs"]
 mod heard;
@@ -912,9 +919,12 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
             seen.last()
         );
     };
+    // Its last value held until older than joints_stale_ms: the joints
+    // stream is then STALE for that joint alone.
     let joints = status(&missing, ": joints");
-    assert_eq!(level(&joints), 1, "{joints}");
-    assert_eq!(kv(&joints, "joints_not_read").as_deref(), Some("head_z"));
+    assert_eq!(level(&joints), 3, "{joints}");
+    assert_eq!(kv(&joints, "joints_stale").as_deref(), Some("head_z"));
+    assert_eq!(kv(&joints, "joints_not_read").as_deref(), Some(""));
     assert!(
         joints["message"]
             .as_str()
@@ -1114,5 +1124,292 @@ async fn joints_gap_publishes_nan_forecasts_until_the_window_refills() {
     assert!(
         imminent.ends_with(&[false, true, false]),
         "fall_imminent received: {imminent:?}"
+    );
+}
+
+/// The seeded reply faults of the noisy-bus check, as measured on a bus
+/// that lost every forecast to NaN under the rule that a cycle missing
+/// any motor is a gap: 5% of each motor's replies dropped, 2% with a bad
+/// checksum, 5% with garbage bytes before them.
+fn bus_noise(seed: u64) -> fall_guard::sources::dynamixel::emulator::ReplyNoise {
+    fall_guard::sources::dynamixel::emulator::ReplyNoise {
+        seed,
+        p_drop: 0.05,
+        p_corrupt: 0.02,
+        p_garbage: 0.05,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
+    let _one_at_a_time = SERVO_BUSES.lock().await;
+    use std::collections::{BTreeMap, BTreeSet};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::{Arc, Mutex};
+
+    use fall_guard::robot::JointTable;
+    use fall_guard::sources::dynamixel::emulator::PoppyBuses;
+
+    let test = "a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read";
+    let Some(python) = rclpy_python(test) else {
+        return;
+    };
+    let domain = domain_id(6);
+    let dir = tempfile::tempdir().expect("tempdir");
+    let table = JointTable::poppy_humanoid();
+    let buses = Arc::new(PoppyBuses::start(&table, dir.path()).expect("emulated buses"));
+    // Both buses read with the USB2AX sync read (the default); a motor's
+    // lost reply gives FF bytes in the adapter's answer (12% of them), and
+    // the reader asks again for those motors in the same cycle (1.4% lost
+    // twice). A failing-motor share below that: the motors are named at
+    // WARN while the forecast stays valid on the values held.
+    buses.lower.set_noise(Some(bus_noise(11)));
+    buses.upper.set_noise(Some(bus_noise(12)));
+    let tables = format!(
+        "\n[dynamixel]\nrate_hz = 50.0\nwarn_missed_share = 0.005\n\n[dynamixel.buses.lower]\nport = \"{}\"\n\n[dynamixel.buses.upper]\nport = \"{}\"\n",
+        buses.lower.port_path().display(),
+        buses.upper.port_path().display()
+    );
+    // Joints from the buses, the plan from a ROS 2 planner, no camera: MP.
+    let config = replay_config(dir.path(), domain, move |t| {
+        t.replace("joints = \"ros\"", "joints = \"dynamixel\"") + &tables
+    });
+
+    // The motors move all along; every raw position a motor held is kept.
+    let held: Arc<Mutex<BTreeMap<u8, BTreeSet<u16>>>> = Arc::default();
+    let moving = Arc::new(AtomicBool::new(true));
+    let mover = {
+        let (buses, held, moving) = (Arc::clone(&buses), Arc::clone(&held), Arc::clone(&moving));
+        let joints = table.joints().to_vec();
+        std::thread::spawn(move || {
+            let mut step = 0u16;
+            while moving.load(Ordering::Relaxed) {
+                for (i, joint) in joints.iter().enumerate() {
+                    let centre =
+                        joint.deg_to_raw(0.5 * (joint.lower_limit_deg + joint.upper_limit_deg));
+                    let raw = centre + (step + i as u16) % 24;
+                    held.lock()
+                        .expect("held")
+                        .entry(joint.id)
+                        .or_default()
+                        .insert(raw);
+                    buses.set_raw_position(joint.id, raw).expect("motor");
+                }
+                step = step.wrapping_add(1);
+                std::thread::sleep(Duration::from_millis(40));
+            }
+        })
+    };
+
+    let mut listener = listen(
+        &python,
+        domain,
+        &[
+            "--sub",
+            "/diagnostics:diagnostic_msgs/msg/DiagnosticArray:diagnostics",
+            "--sub",
+            "/joint_states:sensor_msgs/msg/JointState:sensor_data",
+            "--sub",
+            "/fall_guard/forecast:std_msgs/msg/Float32MultiArray:forecast_log",
+            "--timeout",
+            "120",
+        ],
+    )
+    .await;
+    let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
+    // The planner's own joint states go elsewhere: /joint_states is the
+    // daemon's, from the buses.
+    let joints = robot_joints().join(",");
+    let mut planner = Peer::spawn(
+        &python,
+        domain,
+        &[
+            "walk",
+            "--joints",
+            &joints,
+            "--joint-states",
+            "/planner/joint_states",
+            "--timeout",
+            "120",
+        ],
+    );
+
+    // Valid forecasts on the noisy buses once the ring is full and the
+    // plan has come (discovery), then 20 s of them.
+    let (first, seen) = wait_validity(&mut listener, true, Duration::from_secs(60)).await;
+    if first.is_none() {
+        let (_, _, stderr) = daemon.stop();
+        panic!(
+            "never valid on the noisy buses: {}\ndaemon: {stderr}\nplanner: {}",
+            last_statuses(&seen),
+            planner.stderr()
+        );
+    }
+    let mut events = seen;
+    let noisy_until = std::time::Instant::now() + Duration::from_secs(20);
+    while let Some(e) = listener
+        .next_event(noisy_until.saturating_duration_since(std::time::Instant::now()))
+        .await
+    {
+        events.push(e);
+    }
+    let noisy_diag = msgs(&events, "/diagnostics")
+        .last()
+        .cloned()
+        .expect("diagnostics");
+
+    // The lower bus unplugged: no joint of it is read any more.
+    let unplugged_s = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("clock")
+        .as_secs_f64();
+    buses.lower.unplug().expect("unplug");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    events.extend(listener.drain());
+    moving.store(false, Ordering::Relaxed);
+    mover.join().expect("mover");
+    drop(planner.drain());
+    let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
+        .await
+        .expect("join");
+    assert!(success, "daemon exit: {stderr}");
+
+    // What the daemon decided per tick: after the ring first filled and
+    // before the unplug, at least 95% valid (on held joint values; P until
+    // the plan comes, MP from then on).
+    let lines = parse_lines(&stdout);
+    let filled = lines
+        .iter()
+        .position(|l| !l.reason.contains("ring filling"))
+        .expect("the ring filled");
+    let noisy: Vec<&Line> = lines[filled..]
+        .iter()
+        .filter(|l| l.stamp_s < unplugged_s)
+        .collect();
+    let valid = noisy.iter().filter(|l| l.valid).count();
+    assert!(
+        noisy.len() >= 600,
+        "{} ticks on the noisy buses",
+        noisy.len()
+    );
+    let invalid: Vec<&str> = noisy
+        .iter()
+        .filter(|l| !l.valid)
+        .map(|l| l.reason.as_str())
+        .collect();
+    assert!(
+        valid as f64 >= 0.95 * noisy.len() as f64,
+        "{valid} of {} forecasts valid on the noisy buses; not valid: {:?}",
+        noisy.len(),
+        &invalid[..invalid.len().min(20)]
+    );
+    assert!(
+        noisy.iter().any(|l| l.valid && l.ablation == "MP"),
+        "no valid MP forecast: the plan never came"
+    );
+    // What rclpy read: numbers for (at least) 95% of the forecasts after
+    // the first number.
+    let forecasts: Vec<Vec<f32>> = msgs(&events, "/fall_guard/forecast")
+        .map(forecast_values)
+        .collect();
+    let runs = nan_runs(&forecasts);
+    let first_number = forecasts
+        .iter()
+        .position(|p| p.iter().all(|v| v.is_finite()))
+        .expect("a number on /fall_guard/forecast");
+    let heard = &forecasts[first_number..];
+    let numbers = heard
+        .iter()
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .count();
+    // The tail holds the NaN of the unplugged bus (1.5 s, 45 ticks).
+    assert!(
+        numbers as f64 >= 0.95 * (heard.len().saturating_sub(45)) as f64,
+        "{numbers} numbers of {} forecasts heard; runs {runs:?}",
+        heard.len()
+    );
+
+    // Unplugged: every forecast stamped 0.5 s after the unplug or later is
+    // NaN, naming the lower bus's joints as too old.
+    let after: Vec<&Line> = lines
+        .iter()
+        .filter(|l| l.stamp_s >= unplugged_s + 0.5)
+        .collect();
+    assert!(after.len() >= 15, "{} ticks after the unplug", after.len());
+    assert!(
+        after.iter().all(|l| !l.valid
+            && l.reason.contains("joints stale")
+            && l.reason.contains("l_knee_y")),
+        "{:?}",
+        after
+            .iter()
+            .find(|l| l.valid || !l.reason.contains("l_knee_y"))
+    );
+
+    // /joint_states: only positions a bus served, each one a raw position
+    // its motor held (no held or made-up value), with the joints a cycle
+    // missed left out.
+    let held = held.lock().expect("held");
+    let mut states = 0;
+    let mut partial = 0;
+    for m in msgs(&events, "/joint_states") {
+        states += 1;
+        let names = m["msg"]["name"].as_array().expect("names");
+        let positions = m["msg"]["position"].as_array().expect("positions");
+        assert_eq!(names.len(), positions.len());
+        partial += usize::from(names.len() < 25);
+        for (name, position) in names.iter().zip(positions) {
+            let name = name.as_str().expect("name");
+            let joint = &table.joints()[table.index_of(name).expect("a robot joint")];
+            let got = position.as_f64().expect("position");
+            // The f32 the daemon read, as an f64 (JSON's parse may be off
+            // by an ulp; raw positions are 1.5 mrad apart).
+            assert!(
+                held[&joint.id]
+                    .iter()
+                    .any(|&raw| (f64::from(joint.raw_to_rad(raw) as f32) - got).abs() < 1e-9),
+                "{name} = {got} rad on /joint_states: no raw position motor {} held",
+                joint.id
+            );
+        }
+    }
+    assert!(states >= 500, "{states} joint states heard");
+    assert!(partial > 0, "no cycle missed a motor: is the noise on?");
+
+    // /diagnostics on the noisy buses: per motor the age of its value and
+    // its share of missed reads; every motor above the 0.5% share is named
+    // at WARN while the forecast is valid.
+    let model = status_named(&noisy_diag, ": model").expect("model status");
+    let lower = status_named(&noisy_diag, ": servo bus lower").expect("lower bus status");
+    assert_eq!(kv(model, "valid").as_deref(), Some("true"), "{model}");
+    assert_eq!(level(lower), 1, "{lower}");
+    assert!(
+        lower["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("reads failing persistently")),
+        "{lower}"
+    );
+    let failing = kv(lower, "failing_motors").unwrap_or_default();
+    for joint in table.joints().iter().filter(|j| j.bus == "lower") {
+        let share: f64 = kv(lower, &format!("missed_share.{}", joint.name))
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("no missed share of {}: {lower}", joint.name));
+        assert!((0.0..=0.1).contains(&share), "{}: {share}", joint.name);
+        let age: f64 = kv(lower, &format!("age_ms.{}", joint.name))
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("no age of {}: {lower}", joint.name));
+        assert!(age >= 0.0, "{}: {age}", joint.name);
+        if share > 0.005 {
+            assert!(
+                failing.contains(&format!("{} ({})", joint.id, joint.name)),
+                "{} missed {share} of its reads, not named: {failing}",
+                joint.name
+            );
+        }
+    }
+    let counts = buses.upper.noise_counts();
+    assert!(
+        counts.dropped > 0 && counts.corrupted > 0 && counts.garbage > 0,
+        "{counts:?}"
     );
 }

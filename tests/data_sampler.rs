@@ -29,6 +29,7 @@ fn episode(len: usize, present_from: usize, onset: Option<i64>) -> EpisodeTicks 
                 frame: has.then(|| frame.clone().into()),
                 plan: has.then(|| plan.clone()),
                 age_ns: Default::default(),
+                joint_stamps_ns: None,
             }
         })
         .collect();

@@ -165,6 +165,7 @@ proptest! {
                 frame: Some(Frame::solid(4, 4, [tick as u8, 1, 2]).into()),
                 plan: Some(Arc::new(Plan { stamp_ns: 0, times_ns: vec![0], positions_rad: vec![0.5; c], n_joints: c })),
                 age_ns: Default::default(),
+                joint_stamps_ns: None,
             };
             ring.push(t.clone());
             all.push(t);
@@ -212,6 +213,7 @@ fn window_layout_is_time_major_and_channel_planes() {
                 n_joints: c,
             })),
             age_ns: Default::default(),
+            joint_stamps_ns: None,
         })
         .collect();
     let w = Window::from_ticks(&ticks, &sp, Streams::ALL).unwrap();
@@ -453,4 +455,52 @@ fn compressed_frames_give_the_windows_of_decoded_ones() {
             );
         }
     }
+}
+
+#[test]
+fn a_joint_not_read_in_a_sample_keeps_its_value_and_its_age() {
+    let mut r = Resampler::new(&spec(4, 3)).unwrap();
+    let mut out = Vec::new();
+    let joints = |stamp_ns: i64, v: [f32; 3]| Sample::Joints {
+        stamp_ns,
+        positions_rad: v.to_vec(),
+    };
+    let nan = f32::NAN;
+    // Tick k at k/30 s; a servo reading every 20 ms, joint 1 missed twice,
+    // joint 2 never read until the third reading.
+    r.push(joints(0, [0.1, 0.2, nan]), &mut out);
+    r.push(joints(20_000_000, [0.11, nan, nan]), &mut out);
+    r.push(joints(40_000_000, [0.12, nan, 0.32]), &mut out);
+    r.advance_to(66_666_667, &mut out);
+    let ticks: Vec<&TickInput> = out.iter().collect();
+    assert_eq!(ticks.iter().map(|t| t.tick).collect::<Vec<_>>(), [0, 1, 2]);
+    // Tick 0: only the first reading; joint 2 not read yet.
+    let t0 = ticks[0];
+    assert_eq!(t0.joints_rad.as_ref().unwrap()[..2], [0.1, 0.2]);
+    assert!(t0.joints_rad.as_ref().unwrap()[2].is_nan());
+    assert_eq!((t0.joint_age_ns(0), t0.joint_age_ns(2)), (Some(0), None));
+    assert_eq!(t0.age_ns.joints, Some(0));
+    // Tick 1 (33.3 ms): joint 1 held from the first reading.
+    let t1 = ticks[1];
+    assert_eq!(t1.joints_rad.as_ref().unwrap()[..2], [0.11, 0.2]);
+    assert_eq!(t1.joint_age_ns(0), Some(33_333_334 - 20_000_000));
+    assert_eq!(t1.joint_age_ns(1), Some(33_333_334));
+    // The tick's joints age is its oldest joint's.
+    assert_eq!(t1.age_ns.joints, Some(33_333_334));
+    // Tick 2 (66.7 ms): every joint has a value, joint 1 the oldest.
+    let t2 = ticks[2];
+    assert_eq!(t2.joints_rad.as_ref().unwrap(), &vec![0.12, 0.2, 0.32]);
+    assert_eq!(t2.joint_age_ns(1), Some(66_666_667));
+    assert_eq!(t2.joint_age_ns(2), Some(66_666_667 - 40_000_000));
+    assert_eq!(t2.age_ns.joints, Some(66_666_667));
+    // A complete reading: every value from it, no per-joint stamps kept.
+    out.clear();
+    r.push(joints(80_000_000, [0.13, 0.23, 0.33]), &mut out);
+    r.advance_to(100_000_000, &mut out);
+    let t3 = out.last().unwrap();
+    assert_eq!(t3.tick, 3);
+    assert!(t3.joint_stamps_ns.is_none());
+    assert_eq!(t3.age_ns.joints, Some(20_000_000));
+    assert_eq!(t3.joint_age_ns(1), Some(20_000_000));
+    assert_eq!(t3.joints_rad.as_ref().unwrap(), &vec![0.13, 0.23, 0.33]);
 }

@@ -125,7 +125,8 @@ impl StreamingForecaster {
     /// Adds tick `tick`: `joints_rad` `[C]` in model order; `frame` `[3, S, S]`
     /// in `[0, 1]` (needed by vision ablations); `plan_rad` the plan window
     /// `[N + h_K, C]` for this tick (needed by plan ablations whose
-    /// trajectory input is cut from the plan; a historical-only model reads
+    /// trajectory input is cut from the plan, for the newest tick only: the
+    /// window's plan is the newest tick's; a historical-only model reads
     /// its first `N` rows and accepts a window of just those). A tick that is
     /// not the successor of the last one starts a new window.
     pub fn push_parts(
@@ -187,13 +188,12 @@ impl StreamingForecaster {
             None
         };
         if meta.ablation.uses_plan() && cfg.trajectory.reads_plan() {
-            let p = plan_rad.ok_or_else(|| {
-                ModelError::Input(format!(
-                    "tick {tick}: no plan, the {} model needs one",
-                    meta.ablation
-                ))
-            })?;
-            self.plan_std = Some(self.standardised_plan(tick, p)?);
+            // Only the newest tick's plan window is read (it holds the
+            // window's past and future plan): a tick without a plan clears
+            // it, and the forecast of a window ending there is refused.
+            self.plan_std = plan_rad
+                .map(|p| self.standardised_plan(tick, p))
+                .transpose()?;
         }
         if let Some(last) = self.ticks.back() {
             if tick != last.tick + 1 {
@@ -287,6 +287,13 @@ impl StreamingForecaster {
             return Err(ModelError::Input(format!(
                 "window not full: {} of {n} ticks",
                 self.ticks.len()
+            )));
+        }
+        if meta.ablation.uses_plan() && cfg.trajectory.reads_plan() && self.plan_std.is_none() {
+            return Err(ModelError::Input(format!(
+                "tick {}: no plan, the {} model needs one",
+                self.ticks.back().map_or(0, |t| t.tick),
+                meta.ablation
             )));
         }
         let device = self.model.device.clone();

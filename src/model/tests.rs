@@ -714,6 +714,7 @@ fn labelled_episode(c: usize, ticks: i64) -> crate::window::EpisodeTicks {
                 frame: None,
                 plan: Some(plan.clone()),
                 age_ns: Default::default(),
+                joint_stamps_ns: None,
             })
             .collect(),
         fall_onset_tick: None,

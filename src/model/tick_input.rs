@@ -47,14 +47,13 @@ impl StreamingForecaster {
         } else {
             None
         };
-        let plan = if meta.ablation.uses_plan() && meta.config.trajectory.reads_plan() {
-            let p = input
-                .plan
-                .as_ref()
-                .ok_or_else(|| ModelError::Input(format!("tick {tick}: no plan yet")))?;
-            Some(self.plan_window(tick, p)?)
-        } else {
-            None
+        // A tick without a plan yet is taken: only the newest tick's plan is
+        // read, and the forecast refuses a window whose newest tick has none.
+        let plan = match &input.plan {
+            Some(p) if meta.ablation.uses_plan() && meta.config.trajectory.reads_plan() => {
+                Some(self.plan_window(tick, p)?)
+            }
+            _ => None,
         };
         self.push_parts(tick, joints, frame.as_deref(), plan.as_deref())
     }

@@ -138,6 +138,8 @@ pub fn fall_guard(args: &[&str]) -> Output {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Line {
     pub tick: i64,
+    /// The tick's stamp, seconds (`t=`).
+    pub stamp_s: f64,
     pub ablation: String,
     pub valid: bool,
     pub reason: String,
@@ -156,6 +158,11 @@ pub fn parse_lines(stdout: &[u8]) -> Vec<Line> {
                 .nth(1)
                 .and_then(|t| t.parse().ok())
                 .expect("tick");
+            let stamp_s = l
+                .split_whitespace()
+                .nth(2)
+                .and_then(|t| t.strip_prefix("t=")?.strip_suffix('s')?.parse().ok())
+                .expect("t=");
             let ablation = l.split_whitespace().nth(3).expect("ablation").to_string();
             let rest = l.splitn(5, ' ').nth(4).expect("rest");
             let valid = rest.starts_with("valid");
@@ -176,6 +183,7 @@ pub fn parse_lines(stdout: &[u8]) -> Vec<Line> {
             let imminent = l.ends_with("imminent=true");
             Line {
                 tick,
+                stamp_s,
                 ablation,
                 valid,
                 reason,

@@ -62,12 +62,12 @@ pub fn diag_value(status: &Value, key: &str) -> Option<String> {
         .and_then(|kv| kv["value"].as_str().map(str::to_owned))
 }
 
-/// A DDS domain for one test: distinct per test `index` (0..6) within this
+/// A DDS domain for one test: distinct per test `index` (0..8) within this
 /// process, and spread by process id so that two checkouts testing at once
-/// on this machine do not hear each other (10..=231, under ROS's 232).
+/// on this machine do not hear each other (10..=225, under ROS's 232).
 pub fn domain_id(index: u16) -> u16 {
-    assert!(index < 6, "domain index {index} out of range");
-    10 + (std::process::id() % 37) as u16 * 6 + index
+    assert!(index < 8, "domain index {index} out of range");
+    10 + (std::process::id() % 27) as u16 * 8 + index
 }
 
 /// Node settings through the same environment parsing the daemon uses.
