@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 use crate::service::{load_config, Inputs, Running, ServiceError, What};
-use crate::sources::replay::{replay_samples, shifted};
+use crate::sources::replay::{replay_samples_on, shifted, ReplayClock};
 
 /// `fall-guard bench-daemon`.
 #[derive(Debug, Clone)]
@@ -136,18 +136,24 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
     let span =
         replayed.end_ns - replayed.start_ns + (1e9 / forecasting.models.spec().rate_hz) as i64;
     let mut passes = 0u64;
+    // One clock over every pass: each pass continues the previous one in
+    // recorded time, so its first tick comes one tick period after the
+    // previous pass's last, not at once (two ticks handed over together,
+    // one skipped as an overrun at every pass boundary).
+    let mut clock = ReplayClock::new();
     let mut latencies = LatencyHistogram::new();
     let (mut inf_p50, mut inf_p99) = (0.0f64, 0.0f64);
     while started.elapsed().as_secs_f64() < args.duration_s && !shutdown.is_shutdown() {
         let offset = passes as i64 * span;
         let samples = replayed.samples.iter().map(|s| shifted(s, offset));
-        replay_samples(
+        replay_samples_on(
             &mut forecasting.tick_loop,
             samples,
             replayed.end_ns + offset,
             pacing,
             gates,
             &mut shutdown,
+            &mut clock,
         )
         .await;
         passes += 1;

@@ -199,6 +199,38 @@ async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> b
     }
 }
 
+/// Recorded time on the wall clock of a paced replay: the first stamp
+/// placed on it is due at once, every later one `speed` times faster than
+/// recorded (a stamp before the first is due at once too). One clock runs
+/// on over several [`replay_samples_on`] calls whose samples continue each
+/// other in time (the bench's passes, each shifted by the recording's
+/// span): the tick after one pass's last is then due one tick period after
+/// it, as live, not at once when the next pass starts.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ReplayClock {
+    /// (wall time, stamp) of the first stamp placed.
+    origin: Option<(Instant, i64)>,
+}
+
+impl ReplayClock {
+    /// A clock that starts at the first stamp placed on it.
+    pub fn new() -> ReplayClock {
+        ReplayClock::default()
+    }
+
+    /// Starts the clock at `stamp_ns` now, unless it runs already.
+    pub fn start_at(&mut self, stamp_ns: i64) {
+        self.origin.get_or_insert((Instant::now(), stamp_ns));
+    }
+
+    /// When `stamp_ns` is due at `speed` times real time (starting the
+    /// clock at it if it has not started).
+    pub fn due(&mut self, stamp_ns: i64, speed: f64) -> Instant {
+        let (wall, t0) = *self.origin.get_or_insert((Instant::now(), stamp_ns));
+        wall + Duration::from_secs_f64(((stamp_ns - t0) as f64 / 1e9 / speed).max(0.0))
+    }
+}
+
 /// Push `samples` (sorted by stamp) through `tick_loop` with recorded time,
 /// then advance to `end_ns`. Each sample passes its stream's `gates` (the
 /// input boundary, with the recorded time as the tick clock) as a live one
@@ -215,9 +247,28 @@ pub async fn replay_samples<I>(
 where
     I: IntoIterator<Item = Recorded>,
 {
+    let mut clock = ReplayClock::new();
+    replay_samples_on(
+        tick_loop, samples, end_ns, pacing, gates, shutdown, &mut clock,
+    )
+    .await
+}
+
+/// [`replay_samples`] paced by `clock`, which may already run (a
+/// recording replayed in passes that continue each other in time).
+pub async fn replay_samples_on<I>(
+    tick_loop: &mut TickLoop,
+    samples: I,
+    end_ns: i64,
+    pacing: Pacing,
+    gates: &PerStream<Gate>,
+    shutdown: &mut Shutdown,
+    clock: &mut ReplayClock,
+) -> ReplaySummary
+where
+    I: IntoIterator<Item = Recorded>,
+{
     let lockstep = pacing == Pacing::MaxSpeed;
-    let wall_start = Instant::now();
-    let mut first_ns: Option<i64> = None;
     let mut summary = ReplaySummary::default();
     // When the newest sample entered (sensor-to-publish latency of a tick).
     let mut last_sensed = Instant::now();
@@ -229,15 +280,12 @@ where
         }
         let stamp_ns = sample.stamp_ns;
         if let Pacing::Speed(speed) = pacing {
-            let t0 = *first_ns.get_or_insert(stamp_ns);
-            let due = |ns: i64| {
-                wall_start + Duration::from_secs_f64(((ns - t0) as f64 / 1e9 / speed).max(0.0))
-            };
+            clock.start_at(stamp_ns);
             // The tick clock runs on between samples, as it does live: a tick
             // becomes final at its own time, not when the next sample comes
             // (that would hand two ticks over at once and skip one).
             while let Some(tick_ns) = tick_loop.next_tick_stamp().filter(|&t| t < stamp_ns) {
-                if !sleep_until_unless_shutdown(due(tick_ns), shutdown).await {
+                if !sleep_until_unless_shutdown(clock.due(tick_ns, speed), shutdown).await {
                     summary.interrupted = true;
                     return summary;
                 }
@@ -247,7 +295,7 @@ where
                 }
                 tick_loop.run_pending(last_sensed, false).await;
             }
-            if !sleep_until_unless_shutdown(due(stamp_ns), shutdown).await {
+            if !sleep_until_unless_shutdown(clock.due(stamp_ns, speed), shutdown).await {
                 summary.interrupted = true;
                 return summary;
             }
@@ -277,4 +325,32 @@ where
     tick_loop.advance_to(end_ns);
     tick_loop.run_pending(Instant::now(), lockstep).await;
     summary
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_clock_that_runs_on_puts_the_next_pass_one_tick_after_the_last() {
+        let tick = 33_333_333;
+        let mut clock = ReplayClock::new();
+        clock.start_at(1_000);
+        let first = clock.due(1_000, 1.0);
+        // A stamp before the start is due at once.
+        assert_eq!(clock.due(0, 1.0), first);
+        // The last tick of a 10 s pass, then the first of the next pass
+        // (its samples shifted by the span): one tick apart on the wall
+        // clock, as recorded.
+        let last = clock.due(1_000 + 10_000_000_000, 1.0);
+        clock.start_at(1_000 + 10_000_000_000 + tick);
+        let next = clock.due(1_000 + 10_000_000_000 + tick, 1.0);
+        assert_eq!(next - last, Duration::from_nanos(tick as u64));
+        assert_eq!(last - first, Duration::from_secs(10));
+        // Twice real time: half the wall time.
+        assert_eq!(
+            clock.due(1_000 + 2 * tick, 2.0) - first,
+            Duration::from_nanos(tick as u64)
+        );
+    }
 }
