@@ -145,6 +145,41 @@ pub struct ModelConfig {
     pub trigger: f32,
     /// Latch turns off only when it drops below this (< `trigger`).
     pub release: f32,
+    /// `[model.thresholds]`: a (trigger, release) pair of one network,
+    /// chosen for it on validation, used while it makes the forecasts;
+    /// a network without one uses `trigger` and `release`.
+    #[serde(default)]
+    pub thresholds: NetworkThresholds,
+}
+
+/// `[model.thresholds]`: `emp = [trigger, release]`, and so on.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct NetworkThresholds {
+    #[serde(default)]
+    pub emp: Option<[f32; 2]>,
+    #[serde(default)]
+    pub mp: Option<[f32; 2]>,
+    #[serde(default)]
+    pub ep: Option<[f32; 2]>,
+    #[serde(default)]
+    pub p: Option<[f32; 2]>,
+}
+
+impl NetworkThresholds {
+    /// The pairs given, with their network and config key.
+    pub fn pairs(&self) -> Vec<(crate::model::Ablation, &'static str, [f32; 2])> {
+        use crate::model::Ablation;
+        [
+            (Ablation::EMP, "[model.thresholds].emp", self.emp),
+            (Ablation::MP, "[model.thresholds].mp", self.mp),
+            (Ablation::EP, "[model.thresholds].ep", self.ep),
+            (Ablation::P, "[model.thresholds].p", self.p),
+        ]
+        .into_iter()
+        .filter_map(|(a, key, pair)| pair.map(|p| (a, key, p)))
+        .collect()
+    }
 }
 
 /// `[model].fallbacks`: when the fallback networks are in memory.
@@ -510,6 +545,20 @@ impl Config {
                 ),
             ));
         }
+        for (_, key, [trigger, release]) in m.thresholds.pairs() {
+            if !((0.0..=1.0).contains(&trigger)
+                && (0.0..=1.0).contains(&release)
+                && release < trigger)
+            {
+                return Err(self.value_error(
+                    key,
+                    format!(
+                        "expected [trigger, release], both in [0, 1], release below trigger \
+                         (hysteresis), got [{trigger}, {release}]"
+                    ),
+                ));
+            }
+        }
         let s = &self.streams;
         for (key, ms) in [
             ("[streams].joints_stale_ms", s.joints_stale_ms),
@@ -821,6 +870,36 @@ mod tests {
             .collect();
         assert!(found, "no `{key} =` line in the config");
         out.join("\n")
+    }
+
+    #[test]
+    fn per_network_thresholds_are_read_and_checked() {
+        let text = format!(
+            "{EMBEDDED_REPLAY_CONFIG}\n[model.thresholds]\nemp = [0.7, 0.4]\np = [0.55, 0.2]\n"
+        );
+        let config = parse(&text).expect("valid");
+        let pairs = config.model.thresholds.pairs();
+        assert_eq!(
+            pairs,
+            [
+                (
+                    crate::model::Ablation::EMP,
+                    "[model.thresholds].emp",
+                    [0.7, 0.4]
+                ),
+                (
+                    crate::model::Ablation::P,
+                    "[model.thresholds].p",
+                    [0.55, 0.2]
+                ),
+            ]
+        );
+        let bad = format!("{EMBEDDED_REPLAY_CONFIG}\n[model.thresholds]\nmp = [0.3, 0.5]\n");
+        let err = parse(&bad).expect_err("release above trigger");
+        assert_eq!(err.key(), Some("[model.thresholds].mp"), "{err}");
+        let unknown = format!("{EMBEDDED_REPLAY_CONFIG}\n[model.thresholds]\nemq = [0.7, 0.4]\n");
+        let err = parse(&unknown).expect_err("unknown network");
+        assert!(err.to_string().contains("emq"), "{err}");
     }
 
     #[test]

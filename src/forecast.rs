@@ -670,6 +670,7 @@ fn inference_loop(
                 }
             }
         }
+        latch.select(job.ablation);
         let imminent = latch.update(&probabilities, valid);
         let output = ForecastOutput {
             tick: job.tick,

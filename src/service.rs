@@ -119,12 +119,19 @@ pub fn robot_joints(config: &Config) -> Vec<String> {
 /// The safety latch of `[model]`, on the index of `[model].horizon_ms`.
 pub fn latch_for(config: &Config, models: &ModelSet) -> Result<SafetyLatch, ServiceError> {
     let index = config.latch_horizon_index(models.horizons_ms())?;
-    SafetyLatch::new(index, config.model.trigger, config.model.release).map_err(|source| {
-        ServiceError::Latch {
-            key: "[model].release",
-            source,
-        }
-    })
+    let mut latch =
+        SafetyLatch::new(index, config.model.trigger, config.model.release).map_err(|source| {
+            ServiceError::Latch {
+                key: "[model].release",
+                source,
+            }
+        })?;
+    for (network, key, pair) in config.model.thresholds.pairs() {
+        latch = latch
+            .with_network(network, pair[0], pair[1])
+            .map_err(|source| ServiceError::Latch { key, source })?;
+    }
+    Ok(latch)
 }
 
 /// The tick settings of `config` for streams with these sources

@@ -201,6 +201,43 @@ fn camera_loss_degrades_to_mp_and_recovers_to_emp() {
     assert!(err.contains("model switch"), "switches are logged: {err}");
 }
 
+/// `[model.thresholds]`: the latch uses the pair of the network that made
+/// the forecast. Defaults no untrained network reaches, and a pair for MP
+/// that every probability reaches: off while EMP forecasts, on while MP
+/// does, off again once EMP is back.
+#[test]
+fn each_network_latches_with_its_own_thresholds() {
+    let scene = camera_gap_scene();
+    let config = std::fs::read_to_string(&scene.config).expect("config");
+    let config = config.replace(
+        "trigger = 0.6\nrelease = 0.3",
+        "trigger = 0.999\nrelease = 0.998",
+    );
+    assert!(config.contains("trigger = 0.999"), "config changed shape");
+    std::fs::write(
+        &scene.config,
+        format!("{config}\n[model.thresholds]\nmp = [0.001, 0.0005]\n"),
+    )
+    .expect("config");
+    let (lines, err) = scene.replay_max_speed();
+    let valid = |a: &str| -> Vec<&Line> {
+        lines
+            .iter()
+            .filter(|l| l.valid && l.ablation == a)
+            .collect()
+    };
+    let (emp, mp) = (valid("EMP"), valid("MP"));
+    assert!(!emp.is_empty() && !mp.is_empty(), "{err}");
+    assert!(
+        mp.iter().all(|l| l.imminent),
+        "MP latches at its own trigger: {mp:?}"
+    );
+    assert!(
+        emp.iter().all(|l| !l.imminent),
+        "EMP keeps the default pair: {emp:?}"
+    );
+}
+
 /// `[model].fallbacks = "when_needed"`: the fallback is loaded at its first
 /// use (logged once), and every forecast is what the daemon with all
 /// networks loaded at start prints.

@@ -6,6 +6,11 @@
 //! only once it drops below `release` (< `trigger`), so a probability that
 //! hovers around one threshold does not make the signal chatter.
 //!
+//! Each network may have its own pair, chosen for it on validation
+//! ([`SafetyLatch::with_network`]): the latch uses the pair of the network
+//! that made the forecast ([`SafetyLatch::select`]), and keeps its state
+//! across a model switch.
+//!
 //! A forecast that is not valid (or has no finite probability at the
 //! latch's horizon) **asserts** the latch: `false` is a claim that a
 //! trusted forecast said "below release", and a blind predictor cannot make
@@ -14,6 +19,8 @@
 //! ("Safety signal") for why this is the fail-safe choice.
 
 use thiserror::Error;
+
+use crate::model::Ablation;
 
 #[derive(Debug, Error, PartialEq)]
 pub enum LatchError {
@@ -37,6 +44,19 @@ pub struct SafetyLatch {
     blind: bool,
     /// Log each switch (the daemon); off for offline analysis.
     log: bool,
+    /// The pair given to `new`, for a network without its own.
+    default: (f32, f32),
+    /// Pairs chosen for one network.
+    per_network: Vec<(Ablation, (f32, f32))>,
+}
+
+fn check(trigger: f32, release: f32) -> Result<(), LatchError> {
+    let in_unit = |p: f32| (0.0..=1.0).contains(&p);
+    if in_unit(trigger) && in_unit(release) && release < trigger {
+        Ok(())
+    } else {
+        Err(LatchError::Thresholds { trigger, release })
+    }
 }
 
 impl SafetyLatch {
@@ -46,10 +66,7 @@ impl SafetyLatch {
         trigger: f32,
         release: f32,
     ) -> Result<SafetyLatch, LatchError> {
-        let in_unit = |p: f32| (0.0..=1.0).contains(&p);
-        if !(in_unit(trigger) && in_unit(release) && release < trigger) {
-            return Err(LatchError::Thresholds { trigger, release });
-        }
+        check(trigger, release)?;
         Ok(SafetyLatch {
             horizon_index,
             trigger,
@@ -58,7 +75,40 @@ impl SafetyLatch {
             triggers: 0,
             blind: false,
             log: true,
+            default: (trigger, release),
+            per_network: Vec::new(),
         })
+    }
+
+    /// The same latch with `network`'s own pair, used while that network
+    /// makes the forecasts.
+    pub fn with_network(
+        mut self,
+        network: Ablation,
+        trigger: f32,
+        release: f32,
+    ) -> Result<SafetyLatch, LatchError> {
+        check(trigger, release)?;
+        self.per_network.retain(|(a, _)| *a != network);
+        self.per_network.push((network, (trigger, release)));
+        Ok(self)
+    }
+
+    /// Use the pair of `network` (its own, else the default) from the next
+    /// update on; the latch's state is kept.
+    pub fn select(&mut self, network: Ablation) {
+        let (trigger, release) = self
+            .per_network
+            .iter()
+            .find(|(a, _)| *a == network)
+            .map_or(self.default, |(_, pair)| *pair);
+        self.trigger = trigger;
+        self.release = release;
+    }
+
+    /// The pair in use (trigger, release).
+    pub fn thresholds(&self) -> (f32, f32) {
+        (self.trigger, self.release)
     }
 
     /// The same latch without a log line per switch (offline replays of many episodes).
@@ -172,6 +222,31 @@ mod tests {
         assert_eq!(latch.triggers(), 0);
         assert!(latch.update(&[0.9], true));
         assert_eq!(latch.triggers(), 1);
+    }
+
+    #[test]
+    fn each_network_uses_its_own_pair_and_the_state_survives_a_switch() {
+        let mut latch = SafetyLatch::new(0, 0.5, 0.3)
+            .expect("valid")
+            .with_network(Ablation::EMP, 0.7, 0.4)
+            .expect("valid");
+        latch.select(Ablation::EMP);
+        assert_eq!(latch.thresholds(), (0.7, 0.4));
+        // 0.6 is below EMP's trigger.
+        assert!(!latch.update(&[0.6], true));
+        // MP has no pair of its own: the default; 0.6 triggers it.
+        latch.select(Ablation::MP);
+        assert_eq!(latch.thresholds(), (0.5, 0.3));
+        assert!(latch.update(&[0.6], true));
+        // Back to EMP while on: released only below EMP's release.
+        latch.select(Ablation::EMP);
+        assert!(latch.update(&[0.45], true));
+        assert!(!latch.update(&[0.35], true));
+        assert_eq!(latch.triggers(), 1);
+        assert!(SafetyLatch::new(0, 0.5, 0.3)
+            .expect("valid")
+            .with_network(Ablation::P, 0.3, 0.5)
+            .is_err());
     }
 
     #[test]

@@ -66,6 +66,9 @@ pub struct WarningStats {
     /// Falls with `fall_imminent` true before the onset.
     pub warned: usize,
     pub warned_share: f64,
+    /// Falls warned at least [`EARLY_LEAD_S`] before the onset.
+    pub warned_by_0_5s: usize,
+    pub warned_by_0_5s_share: f64,
     /// Lead times of the warned falls, s.
     pub lead_median_s: Option<f64>,
     pub lead_p10_s: Option<f64>,
@@ -75,6 +78,9 @@ pub struct WarningStats {
     pub false_alarms: u64,
     pub false_alarms_per_min: f64,
 }
+
+/// The lead a warning needs for a safety node to brace in time, s.
+pub const EARLY_LEAD_S: f64 = 0.5;
 
 /// Nearest-rank quantile of sorted values.
 fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
@@ -123,16 +129,22 @@ pub fn warning_stats(
         }
     }
     leads.sort_by(f64::total_cmp);
+    let early = leads.iter().filter(|&&l| l >= EARLY_LEAD_S).count();
+    let share = |n: usize| {
+        if falling > 0 {
+            n as f64 / falling as f64
+        } else {
+            f64::NAN
+        }
+    };
     Ok(WarningStats {
         trigger,
         release,
         falling_episodes: falling,
         warned,
-        warned_share: if falling > 0 {
-            warned as f64 / falling as f64
-        } else {
-            f64::NAN
-        },
+        warned_share: share(warned),
+        warned_by_0_5s: early,
+        warned_by_0_5s_share: share(early),
         lead_median_s: quantile(&leads, 0.5),
         lead_p10_s: quantile(&leads, 0.1),
         non_falling_episodes: calm,
@@ -220,18 +232,20 @@ pub fn run_warnings(args: &WarningsOptions) -> anyhow::Result<()> {
         .map(|&(t, r)| warning_stats(&episodes, t, r, tick_s))
         .collect::<anyhow::Result<Vec<_>>>()?;
     println!(
-        "| trigger | release | falls warned | lead median s | lead p10 s | false alarms / min |"
+        "| trigger | release | falls warned | warned >= {EARLY_LEAD_S} s ahead | lead median s | lead p10 s | false alarms / min |"
     );
-    println!("| --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- |");
     let opt = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.2}"));
     for s in &grid {
         println!(
-            "| {:.2} | {:.2} | {}/{} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) |",
+            "| {:.2} | {:.2} | {}/{} ({:.0}%) | {} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) |",
             s.trigger,
             s.release,
             s.warned,
             s.falling_episodes,
             100.0 * s.warned_share,
+            s.warned_by_0_5s,
+            100.0 * s.warned_by_0_5s_share,
             opt(s.lead_median_s),
             opt(s.lead_p10_s),
             s.false_alarms_per_min,
@@ -297,6 +311,9 @@ mod tests {
         // Falls at tick 60; only crosses after the onset: not warned.
         let mut late = vec![0.1f32; 65];
         late.extend(vec![0.9f32; 5]);
+        // Falls at tick 60; warned from tick 55 on: lead 0.17 s, too short to brace.
+        let mut short = vec![0.1f32; 55];
+        short.extend(vec![0.9f32; 15]);
         // Does not fall; two separate alarms (released in between).
         let mut calm = vec![0.1f32; 1800];
         calm[100] = 0.8;
@@ -305,17 +322,23 @@ mod tests {
         let eps = vec![
             episode(&warned, Some(60)),
             episode(&late, Some(60)),
+            episode(&short, Some(60)),
             episode(&calm, None),
         ];
         let s = warning_stats(&eps, 0.7, 0.4, tick_s).unwrap();
-        assert_eq!((s.falling_episodes, s.warned), (2, 1));
-        assert!((s.lead_median_s.unwrap() - 1.0).abs() < 1e-6, "{s:?}");
+        assert_eq!((s.falling_episodes, s.warned, s.warned_by_0_5s), (3, 2, 1));
+        assert!((s.warned_by_0_5s_share - 1.0 / 3.0).abs() < 1e-12);
+        // Leads 1 s and 0.17 s: the nearest-rank median is the shorter.
+        assert!(
+            (s.lead_median_s.unwrap() - 5.0 / 30.0).abs() < 1e-6,
+            "{s:?}"
+        );
         assert_eq!(s.false_alarms, 2);
         assert!((s.non_falling_minutes - 1.0).abs() < 1e-9);
         assert!((s.false_alarms_per_min - 2.0).abs() < 1e-9);
         // A higher trigger removes the alarms and the warning.
         let s = warning_stats(&eps, 0.95, 0.5, tick_s).unwrap();
-        assert_eq!((s.warned, s.false_alarms), (0, 0));
+        assert_eq!((s.warned, s.warned_by_0_5s, s.false_alarms), (0, 0, 0));
         assert!(s.lead_median_s.is_none());
     }
 
