@@ -5,6 +5,8 @@
 
 Reads, under DIR: eval-GROUP-PROTOCOL/metrics.json (`fall-guard eval`),
 warnings-ABL-SET-SPLIT.json (`fall-guard warnings`), ABL-thresholds.json,
+(chosen on scripts/choice_set.py's set, which holds the walking set's
+validation split: false alarms are counted on its train and test splits only),
 selected.txt, simv4-stats.json and walk-stats.json (`python -m sim stats`).
 Writes Markdown: the data, the paper and deployment protocols (seeds as mean
 +- std), the checks the card makes (each with its figure, and by how much a
@@ -150,7 +152,7 @@ def checks(evals: dict) -> list[str]:
             out.append(f"- EMP accuracy at {h['horizon_ms'] / 1000:g} s: {acc:.3f} (target >= 0.96): {verdict}")
         for h in pe["horizons"]:
             ece = h["ece"]["mean"]
-            cis = ", ".join(f"[{c['lo']:.3f}, {c['hi']:.3f}]" for c in h.get("ece_ci95", []) if "lo" in c)
+            cis = ", ".join(f"[{c['lower']:.3f}, {c['upper']:.3f}]" for c in h.get("ece_ci95", []) if "lower" in c)
             verdict = "met" if ece <= 0.03 else f"missed by {ece - 0.03:.3f}"
             out.append(f"- EMP ECE at {h['horizon_ms'] / 1000:g} s: {ece:.3f} (target <= 0.03; 95% bootstrap "
                        f"per seed {cis or '-'}): {verdict}")
@@ -185,7 +187,7 @@ def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
             "false alarms / min (walking set) | walking minutes |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for abl, name in selected:
         test = load(reports / f"warnings-{abl}-simv4-test.json")
-        walks = [load(reports / f"warnings-{abl}-walk-{s}.json") for s in ("train", "validation", "test")]
+        walks = [load(reports / f"warnings-{abl}-walk-{s}.json") for s in ("train", "test")]
         if not test:
             continue
         t = test["grid"][0]
@@ -228,7 +230,7 @@ def warning_checks(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     if not (name and test):
         return []
     t = test["grid"][0]
-    walks = [load(reports / f"warnings-emp-walk-{s}.json") for s in ("train", "validation", "test")]
+    walks = [load(reports / f"warnings-emp-walk-{s}.json") for s in ("train", "test")]
     alarms = sum(w["grid"][0]["false_alarms"] for w in walks if w)
     minutes = sum(w["grid"][0]["non_falling_minutes"] for w in walks if w)
     out = []
@@ -283,6 +285,9 @@ def main() -> int:
             continue
         label, proto = d.name[len("eval-"):].rsplit("-", 1)
         evals[(label, proto)] = r
+        # `eval` reports both protocols in one file: either directory serves both tables.
+        for p in r.get("protocols", []):
+            evals.setdefault((label, p["protocol"]), r)
     selected = []
     sel = a.reports / "selected.txt"
     if sel.exists():

@@ -6,7 +6,7 @@
 # (models/README.md, "On a real Poppy walk").
 #
 # - every network: `fall-guard eval --recording --per-tick-out` (the daemon's windows, offline,
-#   the input projection in int8 as the daemon holds it), with the config's latch (trigger,
+#   the input projection in int8 as the daemon holds it), with the config's latch (each network's trigger,
 #   release) applied here; EMP and EP need the camera, which the walk has not: reported as such;
 # - the daemon as deployed: `fall-guard replay --config tests/fixtures/real/replay.toml`
 #   (no camera: it runs MP), its own printed latch counted.
@@ -41,10 +41,17 @@ from model_meta import read_meta
 
 tmp, config_path, models = Path(sys.argv[1]), sys.argv[2], sys.argv[3:]
 model_cfg = tomllib.loads(Path(config_path).read_text())["model"]
-trigger, release, horizon_ms = model_cfg["trigger"], model_cfg["release"], model_cfg["horizon_ms"]
+horizon_ms = model_cfg["horizon_ms"]
+per_network = model_cfg.get("thresholds", {})
 
 
-def latch(probabilities):
+def pair(ablation):
+    """The network's own (trigger, release) from [model.thresholds], else [model]'s."""
+    own = per_network.get(ablation.lower())
+    return tuple(own) if own else (model_cfg["trigger"], model_cfg["release"])
+
+
+def latch(probabilities, trigger, release):
     """The daemon's latch over valid ticks: asserted until a valid forecast is below release."""
     on, asserted, triggers = True, 0, 0
     for p in probabilities:
@@ -57,29 +64,31 @@ def latch(probabilities):
 
 
 def row(label, ablation, probabilities, note=""):
-    asserted, triggers = latch(probabilities)
+    trigger, release = pair(ablation)
+    asserted, triggers = latch(probabilities, trigger, release)
     n = len(probabilities)
     return (f"| {label} | {ablation} | {n} | {asserted} ({100 * asserted / n:.1f}%) | {triggers} | "
-            f"{max(probabilities):.3f} | {100 * sum(p >= trigger for p in probabilities) / n:.1f}% |{note}")
+            f"{max(probabilities):.3f} | {100 * sum(p >= trigger for p in probabilities) / n:.1f}% | "
+            f"{trigger} / {release} |{note}")
 
 
-print(f"Real walk `tests/fixtures/real/poppy_muffin_walk.mcap` (35.6 s, no fall); latch at {horizon_ms} ms, "
-      f"trigger {trigger}, release {release}; valid ticks only (the first 2 s fill the window).\n")
+print(f"Real walk `tests/fixtures/real/poppy_muffin_walk.mcap` (35.6 s, no fall); latch at {horizon_ms} ms with "
+      f"each network's thresholds ({config_path}); valid ticks only (the first 2 s fill the window).\n")
 print(f"| network | ablation | valid ticks | fall_imminent asserted | latch triggers | highest p at {horizon_ms} ms "
-      f"| ticks with p >= trigger |")
-print("| --- | --- | --- | --- | --- | --- | --- |")
+      f"| ticks with p >= trigger | trigger / release |")
+print("| --- | --- | --- | --- | --- | --- | --- | --- |")
 for model in models:
     name = Path(model).stem
     meta = read_meta(model)
     ms = [round(1000 * t / meta["rate_hz"]) for t in meta["horizons_ticks"]]
     if horizon_ms not in ms:
-        print(f"| `{model}` | {meta['ablation']} | - | - | - | - | - | no {horizon_ms} ms horizon ({ms})")
+        print(f"| `{model}` | {meta['ablation']} | - | - | - | - | - | - | no {horizon_ms} ms horizon ({ms})")
         continue
     k = ms.index(horizon_ms)
     out = tmp / f"{name}.jsonl"
     if not out.exists():
         why = (tmp / f"{name}.why").read_text().strip()
-        print(f"| `{model}` | {meta['ablation']} | could not run: {why} | | | | |")
+        print(f"| `{model}` | {meta['ablation']} | could not run: {why} | | | | | |")
         continue
     ps = [json.loads(line)["probabilities"][k] for line in out.read_text().splitlines()]
     print(row(f"`{model}` (eval)", meta["ablation"], ps))
@@ -92,9 +101,10 @@ k = [round(1000 * t / mp_meta["rate_hz"]) for t in mp_meta["horizons_ticks"]].in
 ps = [float(re.search(r"p=\[([^\]]*)\]", l).group(1).split()[k]) for l in valid]
 asserted = sum(l.endswith("imminent=true") for l in valid)
 triggers = sum(1 for a, b in zip(valid, valid[1:]) if b.endswith("true") and a.endswith("false"))
+trigger, release = pair("MP")
 print(f"| daemon (`fall-guard replay --config {config_path}`) | {'/'.join(active)} | {len(valid)} | "
       f"{asserted} ({100 * asserted / len(valid):.1f}%) | {triggers} | {max(ps):.3f} | "
-      f"{100 * sum(p >= trigger for p in ps) / len(ps):.1f}% |")
+      f"{100 * sum(p >= trigger for p in ps) / len(ps):.1f}% | {trigger} / {release} |")
 print(f"\nAll ticks of the replay: {len(lines)}, fall_imminent asserted on "
       f"{sum(l.endswith('imminent=true') for l in lines)} (the window filling included).")
 EOF
