@@ -113,6 +113,8 @@ for line in ("m fall-guard dialout", "m fall-guard video"):
 config = tomllib.loads((root / config_path.lstrip("/")).read_text())
 model_dir = root / config["model"]["dir"].lstrip("/")
 for k in ("emp", "mp", "ep", "p"):
+    if k not in config["model"]:
+        continue
     f = model_dir / config["model"][k]
     if not f.is_file():
         fail(f"[model].{k} = {f.relative_to(root)} is not in the package")

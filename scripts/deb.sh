@@ -75,7 +75,7 @@ strip_tool=strip
 install -D -m 0755 "$binary" "$root/usr/bin/fall-guard"
 "$strip_tool" --strip-unneeded "$root/usr/bin/fall-guard"
 install -D -m 0644 -t "$root/usr/share/fall-guard/models" \
-  models/emp.bpk models/mp.bpk models/ep.bpk models/p.bpk models/README.md
+  models/emp.bpk models/mp.bpk models/p.bpk models/README.md
 install -D -m 0644 launch/fall_guard.launch.py "$root/usr/share/fall-guard/launch/fall_guard.launch.py"
 install -D -m 0644 config/poppy_humanoid.toml "$root/etc/fall-guard/poppy_humanoid.toml"
 install -D -m 0644 packaging/default "$root/etc/default/fall-guard"

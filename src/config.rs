@@ -874,9 +874,14 @@ mod tests {
 
     #[test]
     fn per_network_thresholds_are_read_and_checked() {
-        let text = format!(
-            "{EMBEDDED_REPLAY_CONFIG}\n[model.thresholds]\nemp = [0.7, 0.4]\np = [0.55, 0.2]\n"
-        );
+        // The shipped config's own pairs, then others in their place.
+        let shipped = parse(EMBEDDED_REPLAY_CONFIG).expect("valid");
+        assert!(!shipped.model.thresholds.pairs().is_empty());
+        let base = EMBEDDED_REPLAY_CONFIG
+            .split("# -- per-network thresholds")
+            .next()
+            .expect("text");
+        let text = format!("{base}\n[model.thresholds]\nemp = [0.7, 0.4]\np = [0.55, 0.2]\n");
         let config = parse(&text).expect("valid");
         let pairs = config.model.thresholds.pairs();
         assert_eq!(
@@ -894,10 +899,10 @@ mod tests {
                 ),
             ]
         );
-        let bad = format!("{EMBEDDED_REPLAY_CONFIG}\n[model.thresholds]\nmp = [0.3, 0.5]\n");
+        let bad = format!("{base}\n[model.thresholds]\nmp = [0.3, 0.5]\n");
         let err = parse(&bad).expect_err("release above trigger");
         assert_eq!(err.key(), Some("[model.thresholds].mp"), "{err}");
-        let unknown = format!("{EMBEDDED_REPLAY_CONFIG}\n[model.thresholds]\nemq = [0.7, 0.4]\n");
+        let unknown = format!("{base}\n[model.thresholds]\nemq = [0.7, 0.4]\n");
         let err = parse(&unknown).expect_err("unknown network");
         assert!(err.to_string().contains("emq"), "{err}");
     }
@@ -989,7 +994,7 @@ mod tests {
         );
         assert_eq!(
             config.replay_recording(None).ok(),
-            Some(PathBuf::from("/cfg/tests/fixtures/gen1/episode_00005.mcap"))
+            Some(PathBuf::from("/cfg/tests/fixtures/episode_00007.mcap"))
         );
         assert_eq!(
             config.replay_pacing(None, false).ok(),
