@@ -316,19 +316,15 @@ impl BusReader {
         let Some(port) = self.port.as_mut() else {
             return;
         };
-        let drained = drain(port.as_mut());
         let mut garbage = 0;
-        let result = drained.and_then(|stale| {
-            garbage += stale;
-            sync_read(
-                port.as_mut(),
-                &self.request,
-                self.motors.len(),
-                self.config.timeout(),
-                &mut self.buf,
-                &mut garbage,
-            )
-        });
+        let result = drained_sync_read(
+            port.as_mut(),
+            &self.request,
+            self.motors.len(),
+            self.config.timeout(),
+            &mut self.buf,
+            &mut garbage,
+        );
         self.garbage(stats, garbage);
         match result {
             Ok(data) => {
@@ -382,17 +378,14 @@ impl BusReader {
             return;
         };
         let mut garbage = 0;
-        let result = drain(port.as_mut()).and_then(|stale| {
-            garbage += stale;
-            sync_read(
-                port.as_mut(),
-                &request,
-                ids.len(),
-                self.config.timeout(),
-                &mut self.buf,
-                &mut garbage,
-            )
-        });
+        let result = drained_sync_read(
+            port.as_mut(),
+            &request,
+            ids.len(),
+            self.config.timeout(),
+            &mut self.buf,
+            &mut garbage,
+        );
         self.garbage(stats, garbage);
         match result {
             Ok(data) => {
@@ -515,6 +508,19 @@ fn drain(port: &mut dyn SerialPort) -> Result<usize, Failure> {
         }
     }
     Ok(total)
+}
+
+/// [`drain`], then [`sync_read`]: the stale bytes drained count as garbage.
+fn drained_sync_read(
+    port: &mut dyn SerialPort,
+    request: &[u8],
+    n_ids: usize,
+    timeout: Duration,
+    buf: &mut Vec<u8>,
+    garbage: &mut usize,
+) -> Result<Vec<u8>, Failure> {
+    *garbage += drain(port)?;
+    sync_read(port, request, n_ids, timeout, buf, garbage)
 }
 
 /// One USB2AX SYNC_READ of 2 bytes from `n_ids` motors: send `request`,
