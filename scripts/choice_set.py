@@ -18,12 +18,12 @@ these. Run with sim/.venv/bin/python.
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from sim.stats import read_episode_metadata  # noqa: E402
+from subset_by_cause import write_subset  # noqa: E402  (this script's folder is on sys.path)
 
 
 def main() -> int:
@@ -31,7 +31,6 @@ def main() -> int:
         print(__doc__, file=sys.stderr)
         return 2
     src, walk, out = Path(sys.argv[1]).resolve(), Path(sys.argv[2]).resolve(), Path(sys.argv[3])
-    out.mkdir(parents=True, exist_ok=True)
     chosen: list[tuple[Path, str]] = []
     falls = walks = 0
     for name in json.loads((src / "manifest.json").read_text())["validation"]:
@@ -43,16 +42,8 @@ def main() -> int:
             walks += not falling
     walk_names = json.loads((walk / "manifest.json").read_text())["validation"]
     chosen += [(walk / n, f"walk_{n}") for n in walk_names]
-    for target, name in chosen:
-        link = out / name
-        if not link.exists():
-            os.symlink(target, link)
-    manifest = {"train": [], "validation": sorted(n for _, n in chosen), "test": [],
-                "generator": {"subset": "validation falls, validation walks at sigma <= 0.01, "
-                                        "and the walking set's validation split"}}
-    tmp = out / "manifest.json.partial"
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, out / "manifest.json")
+    write_subset(out, chosen, {"validation": sorted(n for _, n in chosen)},
+                 "validation falls, validation walks at sigma <= 0.01, and the walking set's validation split")
     print(f"{out}: {falls} falls, {walks} walks of {src.name}, {len(walk_names)} walks of {walk.name}")
     return 0
 

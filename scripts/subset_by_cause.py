@@ -20,6 +20,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from sim.stats import read_episode_metadata  # noqa: E402
 
 
+def write_subset(out: Path, entries: list[tuple[Path, str]], splits: dict[str, list[str]], subset: str,
+                 generator: dict | None = None) -> None:
+    """OUT/: a symbolic link NAME -> TARGET per entry and a manifest.json with SPLITS
+    (written as .partial, then renamed); `generator.subset` says what the set is."""
+    out.mkdir(parents=True, exist_ok=True)
+    for target, name in entries:
+        link = out / name
+        if not link.exists():
+            os.symlink(target, link)
+    manifest = {"train": [], "validation": [], "test": [], **splits,
+                "generator": {**(generator or {}), "subset": subset}}
+    tmp = out / "manifest.json.partial"
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmp, out / "manifest.json")
+
+
 def main() -> int:
     if len(sys.argv) != 3:
         print(__doc__, file=sys.stderr)
@@ -34,16 +50,8 @@ def main() -> int:
         (causes[cause] if cause in causes else walks).append(name)
     for cause, falls in causes.items():
         d = out / cause
-        d.mkdir(parents=True, exist_ok=True)
-        for name in falls + walks:
-            link = d / name
-            if not link.exists():
-                os.symlink(src / name, link)
-        sub = {"train": [], "validation": [], "test": sorted(falls + walks),
-               "generator": {**manifest.get("generator", {}), "subset": f"test falls caused by {cause} + test walks"}}
-        tmp = d / "manifest.json.partial"
-        tmp.write_text(json.dumps(sub, indent=2) + "\n")
-        os.replace(tmp, d / "manifest.json")
+        write_subset(d, [(src / n, n) for n in falls + walks], {"test": sorted(falls + walks)},
+                     f"test falls caused by {cause} + test walks", manifest.get("generator", {}))
         print(f"{d}: {len(falls)} {cause} falls, {len(walks)} walks")
     return 0
 
