@@ -3,8 +3,9 @@
 #   - control fields, conffiles, maintainer scripts; every expected path with
 #     its mode; the binary is an executable for the package's architecture;
 #   - the pieces agree: the unit's ExecStart and --config are packaged files,
-#     the config's model directory holds the four networks, the config's
-#     serial ports are the names the udev rule creates;
+#     the package holds every network in models/ and every network the
+#     config names, the config's serial ports are the names the udev rule
+#     creates;
 #   - `systemd-analyze verify` of the unit (its ExecStart pointed at the
 #     unpacked binary, since the package is not installed); verify exits 0
 #     on unknown keys and bad values (it only warns), so any output fails.
@@ -56,7 +57,8 @@ expect() {
   grep -qxF -e "$1 root/root ./$2" "$tmp/contents" || fail "missing or wrong mode: $1 /$2"
 }
 expect -rwxr-xr-x usr/bin/fall-guard
-for m in emp mp ep p; do expect -rw-r--r-- "usr/share/fall-guard/models/$m.bpk"; done
+# Every network the repository ships (models/*.bpk) is in the package.
+for m in models/*.bpk; do expect -rw-r--r-- "usr/share/fall-guard/$m"; done
 expect -rw-r--r-- usr/share/fall-guard/models/README.md
 expect -rw-r--r-- usr/share/fall-guard/launch/fall_guard.launch.py
 expect -rw-r--r-- etc/fall-guard/poppy_humanoid.toml
@@ -166,7 +168,7 @@ if grep "70-fall-guard-usb2ax.rules" "$tmp/udev.log" | grep -v "Reading rules fi
 fi
 echo "udevadm test /sys/class/tty/$tty: rule read, nothing done"
 echo "== the installed binary, config and networks replay a recording as user fall-guard"
-cp tests/fixtures/gen1/episode_00005.mcap "$tmp/episode.mcap"
+cp tests/fixtures/episode_00005.mcap "$tmp/episode.mcap"
 chmod 0755 "$tmp" && chmod 0644 "$tmp/episode.mcap"
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST runuser -u fall-guard -- \
   /usr/bin/fall-guard replay --config /etc/fall-guard/poppy_humanoid.toml \

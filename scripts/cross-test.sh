@@ -41,7 +41,7 @@ out="${OUT_DIR:-out/cross}"
 # different orders (NEON vs AVX2/FMA kernels); docs/performance.md
 # ("aarch64 under qemu-user") has the differences measured.
 tolerance="${TOLERANCE:-1e-4}"
-recording=tests/fixtures/gen1/episode_00005.mcap
+recording=tests/fixtures/episode_00005.mcap
 mkdir -p "$out"
 
 if [ "${CROSS_CI:-0}" = 1 ]; then

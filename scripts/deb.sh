@@ -4,7 +4,7 @@
 # with dpkg-deb (no packaging tool to install; dpkg-shlibdeps computes the
 # library dependencies). Contents:
 #   /usr/bin/fall-guard                        the binary (stripped)
-#   /usr/share/fall-guard/models/              emp, mp, ep, p networks + model card
+#   /usr/share/fall-guard/models/              the networks in models/ + model card
 #   /usr/share/fall-guard/launch/              the ROS 2 launch file
 #   /etc/fall-guard/poppy_humanoid.toml        the config (conffile)
 #   /etc/default/fall-guard                    the service's environment (conffile)
@@ -75,7 +75,7 @@ strip_tool=strip
 install -D -m 0755 "$binary" "$root/usr/bin/fall-guard"
 "$strip_tool" --strip-unneeded "$root/usr/bin/fall-guard"
 install -D -m 0644 -t "$root/usr/share/fall-guard/models" \
-  models/emp.bpk models/mp.bpk models/p.bpk models/README.md
+  models/*.bpk models/README.md
 install -D -m 0644 launch/fall_guard.launch.py "$root/usr/share/fall-guard/launch/fall_guard.launch.py"
 install -D -m 0644 config/poppy_humanoid.toml "$root/etc/fall-guard/poppy_humanoid.toml"
 install -D -m 0644 packaging/default "$root/etc/default/fall-guard"

@@ -1,13 +1,24 @@
 #!/usr/bin/env python3
 """The model card's result tables, from the reports of scripts/retrain.sh.
 
-    model_card.py --reports DIR --set DATASET --out card.md
+    model_card.py --reports DIR --keep models/card --set DATASET --out tables.md
 
-Reads, under DIR: eval-GROUP-PROTOCOL/metrics.json (`fall-guard eval`),
-warnings-ABL-SET-SPLIT.json (`fall-guard warnings`), ABL-thresholds.json,
-(chosen on scripts/choice_set.py's set, which holds the walking set's
-validation split: false alarms are counted on its train and test splits only),
-selected.txt, simv4-stats.json and walk-stats.json (`python -m sim stats`).
+Reads, under DIR (this data directory's reports): eval-GROUP-PROTOCOL/metrics.json
+(`fall-guard eval`), warnings-ABL-SET-SPLIT.json (`fall-guard warnings`),
+ABL-thresholds.json (chosen on scripts/choice_set.py's set, which holds the
+walking set's validation split: false alarms are counted on its train and
+test splits only), selected.txt, simv4-stats.json and walk-stats.json
+(`python -m sim stats`).
+
+The results are kept in the repository, under --keep, so that seeds trained
+from different data directories add up (the data set and training are
+deterministic: a run is the same network wherever it was trained, and eval
+draws the same windows): each group report is split into one record per run
+and per group (KEEP/runs/GROUP--RUN.json, the run's own metrics); the tables
+are computed from every record there, a run's newest record winning. The
+small reports (warnings, thresholds, selection, data statistics) are copied
+to KEEP/reports/ and read from there.
+
 Writes Markdown: the data, the paper and deployment protocols (seeds as mean
 +- std), the checks the card makes (each with its figure, and by how much a
 target is missed), by fall cause, and the daemon's warnings. Standard library
@@ -19,6 +30,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
+import shutil
 from pathlib import Path
 
 GROUPS = [("emp", "EMP"), ("mp", "MP"), ("ep", "EP"), ("p", "P"), ("emp-hist", "EMP, historical-only plan"),
@@ -32,6 +45,110 @@ def load(path: Path):
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+
+
+# --- Results kept per run (KEEP/runs/GROUP--RUN.json) ---
+
+METRICS = ("accuracy", "f1", "precision", "recall", "ece", "roc_auc")
+
+
+def run_name(model_path: str) -> str:
+    """The run a model file is: runs/emp-s2.cal.bpk -> emp-s2."""
+    base = Path(model_path).name
+    for suffix in (".cal.bpk", ".bpk", ".json"):
+        if base.endswith(suffix):
+            return base[: -len(suffix)]
+    return base
+
+
+def write_json(path: Path, value) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(value, indent=1) + "\n")
+    os.replace(tmp, path)
+
+
+def split_report(report: dict) -> dict[str, dict]:
+    """One single-run report per model of a group report."""
+    out = {}
+    for i, model in enumerate(report["models"]):
+        protocols = []
+        for p in report.get("protocols", []):
+            horizons = []
+            for h in p["horizons"]:
+                ci = h.get("ece_ci95", [])
+                horizons.append({"horizon_ticks": h["horizon_ticks"], "horizon_ms": h["horizon_ms"],
+                                 "per_model": [h["per_model"][i]], "ece_ci95": [ci[i]] if i < len(ci) else [],
+                                 "windows": h["windows"], "positive_rate": h["positive_rate"]})
+            protocols.append({"protocol": p["protocol"], "description": p.get("description", ""),
+                              "windows": p["windows"], "horizons": horizons})
+        out[run_name(model)] = {"models": [run_name(model)], "ablation": report.get("ablation"),
+                                "split": report.get("split"), "protocols": protocols}
+    return out
+
+
+def mean_std(values: list[float]) -> dict:
+    """Mean and population standard deviation of the finite values (as `fall-guard eval`)."""
+    v = [x for x in values if isinstance(x, (int, float)) and math.isfinite(x)]
+    if not v:
+        return {"mean": float("nan"), "std": float("nan")}
+    m = sum(v) / len(v)
+    return {"mean": m, "std": math.sqrt(sum((x - m) ** 2 for x in v) / len(v))}
+
+
+def merge_records(records: list[dict]) -> dict:
+    """One group report from single-run records (runs in name order)."""
+    records = sorted(records, key=lambda r: r["models"][0])
+    first = records[0]
+    protocols = []
+    for pi, p in enumerate(first["protocols"]):
+        horizons = []
+        for hi, h in enumerate(p["horizons"]):
+            hs = [r["protocols"][pi]["horizons"][hi] for r in records]
+            merged = {"horizon_ticks": h["horizon_ticks"], "horizon_ms": h["horizon_ms"],
+                      "per_model": [x["per_model"][0] for x in hs],
+                      "ece_ci95": [c for x in hs for c in x.get("ece_ci95", [])],
+                      "windows": h["windows"], "positive_rate": h["positive_rate"]}
+            for key in METRICS:
+                merged[key] = mean_std([m[key] for m in merged["per_model"]])
+            horizons.append(merged)
+        protocols.append({**{k: p[k] for k in ("protocol", "description", "windows")}, "horizons": horizons})
+    return {"models": [r["models"][0] for r in records], "ablation": first.get("ablation"),
+            "split": first.get("split"), "protocols": protocols}
+
+
+def keep_results(reports: Path, keep: Path) -> None:
+    """Records this data directory's group reports per run under KEEP/runs and
+    copies its small reports to KEEP/reports."""
+    (keep / "runs").mkdir(parents=True, exist_ok=True)
+    (keep / "reports").mkdir(parents=True, exist_ok=True)
+    for d in sorted(reports.glob("eval-*")):
+        r = load(d / "metrics.json")
+        if r is None:
+            continue
+        label = d.name[len("eval-"):].rsplit("-", 1)[0]
+        for run, record in split_report(r).items():
+            write_json(keep / "runs" / f"{label}--{run}.json", record)
+    for pattern in ("warnings-*.json", "*-thresholds.json", "*-stats.json", "selected.txt"):
+        for f in reports.glob(pattern):
+            if f.name.endswith(".partial"):
+                continue
+            shutil.copyfile(f, keep / "reports" / (f.name + ".partial"))
+            os.replace(keep / "reports" / (f.name + ".partial"), keep / "reports" / f.name)
+
+
+def kept_evals(keep: Path) -> dict:
+    """(GROUP, PROTOCOL) -> the group's report merged from its kept runs."""
+    groups: dict[str, list[dict]] = {}
+    for f in sorted((keep / "runs").glob("*--*.json")):
+        r = load(f)
+        if r is not None:
+            groups.setdefault(f.name.split("--", 1)[0], []).append(r)
+    evals = {}
+    for label, records in groups.items():
+        r = merge_records(records)
+        for p in r["protocols"]:
+            evals[(label, p["protocol"])] = r
+    return evals
 
 
 # --- Student's t distribution (regularised incomplete beta, Numerical Recipes' continued fraction) ---
@@ -275,26 +392,20 @@ def stats_rows(stats: dict | None, title: str) -> list[str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reports", type=Path, required=True)
+    ap.add_argument("--keep", type=Path, required=True)
     ap.add_argument("--set", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args()
-    evals = {}
-    for d in sorted(a.reports.glob("eval-*")):
-        r = load(d / "metrics.json")
-        if r is None:
-            continue
-        label, proto = d.name[len("eval-"):].rsplit("-", 1)
-        evals[(label, proto)] = r
-        # `eval` reports both protocols in one file: either directory serves both tables.
-        for p in r.get("protocols", []):
-            evals.setdefault((label, p["protocol"]), r)
+    keep_results(a.reports, a.keep)
+    evals = kept_evals(a.keep)
+    kept = a.keep / "reports"
     selected = []
-    sel = a.reports / "selected.txt"
+    sel = kept / "selected.txt"
     if sel.exists():
         selected = [tuple(line.split()[:2]) for line in sel.read_text().splitlines() if line.strip()]
     lines = ["<!-- Written by scripts/model_card.py from the reports of scripts/retrain.sh. -->", "",
-             "### Data (simulated)", "", *stats_rows(load(a.reports / "simv4-stats.json"), "Training set"), "",
-             *stats_rows(load(a.reports / "walk-stats.json"), "Walking set (false alarms)"), "",
+             "### Data (simulated)", "", *stats_rows(load(kept / "simv4-stats.json"), "Training set"), "",
+             *stats_rows(load(kept / "walk-stats.json"), "Walking set (false alarms)"), "",
              "### Paper protocol (test split)", "", *protocol_table(evals, "paper"), "",
              "### Checks", "", *checks(evals), "",
              "### Deployment protocol (test split)", "", *protocol_table(evals, "deployment"), ""]
@@ -310,7 +421,21 @@ def main() -> int:
         lines += ["### By fall cause (paper protocol, test falls of that cause with the test walks)", "",
                   "| cause | network | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |",
                   *cause_rows, ""]
-    lead_rows = cause_lead_rows(a.reports, selected)
+    sigma_rows = []
+    for key, label in (("emp", "EMP"), ("mp", "MP"), ("p", "P")):
+        r = evals.get((f"{key}-highsigma", "paper"))
+        if not r:
+            continue
+        cells = []
+        for proto in ("paper", "deployment"):
+            h = horizon(r, proto, 1000)
+            cells += [fmt_ms(h["accuracy"]) if h else "-", fmt_ms(h["roc_auc"]) if h else "-"]
+        sigma_rows.append(f"| {label} | {len(r['models'])} | " + " | ".join(cells) + " |")
+    if sigma_rows:
+        lines += ["### Within one level of perturbation (test episodes at sigma >= 0.035, 1 s)", "",
+                  "| network | seeds | paper accuracy | paper ROC-AUC | deployment accuracy | deployment ROC-AUC |",
+                  "| --- | --- | --- | --- | --- | --- |", *sigma_rows, ""]
+    lead_rows = cause_lead_rows(kept, selected)
     if lead_rows:
         lines += ["### Warnings by fall cause (`fall-guard warnings` on the test falls of that cause)", "",
                   *lead_rows, ""]
@@ -326,7 +451,7 @@ def main() -> int:
                          f"{fmt_ms(full['accuracy']) if full else '-'} |")
         lines.append("")
     lines += ["### The daemon's warnings (`fall-guard warnings`, streaming, thresholds chosen on validation)", "",
-              *warnings_rows(a.reports, selected), "", *warning_checks(a.reports, selected), ""]
+              *warnings_rows(kept, selected), "", *warning_checks(kept, selected), ""]
     a.out.write_text("\n".join(lines) + "\n")
     return 0
 

@@ -7,10 +7,12 @@
 #   select    the best network of each ablation by validation loss
 #   thresholds  the latch's trigger/release for each selected network (validation)
 #   evaluate  eval on test (both protocols, seeds as mean +- std), warnings on
-#             test and on the long walking set, by fall cause
-#   card      the model card's tables (models/card/) from those reports
-#   ship      copy the selected networks (f16) and their tables into models/,
-#             each network's thresholds into config/ (scripts/ship_thresholds.py)
+#             test and on the long walking set, by fall cause, at high sigma
+#   card      the model card's tables from those reports; the results are kept
+#             per run in models/card/ (commit it), so that seeds trained in
+#             different data directories add up (scripts/model_card.py)
+#   ship      copy the selected networks (f16) into models/, each network's
+#             thresholds into config/ (scripts/ship_thresholds.py)
 #
 # `bash scripts/retrain.sh` runs every step in turn; `bash scripts/retrain.sh
 # STEP` runs one. Stop it at any point and run it again: every step writes
@@ -18,7 +20,9 @@
 # is newer than its inputs is skipped, the generator resumes where it
 # stopped and training resumes from its last epoch's checkpoint, so at most
 # the step in progress (for training: its epoch) is lost. Progress goes to
-# $FALL_GUARD_DATA/retrain.log with timestamps.
+# $FALL_GUARD_DATA/retrain.log with timestamps. In a new data directory the
+# shipped networks are put back as the runs they are (and their kept
+# thresholds and warnings with them), so that they are not trained again.
 #
 # Where:  FALL_GUARD_DATA (default ~/fall-guard-data): data sets, runs,
 #         reports; keep it outside the work tree.
@@ -65,21 +69,56 @@ need_binary() {
 # priority (a cut drops from the end): EMP, MP and P seeds first, taken in
 # turn, so that a run stopped early still has two seeds of each to compare.
 plan() {
-  for s in 1 2; do
+  local s
+  for s in 1 2 3; do
     echo "emp-s$s --ablation EMP --seed $s"
     echo "mp-s$s --ablation MP --seed $s"
     echo "p-s$s --ablation P --seed $s"
   done
-  echo "emp-s3 --ablation EMP --seed 3"
-  echo "mp-s3 --ablation MP --seed 3"
-  echo "p-s3 --ablation P --seed 3"
+  echo "ep-s1 --ablation EP --seed 1"
   for s in 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
-  for s in 1 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
+  for s in 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
   echo "logreg-s1 --ablation logreg --seed 1"
   for s in 1 2 3; do echo "emp-hist-s$s --ablation EMP --seed $s --trajectory historical-only"; done
   for s in 1 2 3; do echo "emp-real-s$s --ablation EMP --seed $s --trajectory real-position"; done
   echo "emp-perh-s1 --ablation EMP --seed 1 --protocol paper --per-horizon"
   if [ "${RETRAIN_PAPER:-0}" = 1 ]; then echo "emp-paper-s1 --ablation EMP --seed 1 --config paper"; fi
+}
+
+KEEP=$REPO/models/card             # the results kept per run (scripts/model_card.py)
+TRAINED_ON="simv4 (sim generator 4, 2,000 episodes, seed 1; simulated data)"
+
+# The shipped networks are calibrated runs of this plan: in a data directory
+# without their run, put them back (RUNS/NAME.cal.bpk and NAME.done), with the
+# thresholds and warnings kept for them, so that they are not trained again.
+restore_shipped() {
+  local abl f meta name
+  for abl in emp mp ep p; do
+    f=$REPO/models/$abl.bpk
+    [ -e "$f" ] || continue
+    meta=$("$PY" -c "
+import json, sys
+sys.path.insert(0, sys.argv[2])
+from model_meta import read_meta
+m = read_meta(sys.argv[1])
+print(m['trained_on'] == sys.argv[3], m['ablation'].lower(), m['seed'], m['config'].get('trajectory', 'planned'))" \
+      "$f" "$REPO/scripts" "$TRAINED_ON")
+    set -- $meta
+    [ "$1" = True ] && [ "$4" = planned ] || continue
+    name=$2-s$3
+    [ -e "$RUNS/$name.cal.bpk" ] && continue
+    log "restore: models/$abl.bpk is run $name (calibrated); not trained again"
+    cp "$f" "$RUNS/$name.cal.bpk.partial"
+    mv "$RUNS/$name.cal.bpk.partial" "$RUNS/$name.cal.bpk"
+    touch "$RUNS/$name.done"
+    if grep -qx "$abl $name .*" "$KEEP/reports/selected.txt" 2>/dev/null; then
+      local r
+      for r in "$KEEP/reports/$abl-thresholds.json" "$KEEP/reports/warnings-$abl-"*.json; do
+        [ -e "$r" ] && [ ! -e "$REPORTS/$(basename "$r")" ] && cp "$r" "$REPORTS/"
+      done
+    fi
+  done
+  return 0
 }
 
 # Model file of a run (logreg is JSON; per-horizon runs write NAME.hH.bpk).
@@ -121,7 +160,7 @@ train_one() {
   # --out .partial: the run writes there, checkpoints beside it; renamed when whole.
   local partial="${out%.*}.partial.${out##*.}"
   if /usr/bin/time -v -o "$RUNS/$name.time.txt" "$FG" train --data "$SET" "$@" "${device[@]}" \
-      --out "$partial" --trained-on "simv4 (sim generator 4, 2,000 episodes, seed 1; simulated data)" \
+      --out "$partial" --trained-on "$TRAINED_ON" \
       --quiet >>"$RUNS/$name.log" 2>&1; then
     local f
     for f in "$RUNS/${name}".partial*; do
@@ -140,9 +179,10 @@ train_one() {
 step_train() {
   need_binary
   [ -e "$SET/.complete" ] || { log "train: the data set is not complete; run 'data' first"; return 1; }
+  restore_shipped
   log "train: $(plan | wc -l) runs, $PARALLEL at a time"
   export -f train_one run_file newer log
-  export RUNS SET FG LOG DEVICE
+  export RUNS SET FG LOG DEVICE TRAINED_ON
   plan | xargs -P "$PARALLEL" -L 1 bash -c 'train_one "$@"' _
   log "train: done"
 }
@@ -167,6 +207,7 @@ step_calibrate() {
 
 step_select() {
   local abl best bestloss name loss cal
+  restore_shipped
   : >"$REPORTS/selected.txt.partial"
   for abl in emp mp ep p; do
     best=""; bestloss=""
@@ -243,12 +284,21 @@ step_evaluate() {
   if [ -e "$RUNS/logreg-s1.json" ]; then
     eval_group logreg paper "$RUNS/logreg-s1.json"
   fi
-  # The generator-1 networks that shipped before, on the same test split, for contrast.
-  # (Kept once: after `ship`, models/ holds the new networks.)
-  for abl in emp mp ep p; do
-    [ -e "$REPO/models/$abl.bpk" ] && [ ! -e "$REPORTS/gen1-$abl.bpk" ] || continue
-    if "$PY" "$REPO/scripts/model_meta.py" "$REPO/models/$abl.bpk" trained_on | grep -q "simv4"; then continue; fi
-    cp -p "$REPO/models/$abl.bpk" "$REPORTS/gen1-$abl.bpk"
+  # The generator-1 networks that shipped before, on the same test split, for
+  # contrast: the newest version of models/ABL.bpk in git's history that was
+  # not trained on simv4 (the generator-1 networks; kept once).
+  local rev blob
+  for abl in emp mp p; do
+    [ -e "$REPORTS/gen1-$abl.bpk" ] && continue
+    for rev in $(git -C "$REPO" log --format=%H -- "models/$abl.bpk" 2>/dev/null); do
+      blob="$REPORTS/gen1-$abl.bpk.partial"
+      git -C "$REPO" show "$rev:models/$abl.bpk" >"$blob" 2>/dev/null || continue
+      if ! "$PY" "$REPO/scripts/model_meta.py" "$blob" trained_on | grep -q "simv4"; then
+        mv "$blob" "$REPORTS/gen1-$abl.bpk"
+        break
+      fi
+      rm -f "$blob"
+    done
   done
   for abl in emp mp p; do
     [ -e "$REPORTS/gen1-$abl.bpk" ] && eval_group "gen1-$abl" paper "$REPORTS/gen1-$abl.bpk"
@@ -262,6 +312,13 @@ step_evaluate() {
       [ ${#files[@]} -gt 0 ] || continue
       SET="$DATA_ROOT/bycause/$cause" eval_group "$group-$cause" paper "${files[@]}"
     done
+  done
+  # Within one level of perturbation (the test episodes at sigma >= 0.035):
+  # whether the plan and the camera add to the joints once the sigma is known.
+  for group in emp mp p; do
+    mapfile -t files < <(seeds_of "$group")
+    [ ${#files[@]} -gt 0 ] || continue
+    SET="$DATA_ROOT/bycause/high-sigma" eval_group "$group-highsigma" paper "${files[@]}"
   done
   # The daemon's own path: warnings on test and on the long walking set.
   while read -r abl name loss; do
@@ -292,9 +349,10 @@ print(c['trigger'], c['release'])" "$REPORTS/$abl-thresholds.json")
 }
 
 step_card() {
-  log "card: tables from $REPORTS"
-  "$PY" "$REPO/scripts/model_card.py" --reports "$REPORTS" --set "$SET" --out "$REPORTS/card.md.partial"
-  mv "$REPORTS/card.md.partial" "$REPORTS/card.md"
+  log "card: tables from $REPORTS and the results kept in $KEEP"
+  "$PY" "$REPO/scripts/model_card.py" --reports "$REPORTS" --keep "$KEEP" --set "$SET" \
+    --out "$KEEP/tables.md.partial"
+  mv "$KEEP/tables.md.partial" "$KEEP/tables.md"
 }
 
 step_ship() {
@@ -304,7 +362,6 @@ step_ship() {
     cp "$RUNS/$name.cal.bpk" "$REPO/models/$abl.bpk.partial"
     mv "$REPO/models/$abl.bpk.partial" "$REPO/models/$abl.bpk"
   done <"$REPORTS/selected.txt"
-  cp "$REPORTS/card.md" "$REPO/models/card.md"
   # Each network's latch thresholds, chosen for it on validation, into the configs.
   "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" \
     "$REPO/config/replay.toml" "$REPO/config/poppy_humanoid.toml" | tee -a "$LOG"

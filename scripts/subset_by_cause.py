@@ -1,7 +1,13 @@
 #!/usr/bin/env python3
-"""Data sets of one fall cause: the test falls of that cause with every non-falling test episode.
+"""Data sets of one fall cause, and of the high sigmas, from SET's test split.
 
-    subset_by_cause.py SET OUT     writes OUT/collision/ and OUT/perturbation/
+    subset_by_cause.py SET OUT     writes OUT/collision/, OUT/perturbation/ and OUT/high-sigma/
+
+collision/ and perturbation/ hold the test falls of that cause with every
+non-falling test episode; high-sigma/ holds every test episode at a
+perturbation sigma >= 0.035 (falling or not), so that a network's figures
+there say what it sees within one level of perturbation, where the joints'
+swell does not already tell the sigma.
 
 Each is a directory of symbolic links to SET's recordings with a manifest.json
 whose test split holds those episodes (train and validation empty), so that
@@ -43,16 +49,22 @@ def main() -> int:
     src, out = Path(sys.argv[1]).resolve(), Path(sys.argv[2])
     manifest = json.loads((src / "manifest.json").read_text())
     causes: dict[str, list[str]] = {"collision": [], "perturbation": []}
-    walks = []
+    walks, high = [], []
     for name in manifest["test"]:
         meta = read_episode_metadata(src / name)
         cause = meta.get("fall_cause")
         (causes[cause] if cause in causes else walks).append(name)
+        if float(meta["sigma"]) >= 0.035:
+            high.append(name)
     for cause, falls in causes.items():
         d = out / cause
         write_subset(d, [(src / n, n) for n in falls + walks], {"test": sorted(falls + walks)},
                      f"test falls caused by {cause} + test walks", manifest.get("generator", {}))
         print(f"{d}: {len(falls)} {cause} falls, {len(walks)} walks")
+    d = out / "high-sigma"
+    write_subset(d, [(src / n, n) for n in high], {"test": sorted(high)},
+                 "test episodes at sigma >= 0.035", manifest.get("generator", {}))
+    print(f"{d}: {len(high)} episodes at sigma >= 0.035")
     return 0
 
 
