@@ -9,7 +9,7 @@
 //! - a peer of the same keystore without permission for the forecast topic
 //!   cannot create its reader there, yet reads `/diagnostics`, which it may;
 //! - a peer whose identity and permissions come from another CA is not
-//!   matched: it receives nothing at all;
+//!   matched: it receives nothing at all, nor does an open peer;
 //! - an unsecured publisher on `/joint_states` is ignored (the joints stay
 //!   never seen on `/diagnostics`), while a permitted secured one drives the
 //!   joints;
@@ -297,6 +297,16 @@ async fn secured_peers_receive_only_what_their_permissions_and_ca_allow() {
     )
     .expect("stranger reader");
 
+    // An open participant: sees no secured traffic at all.
+    let mut open = RosNode::start(&peer_settings(domain, "open_listener", None)).expect("open");
+    let open_forecasts: Heard<Float32MultiArray> = subscribe(
+        &mut open,
+        "/fall_guard/forecast",
+        "std_msgs/msg/Float32MultiArray",
+        qos::forecast(),
+    )
+    .expect("open reader");
+
     // The daemon replays the bundled episode in real time (~10 s).
     let config = config(dir.path(), domain);
     let daemon = Daemon::start(
@@ -345,11 +355,17 @@ async fn secured_peers_receive_only_what_their_permissions_and_ca_allow() {
         stranger_forecasts.all().len(),
         stranger_diagnostics.all().len()
     );
-    drop((forecasts, horizons, allowed_diagnostics));
+    assert!(
+        open_forecasts.all().is_empty(),
+        "an open participant received {} secured forecasts",
+        open_forecasts.all().len()
+    );
+    drop((forecasts, horizons, allowed_diagnostics, open_forecasts));
     drop((stranger_forecasts, stranger_diagnostics));
     monitor.shutdown().await;
     no_forecast.shutdown().await;
     stranger.shutdown().await;
+    open.shutdown().await;
 }
 
 /// Publishes the robot's joints at 50 Hz on `/joint_states` from `node`
