@@ -13,9 +13,8 @@
 # received (both modes must deliver). All traffic on 127.0.0.1.
 #
 # Usage: scripts/bench-security.sh [--duration-s 60] [--pairs 2] [--out DIR]
-# Builds fall-guard and the listener with `security` in the release test
-# profile (`cargo test --no-run`: the dependencies of the test build, so
-# burn is not built again); both modes run the same binary.
+# Builds: cargo build --release --features security --bin fall-guard
+# --example sros2_listener (both modes run that one binary).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -31,7 +30,7 @@ done
 [ -n "$out" ] || out=$(mktemp -d)
 mkdir -p "$out"
 
-cargo test --release --features security,test-kits --no-run --test ros_security --example sros2_listener
+cargo build --release --features security --bin fall-guard --example sros2_listener
 target="${CARGO_TARGET_DIR:-target}/release"
 bin="$target/fall-guard" listener="$target/examples/sros2_listener"
 
