@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # Everything fall-guard needs on a fresh Debian/Ubuntu machine (idempotent):
 #   - system packages for the build: libudev-dev (serialport), libclang-dev
-#     (nokhwa's V4L2 bindings), nasm (burn's image codecs), pkg-config;
+#     (nokhwa's V4L2 bindings), nasm (burn's image codecs), pkg-config,
+#     libssl-dev and openssl (the `security` feature's OpenSSL, and the
+#     test keystore of scripts/sros2-keystore.sh);
 #   - the two Python environments (scripts/setup-python.sh): sim/.venv for
 #     the simulator, .venv with rclpy (PyPI wheels) for the ROS 2 tests.
 # Needs root or sudo for the packages; skips them when they are installed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-packages=(libudev-dev libclang-dev nasm pkg-config python3-venv)
+packages=(libudev-dev libclang-dev nasm pkg-config libssl-dev openssl python3-venv)
 missing=()
 for p in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

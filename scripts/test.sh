@@ -4,6 +4,12 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# DDS Security (cargo feature `security`, docs/ros.md "Security"): secured
+# peers against the daemon. Only the DDS crates and fall-guard are built
+# again for it. First, so that target/debug/fall-guard (packaged by
+# scripts/test-deb.sh) is the default build's, made by the next line.
+cargo test --features security,test-kits --test ros_security
+
 # `test-kits`: the bus emulator and synthetic recordings the tests use,
 # kept out of the shipped build (Cargo.toml).
 cargo test --all-targets --features test-kits --no-fail-fast

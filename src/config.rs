@@ -336,6 +336,10 @@ pub struct RosConfig {
     /// Only talk on 127.0.0.1; absent: `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`.
     #[serde(default)]
     pub localhost_only: Option<bool>,
+    /// The SROS2 enclave used when `ROS_SECURITY_ENABLE=true`
+    /// (`ROS_SECURITY_ENCLAVE_OVERRIDE` wins over it).
+    #[serde(default = "default_enclave")]
+    pub enclave: String,
     #[serde(default)]
     pub topics: TopicsConfig,
 }
@@ -348,6 +352,7 @@ impl Default for RosConfig {
             namespace: default_namespace(),
             domain_id: None,
             localhost_only: None,
+            enclave: default_enclave(),
             topics: TopicsConfig::default(),
         }
     }
@@ -362,6 +367,9 @@ fn default_node_name() -> String {
 }
 fn default_namespace() -> String {
     "/".to_string()
+}
+fn default_enclave() -> String {
+    crate::ros::security::DEFAULT_ENCLAVE.to_string()
 }
 
 /// `[ros.topics]`: topic names (relative names get the namespace).
@@ -624,6 +632,12 @@ impl Config {
                     "expected an absolute namespace like \"/poppy\", got {:?}",
                     self.ros.namespace
                 ),
+            ));
+        }
+        if let Err(why) = crate::ros::security::check_enclave_name(&self.ros.enclave) {
+            return Err(self.value_error(
+                "[ros].enclave",
+                format!("{why}, got {:?}", self.ros.enclave),
             ));
         }
         if let Some(r) = &self.replay {

@@ -19,9 +19,13 @@ use fall_guard::service;
 ///   peer); delivery to the readers that can be reached goes on;
 /// - `rustdds::network::udp_listener`: leaving the DDS multicast group on a
 ///   loopback-only participant at shutdown fails (`AddrNotAvailable`) and
-///   logs an ERROR although nothing was lost.
+///   logs an ERROR although nothing was lost;
+/// - `rustdds::network::udp_sender`: every datagram over 1,500 bytes logs
+///   `Message size = N` as a WARN, although UDP carries it; with DDS
+///   Security on, discovery messages (which carry the security tokens) are
+///   all that large, and each one logged.
 const DEFAULT_LOG_FILTER: &str =
-    "info,rustdds=warn,ros2_client=warn,rustdds::rtps::writer=error,rustdds::network::udp_listener=off";
+    "info,rustdds=warn,ros2_client=warn,rustdds::rtps::writer=error,rustdds::network::udp_listener=off,rustdds::network::udp_sender=error";
 
 fn init_logging() {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()

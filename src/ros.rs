@@ -11,7 +11,10 @@
 //! services) as a tokio task. Topics leave this module as `Topic` handles
 //! created with the QoS that belongs to them.
 
+pub mod security;
+
 use std::net::{IpAddr, Ipv4Addr};
+use std::path::PathBuf;
 
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{Context, MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile};
@@ -70,6 +73,34 @@ pub enum RosError {
     Publish { topic: String, reason: String },
     #[error("RosNode::start must run inside a tokio runtime (it spawns the node's spinner)")]
     NoRuntime,
+    #[error("{var}={value:?} is not valid (expected {expected})")]
+    BadSecurityVar {
+        var: &'static str,
+        value: String,
+        expected: &'static str,
+    },
+    #[error("enclave {enclave:?} (from {from}) is not valid: {reason}")]
+    BadEnclave {
+        enclave: String,
+        from: &'static str,
+        reason: String,
+    },
+    #[error(
+        "ROS_SECURITY_ENABLE=true with ROS_SECURITY_STRATEGY=Enforce, but this fall-guard was built without DDS Security: refusing to start on an open DDS domain; install a build with `--features security`, or set ROS_SECURITY_STRATEGY=Permissive to run unsecured"
+    )]
+    SecurityNotBuiltIn,
+    #[error(
+        "ROS_SECURITY_ENABLE=true with ROS_SECURITY_STRATEGY=Enforce, but ROS_SECURITY_KEYSTORE is not set: point it at the SROS2 keystore (the directory holding enclaves/)"
+    )]
+    NoKeystore,
+    #[error("DDS Security (Enforce refuses to start without it): {}: {reason}", path.display())]
+    SecurityFile { path: PathBuf, reason: String },
+    #[error("cannot create the secured DDS participant on domain {domain_id} with the enclave {}: {reason}", enclave_dir.display())]
+    SecureParticipant {
+        domain_id: u16,
+        enclave_dir: PathBuf,
+        reason: String,
+    },
 }
 
 /// How far automatic discovery reaches, as ROS 2 (Iron and later) defines
@@ -91,6 +122,9 @@ pub struct RosSettings {
     /// Node namespace, e.g. `/` or `/poppy`; relative topic names resolve under it.
     pub namespace: String,
     pub node_name: String,
+    /// DDS Security, present when `ROS_SECURITY_ENABLE=true`
+    /// (`security::SecuritySettings`).
+    pub security: Option<security::SecuritySettings>,
 }
 
 impl RosSettings {
@@ -102,9 +136,22 @@ impl RosSettings {
 
     /// As [`RosSettings::from_env`], with the environment given as a lookup
     /// function (so that tests need not mutate the process environment).
+    /// The security variables, when enabled, use [`security::DEFAULT_ENCLAVE`].
     pub fn from_vars(
         namespace: &str,
         node_name: &str,
+        var: impl Fn(&str) -> Option<String>,
+    ) -> Result<RosSettings, RosError> {
+        RosSettings::from_vars_in_enclave(namespace, node_name, security::DEFAULT_ENCLAVE, var)
+    }
+
+    /// As [`RosSettings::from_vars`], also reading `ROS_SECURITY_ENABLE`,
+    /// `ROS_SECURITY_STRATEGY`, `ROS_SECURITY_KEYSTORE` and
+    /// `ROS_SECURITY_ENCLAVE_OVERRIDE`, with `enclave` the configured one.
+    pub fn from_vars_in_enclave(
+        namespace: &str,
+        node_name: &str,
+        enclave: &str,
         var: impl Fn(&str) -> Option<String>,
     ) -> Result<RosSettings, RosError> {
         let domain_id = match var(DOMAIN_ID_ENV).map(|v| v.trim().to_owned()) {
@@ -144,11 +191,13 @@ impl RosSettings {
                 })
             }
         };
+        let security = security::SecuritySettings::from_vars(enclave, &var)?;
         let settings = RosSettings {
             domain_id,
             discovery,
             namespace: namespace.to_owned(),
             node_name: node_name.to_owned(),
+            security,
         };
         settings.node_name()?;
         Ok(settings)
@@ -433,16 +482,35 @@ fn parse_type_name(type_name: &str) -> Result<MessageTypeName, RosError> {
     }
 }
 
+/// The participant, secured when `settings.security` asks for it and
+/// [`security::plan`] allows it.
 fn participant(settings: &RosSettings) -> Result<DomainParticipant, RosError> {
     let builder = DomainParticipantBuilder::new(settings.domain_id);
     let builder = match settings.discovery {
         DiscoveryRange::Localhost => builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]),
         DiscoveryRange::Subnet => builder,
     };
-    builder.build().map_err(|e| RosError::Participant {
-        domain_id: settings.domain_id,
-        reason: e.to_string(),
-    })
+    let plan = security::plan(settings.security.as_ref())?;
+    let builder = security::configure(builder, &plan)?;
+    let participant = builder.build().map_err(|e| match &plan {
+        security::Plan::Secure { dir, .. } => RosError::SecureParticipant {
+            domain_id: settings.domain_id,
+            enclave_dir: dir.clone(),
+            reason: e.to_string(),
+        },
+        security::Plan::Open { .. } => RosError::Participant {
+            domain_id: settings.domain_id,
+            reason: e.to_string(),
+        },
+    })?;
+    if let security::Plan::Secure { dir, strategy } = &plan {
+        tracing::info!(
+            enclave_dir = %dir.display(),
+            strategy = ?strategy,
+            "DDS Security on: authenticated, access-controlled, encrypted as the governance says"
+        );
+    }
+    Ok(participant)
 }
 
 #[cfg(test)]
@@ -543,6 +611,7 @@ mod tests {
                 discovery: DiscoveryRange::Localhost,
                 namespace: namespace.to_owned(),
                 node_name: "fall_guard_names".to_owned(),
+                security: None,
             };
             let mut node = RosNode::start(&settings).expect("node");
             let t = node

@@ -8,7 +8,8 @@
 //!
 //! The node honours `ROS_DOMAIN_ID` and `ROS_AUTOMATIC_DISCOVERY_RANGE`
 //! (`ROS_LOCALHOST_ONLY`), unless `[ros].domain_id` / `[ros].localhost_only`
-//! set them in the config.
+//! set them in the config, and the DDS Security variables
+//! (`ROS_SECURITY_*`, `ros::security`) with the enclave `[ros].enclave`.
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -39,7 +40,7 @@ impl From<RosError> for ServiceError {
 /// The node settings: the environment, overridden by `[ros]`.
 pub fn settings(config: &Config) -> Result<RosSettings, RosError> {
     let ros = &config.ros;
-    RosSettings::from_vars(&ros.namespace, &ros.node_name, |var| {
+    RosSettings::from_vars_in_enclave(&ros.namespace, &ros.node_name, &ros.enclave, |var| {
         if var == DOMAIN_ID_ENV {
             if let Some(id) = ros.domain_id {
                 return Some(id.to_string());
