@@ -408,8 +408,8 @@ fn episode_ticks_from_synthetic_recording() {
 #[test]
 fn compressed_frames_give_the_windows_of_decoded_ones() {
     use fall_guard::window::{FrameStorage, TickFrame};
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/fixtures/episode_00005.mcap");
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/episode_00005.mcap");
     let rec = Recording::open(&path).unwrap();
     for size in [64u32, 40] {
         let sp = WindowSpec {
