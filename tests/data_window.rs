@@ -440,9 +440,10 @@ fn compressed_frames_give_the_windows_of_decoded_ones() {
                 other => panic!("tick {}: {other:?}", d.tick),
             }
         }
-        // At the recorded 64 x 64 a JPEG is ~1.4 KB, the frame 12 KB.
+        // At the recorded 64 x 64 this episode's JPEGs are ~2 KB, the
+        // decoded frame 12 KB: compressed storage holds under a quarter.
         assert!(
-            size != 64 || held * 8 < frames,
+            size != 64 || held * 4 < frames,
             "{held} bytes compressed, {frames} decoded"
         );
         let first = decoded.first_complete_end_tick(60, Streams::ALL).unwrap();
