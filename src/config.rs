@@ -254,6 +254,22 @@ pub struct StreamsConfig {
     /// ... or more than this before it.
     #[serde(default = "default_max_past_ms")]
     pub max_past_ms: u32,
+    /// A planned position more than this beyond its joint's limits
+    /// (`robot.rs`) is rejected (`out_of_limits`).
+    #[serde(default = "default_plan_limit_margin_deg")]
+    pub plan_limit_margin_deg: f64,
+    /// A compressed camera image larger than this is rejected before it is
+    /// decoded (`too_large`).
+    #[serde(default = "default_max_image_bytes")]
+    pub max_image_bytes: usize,
+}
+
+fn default_plan_limit_margin_deg() -> f64 {
+    5.0
+}
+
+fn default_max_image_bytes() -> usize {
+    2_000_000
 }
 
 fn default_max_future_ms() -> u32 {
@@ -265,17 +281,35 @@ fn default_max_past_ms() -> u32 {
 }
 
 impl StreamsConfig {
-    /// The boundary's limits for a model of `n_joints` joints and S x S frames.
+    /// The boundary's limits for a model of the joints `joint_names` (their
+    /// limits from `table`; a joint the table lacks is not range-checked)
+    /// and S x S frames.
     pub fn input_limits(
         &self,
-        n_joints: usize,
+        joint_names: &[String],
+        table: &crate::robot::JointTable,
         frame_size: u32,
     ) -> crate::sources::input::InputLimits {
+        let margin = self.plan_limit_margin_deg;
+        let range: Vec<(f64, f64)> = joint_names
+            .iter()
+            .map(|name| {
+                table.index_of(name).and_then(|i| table.get(i)).map_or(
+                    (f64::NEG_INFINITY, f64::INFINITY),
+                    |j| {
+                        let (lo, hi) = j.angle_range_deg();
+                        ((lo - margin).to_radians(), (hi + margin).to_radians())
+                    },
+                )
+            })
+            .collect();
         crate::sources::input::InputLimits {
             max_future_ns: i64::from(self.max_future_ms) * 1_000_000,
             max_past_ns: i64::from(self.max_past_ms) * 1_000_000,
-            n_joints,
+            n_joints: joint_names.len(),
             frame_size,
+            plan_range_rad: Some(range.into()),
+            max_image_bytes: self.max_image_bytes,
         }
     }
 }
@@ -579,6 +613,18 @@ impl Config {
                 return Err(self.value_error(key, format!("expected 1 to 60000 ms, got {ms}")));
             }
         }
+        if !(0.0..=180.0).contains(&s.plan_limit_margin_deg) {
+            return Err(self.value_error(
+                "[streams].plan_limit_margin_deg",
+                format!("expected 0 to 180 degrees, got {}", s.plan_limit_margin_deg),
+            ));
+        }
+        if s.max_image_bytes < 1024 {
+            return Err(self.value_error(
+                "[streams].max_image_bytes",
+                format!("expected at least 1024 bytes, got {}", s.max_image_bytes),
+            ));
+        }
         if s.joints == JointsSource::Dynamixel {
             match &self.dynamixel {
                 None => {
@@ -814,6 +860,26 @@ mod tests {
         let config = Config::embedded_replay().expect("embedded config parses");
         assert!(config.replay.is_some());
         assert_eq!(config.origin, EMBEDDED_REPLAY_NAME);
+    }
+
+    #[test]
+    fn plan_limits_are_the_joint_ranges_widened_by_the_margin() {
+        let config = Config::embedded_replay().expect("embedded config parses");
+        let table = crate::robot::JointTable::poppy_humanoid();
+        let names = vec!["l_elbow_y".to_string(), "r_knee_y".into(), "unknown".into()];
+        let limits = config.streams.input_limits(&names, &table, 64);
+        let range = limits.plan_range_rad.expect("plan ranges");
+        let deg = |(lo, hi): (f64, f64)| (lo.to_degrees(), hi.to_degrees());
+        let margin = config.streams.plan_limit_margin_deg;
+        // Direct: pypot's limits as they are.
+        let (lo, hi) = deg(range[0]);
+        assert!((lo - (-148.0 - margin)).abs() < 1e-9 && (hi - (1.0 + margin)).abs() < 1e-9);
+        // Indirect: pypot's [-134, 3.5] is the joint range [-3.5, 134].
+        let (lo, hi) = deg(range[1]);
+        assert!((lo - (-3.5 - margin)).abs() < 1e-9 && (hi - (134.0 + margin)).abs() < 1e-9);
+        // A joint the table lacks is not range-checked.
+        assert_eq!(range[2], (f64::NEG_INFINITY, f64::INFINITY));
+        assert_eq!(limits.max_image_bytes, config.streams.max_image_bytes);
     }
 
     #[test]

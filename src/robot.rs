@@ -145,6 +145,16 @@ impl Joint {
     pub fn rad_to_raw(&self, angle_rad: f64) -> u16 {
         self.deg_to_raw(angle_rad * 180.0 / PI)
     }
+
+    /// The joint angles its limits allow, degrees, lowest first: the
+    /// table's limits are pypot's `angle_limit`, of the opposite sign for an
+    /// indirect motor (docs/robot.md).
+    pub fn angle_range_deg(&self) -> (f64, f64) {
+        match self.orientation {
+            Orientation::Direct => (self.lower_limit_deg, self.upper_limit_deg),
+            Orientation::Indirect => (-self.upper_limit_deg, -self.lower_limit_deg),
+        }
+    }
 }
 
 /// One row of the Poppy table: id, name, model, lower and upper limit (deg),

@@ -263,7 +263,7 @@ pub struct LiveStreams {
 impl LiveStreams {
     /// The streams, each behind its boundary with `limits`.
     pub fn new(limits: InputLimits) -> LiveStreams {
-        let ends = PerStream::from_fn(|kind| stream::<Sample>(kind, limits));
+        let ends = PerStream::from_fn(|kind| stream::<Sample>(kind, limits.clone()));
         LiveStreams {
             feeds: ends.clone().map(|_, (feed, _)| feed),
             taps: ends.map(|_, (_, tap)| tap),
@@ -279,9 +279,11 @@ impl LiveStreams {
 /// The input boundary's limits for `config` and the loaded networks.
 pub fn input_limits(config: &Config, models: &ModelSet) -> InputLimits {
     let spec = models.spec();
-    config
-        .streams
-        .input_limits(spec.joint_names.len(), spec.frame_size)
+    config.streams.input_limits(
+        &spec.joint_names,
+        &JointTable::poppy_humanoid(),
+        spec.frame_size,
+    )
 }
 
 /// `fall-guard run`.

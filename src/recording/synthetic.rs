@@ -242,7 +242,8 @@ pub fn write_dataset(
     std::fs::write(&path, text).map_err(|source| RecordingError::Io { path, source })
 }
 
-/// An episode whose fall is predictable: joints follow a smooth plan with a
+/// An episode whose fall is predictable: joints follow a smooth plan (held
+/// inside each Poppy joint's limits, as the daemon checks plans) with a
 /// little noise; when `falls`, the onset is drawn in the last 40% of the
 /// episode and, during the `2 * rate_hz` ticks before it, the joints drift
 /// away from the plan (up to 0.6 rad) and the frame turns from blue-grey to
@@ -267,10 +268,27 @@ pub fn learnable_episode(
     let mut joints_rad = Vec::with_capacity(n_ticks);
     let mut plan_rad = Vec::with_capacity(n_ticks);
     let mut frames = Vec::with_capacity(n_ticks);
+    // A plan the daemon accepts: inside each Poppy joint's limits.
+    let table = crate::robot::JointTable::poppy_humanoid();
+    let range: Vec<(f32, f32)> = joint_names
+        .iter()
+        .map(|name| {
+            table.index_of(name).and_then(|i| table.get(i)).map_or(
+                (f32::NEG_INFINITY, f32::INFINITY),
+                |j| {
+                    let (lo, hi) = j.angle_range_deg();
+                    (lo.to_radians() as f32, hi.to_radians() as f32)
+                },
+            )
+        })
+        .collect();
     for k in 0..n_ticks {
         let t = k as f32 / rate_hz as f32;
         let plan: Vec<f32> = (0..c)
-            .map(|j| 0.3 * (std::f32::consts::TAU * 0.5 * t + phase + j as f32 * 0.3).sin())
+            .map(|j| {
+                let p = 0.3 * (std::f32::consts::TAU * 0.5 * t + phase + j as f32 * 0.3).sin();
+                p.clamp(range[j].0, range[j].1)
+            })
             .collect();
         // 0 before the precursor, rising to 1 at the onset, 1 after
         let drift = match onset {

@@ -189,20 +189,24 @@ impl Running {
         // 5. The streams, each behind its input boundary.
         let limits = match &networks {
             Some(n) => input_limits(&config, &n.models),
-            None => config
-                .streams
-                .input_limits(spec.joint_names.len(), spec.frame_size),
+            None => config.streams.input_limits(
+                &spec.joint_names,
+                &crate::robot::JointTable::poppy_humanoid(),
+                spec.frame_size,
+            ),
         };
         let mut camera_raw = None;
         let inputs = match recording {
             Some(recording) => {
                 let stats = PerStream::from_fn(|_| Arc::new(StreamStats::default()));
-                let gates =
-                    PerStream::from_fn(|kind| Gate::new(kind, limits, Arc::clone(&stats[kind])));
+                let gates = PerStream::from_fn(|kind| {
+                    Gate::new(kind, limits.clone(), Arc::clone(&stats[kind]))
+                });
                 Inputs::Replay { recording, gates }
             }
             None if what == What::Record => {
-                let (feed, camera) = stream::<Arc<CompressedImage>>(StreamKind::Camera, limits);
+                let (feed, camera) =
+                    stream::<Arc<CompressedImage>>(StreamKind::Camera, limits.clone());
                 camera_raw = Some(feed);
                 Inputs::Record {
                     streams: LiveStreams::new(limits),

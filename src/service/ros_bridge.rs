@@ -174,9 +174,10 @@ impl RosBridge {
             };
             let spec = spec.clone();
             let feed = streams.feeds[kind].clone();
+            let max_image_bytes = feed.limits().max_image_bytes;
             let errors = Arc::clone(&inputs.errors);
             tasks.push(forward(rx, feed, errors, shutdown.clone(), move |m| {
-                model_sample(m, &spec)
+                model_sample(m, &spec, max_image_bytes)
             }));
         }
         if let (Some(rx), Some(feed)) = (inputs.latest.camera.clone(), camera_raw) {
@@ -264,8 +265,13 @@ pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
 /// A ROS 2 message in model form (the conversions a replay uses), with
 /// its stamp on the tick clock: a sensor reading's header stamp (its
 /// reception when the header has none); a plan's reception, since a plan
-/// is known from the moment it arrives.
-fn model_sample(m: &Stamped<InputMessage>, spec: &WindowSpec) -> (i64, Result<Sample, Rejection>) {
+/// is known from the moment it arrives. An image larger than
+/// `max_image_bytes` is rejected before it is decoded.
+fn model_sample(
+    m: &Stamped<InputMessage>,
+    spec: &WindowSpec,
+    max_image_bytes: usize,
+) -> (i64, Result<Sample, Rejection>) {
     let (stamp_ns, sample) = match &m.value {
         InputMessage::Joints(msg) => {
             let stamp_ns = header_stamp(&msg.header, m.stamp_ns);
@@ -278,6 +284,13 @@ fn model_sample(m: &Stamped<InputMessage>, spec: &WindowSpec) -> (i64, Result<Sa
         }
         InputMessage::Camera(msg) => {
             let stamp_ns = header_stamp(&msg.header, m.stamp_ns);
+            if msg.data.len() > max_image_bytes {
+                let too_large = Rejection::TooLarge {
+                    bytes: msg.data.len(),
+                    max: max_image_bytes,
+                };
+                return (stamp_ns, Err(too_large));
+            }
             let sample = frame_from_msg(msg, spec.frame_size).map(|frame| Sample::Frame {
                 stamp_ns,
                 frame: Arc::new(frame),

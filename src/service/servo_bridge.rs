@@ -54,6 +54,7 @@ pub fn servo_details(snapshot: &ServoStatsSnapshot) -> (u64, Vec<(String, String
             (format!("{b}.bad_checksums"), bus.bad_checksums.to_string()),
             (format!("{b}.bad_packets"), bus.bad_packets.to_string()),
             (format!("{b}.garbage_bytes"), bus.garbage_bytes.to_string()),
+            (format!("{b}.lost_replies"), bus.lost_replies.to_string()),
             (format!("{b}.servo_errors"), servo_errors.to_string()),
             (format!("{b}.missing_ids"), format!("{:?}", bus.missing_ids)),
             (format!("{b}.reopens"), bus.reopens.to_string()),
@@ -108,6 +109,7 @@ pub fn bus_status(
     let checksums = delta(|b| b.bad_checksums);
     let packets = delta(|b| b.bad_packets);
     let garbage = delta(|b| b.garbage_bytes);
+    let lost = delta(|b| b.lost_replies);
     let servo = delta(|b| b.servo_errors.iter().map(|(_, n)| n).sum());
     let io = delta(|b| b.io_errors);
     let reopens = delta(|b| b.reopens);
@@ -146,6 +148,7 @@ pub fn bus_status(
         (checksums, "bad checksums"),
         (packets, "bad packets"),
         (garbage, "garbage bytes"),
+        (lost, "lost replies (asked again)"),
         (servo, "servo error bits"),
         (io, "port errors"),
         (reopens, "reopens"),
@@ -232,12 +235,14 @@ pub fn bus_status(
         ("checksum_errors_per_s", per_s(checksums)),
         ("bad_packets_per_s", per_s(packets)),
         ("garbage_bytes_per_s", per_s(garbage)),
+        ("lost_replies_per_s", per_s(lost)),
         ("servo_errors_per_s", per_s(servo)),
         ("reopens_in_window", reopens.to_string()),
         ("timeouts", now.timeouts.to_string()),
         ("bad_checksums", now.bad_checksums.to_string()),
         ("bad_packets", now.bad_packets.to_string()),
         ("garbage_bytes", now.garbage_bytes.to_string()),
+        ("lost_replies", now.lost_replies.to_string()),
         ("servo_errors", servo_total.to_string()),
         ("reopens", now.reopens.to_string()),
         ("open_failures", now.open_failures.to_string()),
@@ -411,6 +416,7 @@ mod tests {
             bad_checksums: 0,
             bad_packets: 0,
             garbage_bytes: 0,
+            lost_replies: 0,
             servo_errors: Vec::new(),
             missing_motor_reads: 0,
             missing_ids: Vec::new(),
@@ -533,6 +539,28 @@ mod tests {
         // WARN from the first bad checksum until it left the 10 s window.
         assert_eq!(warn, (3..=13).collect::<Vec<_>>(), "{levels:?}");
         assert_eq!(levels[20], DiagnosticLevel::Ok);
+    }
+
+    #[test]
+    fn lost_replies_asked_again_warn_while_in_the_window() {
+        let mut b = bus(true);
+        b.cycles = 500;
+        b.ok_cycles = 500;
+        let base = b.clone();
+        b.lost_replies = 12;
+        let d = bus_status(&b, Some(&base), 10.0, JUDGE);
+        assert_eq!(d.level, DiagnosticLevel::Warn, "{}", d.message);
+        assert!(
+            d.message.contains("12 lost replies (asked again)"),
+            "{}",
+            d.message
+        );
+        assert_eq!(value(&d, "lost_replies_per_s"), "1.20");
+        assert_eq!(value(&d, "lost_replies"), "12");
+        // Out of the window: OK again, the total kept.
+        let d = bus_status(&b, Some(&b), 10.0, JUDGE);
+        assert_eq!(d.level, DiagnosticLevel::Ok, "{}", d.message);
+        assert_eq!(value(&d, "lost_replies"), "12");
     }
 
     #[test]

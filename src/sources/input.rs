@@ -32,7 +32,7 @@ use crate::window::{Plan, Sample, WindowError};
 use super::{StreamKind, StreamStats};
 
 /// What the boundary checks a sample against.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct InputLimits {
     /// A stamp later than the tick clock by more than this is rejected
     /// (`[streams].max_future_ms`).
@@ -44,6 +44,14 @@ pub struct InputLimits {
     pub n_joints: usize,
     /// `S`: frames are S x S.
     pub frame_size: u32,
+    /// Each model joint's range for planned positions (radians, model
+    /// order): the joint's limits widened by `[streams].plan_limit_margin_deg`.
+    /// A plan beyond them is a planner's error, not a motion the robot can
+    /// make. `None`: not checked.
+    pub plan_range_rad: Option<Arc<[(f64, f64)]>>,
+    /// A compressed camera image larger than this is rejected before it is
+    /// decoded (`[streams].max_image_bytes`).
+    pub max_image_bytes: usize,
 }
 
 impl InputLimits {
@@ -54,6 +62,8 @@ impl InputLimits {
             max_past_ns: 10_000_000_000,
             n_joints,
             frame_size,
+            plan_range_rad: None,
+            max_image_bytes: usize::MAX,
         }
     }
 }
@@ -82,6 +92,10 @@ pub enum Rejection {
     Undecodable { what: String },
     /// A trajectory with no points.
     EmptyPlan,
+    /// A planned position beyond its joint's limits.
+    OutOfLimits { what: String },
+    /// An image larger than `[streams].max_image_bytes`.
+    TooLarge { bytes: usize, max: usize },
     /// A trajectory whose point times do not strictly increase.
     PlanTimes { what: String },
     /// Anything else malformed.
@@ -90,7 +104,7 @@ pub enum Rejection {
 
 impl Rejection {
     /// Every key, in diagnostics order.
-    pub const KEYS: [&'static str; 10] = [
+    pub const KEYS: [&'static str; 12] = [
         "future_stamp",
         "past_stamp",
         "out_of_order",
@@ -100,6 +114,8 @@ impl Rejection {
         "undecodable",
         "empty_plan",
         "plan_times",
+        "out_of_limits",
+        "too_large",
         "bad_message",
     ];
 
@@ -115,6 +131,8 @@ impl Rejection {
             Rejection::Undecodable { .. } => "undecodable",
             Rejection::EmptyPlan => "empty_plan",
             Rejection::PlanTimes { .. } => "plan_times",
+            Rejection::OutOfLimits { .. } => "out_of_limits",
+            Rejection::TooLarge { .. } => "too_large",
             Rejection::BadMessage { .. } => "bad_message",
         }
     }
@@ -163,7 +181,11 @@ impl fmt::Display for Rejection {
             | Rejection::WrongJoints { what }
             | Rejection::Undecodable { what }
             | Rejection::PlanTimes { what }
+            | Rejection::OutOfLimits { what }
             | Rejection::BadMessage { what } => f.write_str(what),
+            Rejection::TooLarge { bytes, max } => {
+                write!(f, "an image of {bytes} bytes, more than {max}")
+            }
             Rejection::FrameSize {
                 width,
                 height,
@@ -294,6 +316,7 @@ pub fn validate(
                     what: "an image of 0 bytes".to_string(),
                 });
             }
+            image_size(limits, bytes.len())?;
         }
         ValueRef::Frame(f) => {
             if f.width != limits.frame_size || f.height != limits.frame_size {
@@ -331,7 +354,35 @@ pub fn validate(
                     what: format!("plan value {i} is {}", p.positions_rad[i]),
                 });
             }
+            if let Some(range) = limits.plan_range_rad.as_deref() {
+                let beyond = p.positions_rad.iter().enumerate().find(|&(i, &v)| {
+                    range
+                        .get(i % p.n_joints)
+                        .is_some_and(|&(lo, hi)| !(lo..=hi).contains(&v))
+                });
+                if let Some((i, &v)) = beyond {
+                    let (lo, hi) = range[i % p.n_joints];
+                    return Err(Rejection::OutOfLimits {
+                        what: format!(
+                            "point {} joint {}: {v:.3} rad, outside [{lo:.3}, {hi:.3}]",
+                            i / p.n_joints,
+                            i % p.n_joints
+                        ),
+                    });
+                }
+            }
         }
+    }
+    Ok(())
+}
+
+/// The size check of a compressed image, before anything decodes it.
+fn image_size(limits: &InputLimits, bytes: usize) -> Result<(), Rejection> {
+    if bytes > limits.max_image_bytes {
+        return Err(Rejection::TooLarge {
+            bytes,
+            max: limits.max_image_bytes,
+        });
     }
     Ok(())
 }
@@ -363,6 +414,10 @@ impl Gate {
 
     pub fn kind(&self) -> StreamKind {
         self.kind
+    }
+
+    pub fn limits(&self) -> &InputLimits {
+        &self.limits
     }
 
     pub fn stats(&self) -> &Arc<StreamStats> {
@@ -419,6 +474,8 @@ mod tests {
             max_past_ns: 1_000_000_000,
             n_joints: 2,
             frame_size: 4,
+            plan_range_rad: Some(Arc::from(vec![(-1.0, 1.0), (-2.0, 0.5)])),
+            max_image_bytes: 1000,
         }
     }
 
@@ -493,6 +550,15 @@ mod tests {
             (
                 check(NOW, None, ValueRef::Plan(&plan(vec![1], 2, f64::NAN))),
                 "non_finite",
+            ),
+            // Joint 1's range ends at 0.5 rad.
+            (
+                check(NOW, None, ValueRef::Plan(&plan(vec![1, 2], 2, 0.75))),
+                "out_of_limits",
+            ),
+            (
+                check(NOW, None, ValueRef::Encoded(&[0xFF; 1001])),
+                "too_large",
             ),
         ];
         for (i, (got, key)) in cases.into_iter().enumerate() {

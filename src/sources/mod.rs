@@ -388,6 +388,11 @@ impl<T> StreamFeed<T> {
     pub fn stats(&self) -> &Arc<StreamStats> {
         &self.stats
     }
+
+    /// What this stream's boundary checks samples against.
+    pub fn limits(&self) -> &InputLimits {
+        self.gate.limits()
+    }
 }
 
 impl<T> StreamTap<T> {

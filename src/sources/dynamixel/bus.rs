@@ -342,6 +342,7 @@ impl BusReader {
                     };
                 }
                 if !lost.is_empty() {
+                    BusStats::add(&stats.lost_replies, lost.len() as u64);
                     self.retry_sync(stats, raw, &lost);
                 }
             }
@@ -391,7 +392,9 @@ impl BusReader {
             Ok(data) => {
                 for (k, &i) in lost.iter().enumerate() {
                     let value = u16::from_le_bytes([data[2 * k], data[2 * k + 1]]);
-                    if value != 0xFFFF {
+                    if value == 0xFFFF {
+                        BusStats::add(&stats.lost_replies, 1);
+                    } else {
                         raw[i] = self.checked(stats, i, value);
                     }
                 }

@@ -82,6 +82,7 @@ pub struct BusStats {
     pub(crate) bad_checksums: AtomicU64,
     pub(crate) bad_packets: AtomicU64,
     pub(crate) garbage_bytes: AtomicU64,
+    pub(crate) lost_replies: AtomicU64,
     pub(crate) servo_errors: [AtomicU64; 7],
     pub(crate) missing_motor_reads: AtomicU64,
     pub(crate) io_errors: AtomicU64,
@@ -120,6 +121,7 @@ impl BusStats {
             bad_checksums: AtomicU64::new(0),
             bad_packets: AtomicU64::new(0),
             garbage_bytes: AtomicU64::new(0),
+            lost_replies: AtomicU64::new(0),
             servo_errors: Default::default(),
             missing_motor_reads: AtomicU64::new(0),
             io_errors: AtomicU64::new(0),
@@ -204,6 +206,7 @@ impl BusStats {
             bad_checksums: load(&self.bad_checksums),
             bad_packets: load(&self.bad_packets),
             garbage_bytes: load(&self.garbage_bytes),
+            lost_replies: load(&self.lost_replies),
             servo_errors,
             missing_motor_reads: load(&self.missing_motor_reads),
             missing_ids: self
@@ -255,6 +258,10 @@ pub struct BusStatsSnapshot {
     pub bad_packets: u64,
     /// Bytes skipped while resynchronising on `FF FF` or drained as stale.
     pub garbage_bytes: u64,
+    /// Motor replies the USB2AX adapter marked lost (`0xFFFF` in its sync
+    /// read answer: no good reply from that motor), each asked again in
+    /// the same cycle; a reply lost again counts again.
+    pub lost_replies: u64,
     /// Servo error bits seen (kind, count), kinds never seen left out. Only
     /// per-motor reads carry them: the USB2AX sync read drops them.
     pub servo_errors: Vec<(ServoErrorKind, u64)>,
