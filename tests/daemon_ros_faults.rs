@@ -25,16 +25,14 @@ mod heard;
 mod support;
 use heard::{forecast_values, level, msgs, status_named, statuses, wait_diagnostics};
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use serde_json::Value;
 use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
 mod daemon_common;
-use daemon_common::robot_joints;
+use daemon_common::{robot_joints, Daemon};
 
 fn repo(path: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
@@ -60,52 +58,6 @@ fn live_config(dir: &Path, domain: u16, edit: impl Fn(String) -> String) -> Path
     let path = dir.join("fall_guard.toml");
     std::fs::write(&path, edit(text)).expect("write config");
     path
-}
-
-struct Daemon {
-    child: std::process::Child,
-    readers: Vec<std::thread::JoinHandle<Vec<u8>>>,
-}
-
-impl Daemon {
-    fn start(config: &Path) -> Daemon {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
-            .args(["run", "--config", config.to_str().expect("utf8")])
-            .env_remove("RUST_LOG")
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("start fall-guard");
-        let out: Box<dyn Read + Send> = Box::new(child.stdout.take().expect("stdout"));
-        let err: Box<dyn Read + Send> = Box::new(child.stderr.take().expect("stderr"));
-        let readers = [out, err]
-            .into_iter()
-            .map(|mut pipe| {
-                std::thread::spawn(move || {
-                    let mut buf = Vec::new();
-                    let _ = pipe.read_to_end(&mut buf);
-                    buf
-                })
-            })
-            .collect();
-        Daemon { child, readers }
-    }
-
-    /// SIGTERM, then wait: (success, stderr).
-    fn stop(mut self) -> (bool, String) {
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
-        let status = self.child.wait().expect("wait for fall-guard");
-        let mut texts = self
-            .readers
-            .into_iter()
-            .map(|r| r.join().unwrap_or_default());
-        let _stdout = texts.next();
-        let stderr = String::from_utf8_lossy(&texts.next().unwrap_or_default()).into_owned();
-        (status.success(), stderr)
-    }
 }
 
 fn last_diag(events: &[Value]) -> Option<&Value> {
@@ -194,7 +146,7 @@ impl Scenario {
             );
             l
         };
-        let daemon = Daemon::start(config);
+        let daemon = Daemon::start(&["run", "--config", config.to_str().expect("utf8")]);
         let fault_file = dir.join("fault");
         let joints = robot_joints().join(",");
         let mut args = vec![
@@ -219,7 +171,7 @@ impl Scenario {
     }
 
     fn fail(&mut self, what: &str, events: &[Value]) -> ! {
-        let stderr = self.daemon.take().map(|d| d.stop().1).unwrap_or_default();
+        let stderr = self.daemon.take().map(|d| d.stop().2).unwrap_or_default();
         panic!(
             "{what}\nlast diagnostics:\n{}\ndaemon: {stderr}\nwalker: {}",
             statuses(last_diag(events)),
@@ -364,7 +316,7 @@ impl Scenario {
             mut walker, daemon, ..
         } = self;
         drop(walker.drain());
-        let (success, stderr) = daemon.expect("daemon").stop();
+        let (success, _stdout, stderr) = daemon.expect("daemon").stop();
         assert!(success, "daemon exit on SIGTERM: {stderr}");
         assert!(!stderr.contains("panicked"), "{stderr}");
         // Each reason is logged once, not per sample.

@@ -17,6 +17,9 @@
 //!   start with an error naming the file; `Permissive` without the enclave
 //!   runs open, with a WARN (and the same decision without the daemon).
 
+mod daemon_common;
+use daemon_common::Daemon;
+
 #[path = "ros/support.rs"]
 mod support;
 
@@ -161,63 +164,15 @@ fn config(dir: &Path, domain: u16) -> PathBuf {
     path
 }
 
-/// The daemon with DDS Security from `keystore` (strategy `strategy`);
-/// stdout and stderr read as they come.
-struct Daemon {
-    child: std::process::Child,
-    readers: Vec<std::thread::JoinHandle<Vec<u8>>>,
-}
-
-impl Daemon {
-    fn start(args: &[&str], keystore: &Path, strategy: &str) -> Daemon {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
-            .args(args)
-            .env_remove("RUST_LOG")
-            .env_remove("ROS_SECURITY_ENCLAVE_OVERRIDE")
-            .env("ROS_SECURITY_ENABLE", "true")
-            .env("ROS_SECURITY_STRATEGY", strategy)
-            .env("ROS_SECURITY_KEYSTORE", keystore)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("start fall-guard");
-        let out: Box<dyn std::io::Read + Send> = Box::new(child.stdout.take().expect("stdout"));
-        let err: Box<dyn std::io::Read + Send> = Box::new(child.stderr.take().expect("stderr"));
-        let readers = [out, err]
-            .into_iter()
-            .map(|mut pipe| {
-                std::thread::spawn(move || {
-                    let mut buf = Vec::new();
-                    let _ = pipe.read_to_end(&mut buf);
-                    buf
-                })
-            })
-            .collect();
-        Daemon { child, readers }
-    }
-
-    /// Waits for it to exit: (success, stderr).
-    fn wait(mut self) -> (bool, String) {
-        let status = self.child.wait().expect("wait for fall-guard");
-        let texts: Vec<Vec<u8>> = self
-            .readers
-            .into_iter()
-            .map(|r| r.join().unwrap_or_default())
-            .collect();
-        (
-            status.success(),
-            String::from_utf8_lossy(&texts[1]).into_owned(),
-        )
-    }
-
-    /// SIGTERM, then [`Daemon::wait`].
-    fn stop(self) -> (bool, String) {
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
-        self.wait()
-    }
+/// The daemon with DDS Security from `keystore` (strategy `strategy`).
+fn secured_daemon(args: &[&str], keystore: &Path, strategy: &str) -> Daemon {
+    let mut command = Daemon::command(args);
+    command
+        .env_remove("ROS_SECURITY_ENCLAVE_OVERRIDE")
+        .env("ROS_SECURITY_ENABLE", "true")
+        .env("ROS_SECURITY_STRATEGY", strategy)
+        .env("ROS_SECURITY_KEYSTORE", keystore);
+    Daemon::spawn(command)
 }
 
 use std::io::Read as _;
@@ -309,12 +264,12 @@ async fn secured_peers_receive_only_what_their_permissions_and_ca_allow() {
 
     // The daemon replays the bundled episode in real time (~10 s).
     let config = config(dir.path(), domain);
-    let daemon = Daemon::start(
+    let daemon = secured_daemon(
         &["replay", "--config", config.to_str().expect("utf8")],
         &ks,
         "Enforce",
     );
-    let (success, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
+    let (success, _stdout, stderr) = tokio::task::spawn_blocking(move || daemon.wait())
         .await
         .expect("join");
     assert!(success, "secured replay failed: {stderr}");
@@ -433,7 +388,7 @@ async fn an_unsecured_joint_states_publisher_is_ignored() {
     let intruder = walk(&mut open);
 
     let config = config(dir.path(), domain);
-    let daemon = Daemon::start(
+    let daemon = secured_daemon(
         &["run", "--config", config.to_str().expect("utf8")],
         &ks,
         "Enforce",
@@ -455,7 +410,7 @@ async fn an_unsecured_joint_states_publisher_is_ignored() {
     .await;
     walker.abort();
     intruder.abort();
-    let (success, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
+    let (success, _stdout, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
         .await
         .expect("join");
     assert!(first.is_some(), "the monitor got no /diagnostics: {stderr}");
@@ -507,10 +462,13 @@ async fn run_with(
     let config = config(dir, domain);
     let mut all: Vec<&str> = args.to_vec();
     all.extend(["--config", config.to_str().expect("utf8")]);
-    let daemon = Daemon::start(&all, ks, strategy);
+    let daemon = secured_daemon(&all, ks, strategy);
     let waited = tokio::time::timeout(
         Duration::from_secs(60),
-        tokio::task::spawn_blocking(move || daemon.wait()),
+        tokio::task::spawn_blocking(move || {
+            let (success, _stdout, stderr) = daemon.wait();
+            (success, stderr)
+        }),
     )
     .await;
     waited.expect("the daemon did not exit").expect("join")

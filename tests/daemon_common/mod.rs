@@ -305,3 +305,81 @@ fn copy_edited(
     w.write_episode(rec.episode().expect("meta")).expect("meta");
     w.finish().expect("finish");
 }
+
+/// The daemon as a child process whose stdout and stderr are read as they
+/// come (a full pipe would block its logging and stall it).
+pub struct Daemon {
+    child: std::process::Child,
+    readers: Vec<std::thread::JoinHandle<Vec<u8>>>,
+}
+
+impl Daemon {
+    /// `fall-guard ARGS` with the default log filter, as an operator gets
+    /// it: the tests check that it keeps DDS chatter out and that a stop
+    /// logs no ERROR.
+    pub fn start(args: &[&str]) -> Daemon {
+        Daemon::spawn(Daemon::command(args))
+    }
+
+    /// The command [`Daemon::start`] runs, for a test to add to.
+    pub fn command(args: &[&str]) -> Command {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_fall-guard"));
+        command.args(args).env_remove("RUST_LOG");
+        command
+    }
+
+    /// Runs `command` with its stdout and stderr read as they come.
+    pub fn spawn(mut command: Command) -> Daemon {
+        use std::io::Read;
+        use std::process::Stdio;
+        let mut child = command
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start fall-guard");
+        let out: Box<dyn Read + Send> = Box::new(child.stdout.take().expect("stdout"));
+        let err: Box<dyn Read + Send> = Box::new(child.stderr.take().expect("stderr"));
+        let readers = [out, err]
+            .into_iter()
+            .map(|mut pipe| {
+                std::thread::spawn(move || {
+                    let mut buf = Vec::new();
+                    let _ = pipe.read_to_end(&mut buf);
+                    buf
+                })
+            })
+            .collect();
+        Daemon { child, readers }
+    }
+
+    /// Its process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Whether it still runs (it has not exited, by itself or by a crash).
+    pub fn running(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
+    }
+
+    /// Waits for it to exit by itself: (success, stdout, stderr).
+    pub fn wait(mut self) -> (bool, Vec<u8>, String) {
+        let status = self.child.wait().expect("wait for fall-guard");
+        let mut texts = self
+            .readers
+            .into_iter()
+            .map(|r| r.join().unwrap_or_default());
+        let stdout = texts.next().unwrap_or_default();
+        let stderr = String::from_utf8_lossy(&texts.next().unwrap_or_default()).into_owned();
+        (status.success(), stdout, stderr)
+    }
+
+    /// SIGTERM, as systemd stops it, then [`Daemon::wait`].
+    pub fn stop(self) -> (bool, Vec<u8>, String) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+        self.wait()
+    }
+}

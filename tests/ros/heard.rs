@@ -1,6 +1,9 @@
 //! What the rclpy listener heard, read by the daemon's ROS 2 tests
-//! (`daemon_ros.rs`, `daemon_ros_faults.rs`): messages of a topic, forecast
-//! values, diagnostic statuses and their levels, waiting for a status.
+//! (`daemon_ros.rs`, `daemon_ros_faults.rs`, `fault_soak.rs`): messages of
+//! a topic, forecast values, diagnostic statuses and their levels, waiting
+//! for a status. Each test uses some of it.
+
+#![allow(dead_code)]
 
 use std::time::Duration;
 
