@@ -30,7 +30,10 @@
 #         RETRAIN_PARALLEL trainings side by side (default 2);
 #         RETRAIN_DEVICE the training device (cpu, cuda, wgpu; a binary built
 #         with that feature, see docs/building.md).
-# Scope:  RETRAIN_PAPER=1 also trains the `paper` configuration (last).
+# Scope:  RETRAIN_PAPER=1 also trains the `paper` configuration (last);
+#         RETRAIN_RUNS="emp-s1 mp-s1 ..." trains only those runs of the plan
+#         (the later steps use every run that exists), so that a machine
+#         that cannot hold the whole plan in one sitting ships what it has.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 REPO=$(pwd)
@@ -83,6 +86,15 @@ plan() {
   for s in 1 2 3; do echo "emp-real-s$s --ablation EMP --seed $s --trajectory real-position"; done
   echo "emp-perh-s1 --ablation EMP --seed 1 --protocol paper --per-horizon"
   if [ "${RETRAIN_PAPER:-0}" = 1 ]; then echo "emp-paper-s1 --ablation EMP --seed 1 --config paper"; fi
+}
+
+# The runs `train` trains: the plan, or those of it RETRAIN_RUNS names.
+train_plan() {
+  local want=" ${RETRAIN_RUNS:-} " line
+  while read -r line; do
+    if [ -z "${RETRAIN_RUNS:-}" ]; then echo "$line"; continue; fi
+    case $want in *" ${line%% *} "*) echo "$line" ;; esac
+  done < <(plan)
 }
 
 KEEP=$REPO/models/card             # the results kept per run (scripts/model_card.py)
@@ -180,10 +192,10 @@ step_train() {
   need_binary
   [ -e "$SET/.complete" ] || { log "train: the data set is not complete; run 'data' first"; return 1; }
   restore_shipped
-  log "train: $(plan | wc -l) runs, $PARALLEL at a time"
+  log "train: $(train_plan | wc -l) runs, $PARALLEL at a time"
   export -f train_one run_file newer log
   export RUNS SET FG LOG DEVICE TRAINED_ON
-  plan | xargs -P "$PARALLEL" -L 1 bash -c 'train_one "$@"' _
+  train_plan | xargs -P "$PARALLEL" -L 1 bash -c 'train_one "$@"' _
   log "train: done"
 }
 
