@@ -135,7 +135,7 @@ def listen(args):
                         finite[topic] += 1
                 except TypeError:
                     pass
-            emit({"event": "msg", "topic": topic, "t": time.monotonic(), "msg": to_plain(msg)})
+            emit({"event": "msg", "topic": topic, "t": time.monotonic(), "wall": time.time(), "msg": to_plain(msg)})
 
         subs.append(node.create_subscription(cls, topic, callback, QOS[qos]))
     for spec in args.count:
@@ -240,21 +240,32 @@ def current_fault(path):
 
 def walk(args):
     """Joint states (30 Hz) and a plan (1 Hz) of a slow sway, stamped now;
-    with --camera and --jpeg, also that JPEG as the head camera. With
-    --fault-file, while that file names a fault, the input goes bad:
-    `future` stamps joint states 5 s ahead, `nan` makes a joint NaN,
-    `empty_plan` publishes trajectories with no points, `bad_jpeg` sends
-    image bytes that are not a JPEG."""
+    with --camera and --jpeg, also that JPEG as the head camera; --streams
+    names the ones to publish (default all three). With --fault-file,
+    while that file names a fault, the input goes bad: `future` stamps
+    joint states and images 5 s ahead, `past` 60 s behind, `nan` makes a
+    joint NaN, `empty_plan` publishes trajectories with no points,
+    `plan_nan` plans with a NaN angle, `plan_limits` plans 3 rad beyond
+    every joint's angle, `bad_jpeg` sends image bytes that are not a JPEG,
+    `huge_image` a 10 MB image twice a second instead of the frames,
+    `freeze` publishes no image."""
     from sensor_msgs.msg import CompressedImage, JointState
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     names = args.joints.split(",")
+    streams = set(args.streams.split(","))
+    unknown = streams - {"joints", "plan", "camera"}
+    if unknown:
+        raise SystemExit(f"bad --streams {args.streams!r}: unknown {sorted(unknown)}")
     node = rclpy.create_node("fall_guard_test_walker")
     joints = node.create_publisher(JointState, args.joint_states, QOS["sensor_data"])
     plans = node.create_publisher(JointTrajectory, args.planned_trajectory, QOS["latched"])
     images = None
     jpeg = b""
-    if args.camera and args.jpeg:
+    huge = b"\xff" * 10_000_000
+    next_huge = 0.0
+    shift_ns = {"future": 5_000_000_000, "past": -60_000_000_000}
+    if args.camera and args.jpeg and "camera" in streams:
         images = node.create_publisher(CompressedImage, args.camera, QOS["sensor_data"])
         with open(args.jpeg, "rb") as f:
             jpeg = f.read()
@@ -270,13 +281,13 @@ def walk(args):
         if fault != last_fault:
             emit({"event": "fault", "fault": fault, "t": time.monotonic()})
             last_fault = fault
-        if now >= next_plan and fault == "empty_plan":
+        if "plan" in streams and now >= next_plan and fault == "empty_plan":
             plan = JointTrajectory()
             stamp(plan.header.stamp, now_ns)
             plan.joint_names = names
             plans.publish(plan)
             next_plan = now + 1.0
-        if now >= next_plan:
+        if "plan" in streams and now >= next_plan:
             plan = JointTrajectory()
             stamp(plan.header.stamp, now_ns)
             plan.joint_names = names
@@ -284,6 +295,10 @@ def walk(args):
                 dt_ns = p * 33_333_333
                 point = JointTrajectoryPoint()
                 point.positions = sway(names, now - start + dt_ns / 1e9)
+                if fault == "plan_nan":
+                    point.positions[0] = float("nan")
+                elif fault == "plan_limits":
+                    point.positions = [v + 3.0 for v in point.positions]
                 point.time_from_start.sec = dt_ns // 1_000_000_000
                 point.time_from_start.nanosec = dt_ns % 1_000_000_000
                 plan.points.append(point)
@@ -291,19 +306,22 @@ def walk(args):
             emit({"event": "published", "topic": args.planned_trajectory, "n": int(now - start) + 1})
             next_plan = now + 1.0
         i += 1
-        js = JointState()
-        stamp(js.header.stamp, now_ns + (5_000_000_000 if fault == "future" else 0))
-        js.name = names
-        js.position = sway(names, now - start)
-        if fault == "nan":
-            js.position[0] = float("nan")
-        joints.publish(js)
-        if images is not None:
+        if "joints" in streams:
+            js = JointState()
+            stamp(js.header.stamp, now_ns + shift_ns.get(fault, 0))
+            js.name = names
+            js.position = sway(names, now - start)
+            if fault == "nan":
+                js.position[0] = float("nan")
+            joints.publish(js)
+        if images is not None and fault != "freeze" and (fault != "huge_image" or now >= next_huge):
             img = CompressedImage()
-            stamp(img.header.stamp, now_ns)
+            stamp(img.header.stamp, now_ns + shift_ns.get(fault, 0))
             img.header.frame_id = "head_camera"
             img.format = "jpeg"
-            img.data = b"not a JPEG at all" if fault == "bad_jpeg" else jpeg
+            img.data = b"not a JPEG at all" if fault == "bad_jpeg" else huge if fault == "huge_image" else jpeg
+            if fault == "huge_image":
+                next_huge = now + 0.5
             images.publish(img)
         if i == 1 or i % 30 == 0:
             emit({"event": "published", "topic": args.joint_states, "n": i})
@@ -341,6 +359,7 @@ def main():
         "--jpeg", "--camera-jpeg", dest="jpeg", default="", help="publish this JPEG file's bytes as camera frames"
     )
     wp.add_argument("--fault-file", default="", help="a file naming the fault to inject (see walk)")
+    wp.add_argument("--streams", default="joints,plan,camera", help="the streams to publish, comma-separated")
     args = parser.parse_args()
     rclpy.init()
     try:
