@@ -294,13 +294,11 @@ impl StreamsConfig {
         let range: Vec<(f64, f64)> = joint_names
             .iter()
             .map(|name| {
-                table.index_of(name).and_then(|i| table.get(i)).map_or(
-                    (f64::NEG_INFINITY, f64::INFINITY),
-                    |j| {
-                        let (lo, hi) = j.angle_range_deg();
+                table
+                    .joint_range_deg(name)
+                    .map_or((f64::NEG_INFINITY, f64::INFINITY), |(lo, hi)| {
                         ((lo - margin).to_radians(), (hi + margin).to_radians())
-                    },
-                )
+                    })
             })
             .collect();
         crate::sources::input::InputLimits {

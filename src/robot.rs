@@ -228,6 +228,14 @@ impl JointTable {
         JointTable { joints }
     }
 
+    /// The angles `name`'s limits allow, degrees ([`Joint::angle_range_deg`]);
+    /// `None` for a joint the table lacks.
+    pub fn joint_range_deg(&self, name: &str) -> Option<(f64, f64)> {
+        self.index_of(name)
+            .and_then(|i| self.get(i))
+            .map(Joint::angle_range_deg)
+    }
+
     /// Joint names in model order.
     pub fn names(&self) -> Vec<String> {
         self.joints.iter().map(|j| j.name.clone()).collect()

@@ -56,7 +56,8 @@ use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
 mod daemon_common;
 use daemon_common::{
-    parse_lines, robot_joints, write_joints_gap_recording, Daemon, Line, Scene, N_TICKS,
+    parse_lines, robot_joints, write_joints_gap_recording, Daemon, Line, MovingMotors, Scene,
+    N_TICKS,
 };
 
 /// The noisy-bus test measures availability, which a neighbour's daemon
@@ -1116,9 +1117,7 @@ fn bus_noise(seed: u64) -> fall_guard::sources::dynamixel::emulator::ReplyNoise 
 async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
     let _alone = ALONE.write().await;
     let _one_at_a_time = SERVO_BUSES.lock().await;
-    use std::collections::{BTreeMap, BTreeSet};
-    use std::sync::atomic::{AtomicBool, Ordering};
-    use std::sync::{Arc, Mutex};
+    use std::sync::Arc;
 
     use fall_guard::robot::JointTable;
     use fall_guard::sources::dynamixel::emulator::PoppyBuses;
@@ -1149,30 +1148,8 @@ async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
     });
 
     // The motors move all along; every raw position a motor held is kept.
-    let held: Arc<Mutex<BTreeMap<u8, BTreeSet<u16>>>> = Arc::default();
-    let moving = Arc::new(AtomicBool::new(true));
-    let mover = {
-        let (buses, held, moving) = (Arc::clone(&buses), Arc::clone(&held), Arc::clone(&moving));
-        let joints = table.joints().to_vec();
-        std::thread::spawn(move || {
-            let mut step = 0u16;
-            while moving.load(Ordering::Relaxed) {
-                for (i, joint) in joints.iter().enumerate() {
-                    let centre =
-                        joint.deg_to_raw(0.5 * (joint.lower_limit_deg + joint.upper_limit_deg));
-                    let raw = centre + (step + i as u16) % 24;
-                    held.lock()
-                        .expect("held")
-                        .entry(joint.id)
-                        .or_default()
-                        .insert(raw);
-                    buses.set_raw_position(joint.id, raw).expect("motor");
-                }
-                step = step.wrapping_add(1);
-                std::thread::sleep(Duration::from_millis(40));
-            }
-        })
-    };
+    let motors = MovingMotors::start(Arc::clone(&buses), &table);
+    let held = Arc::clone(&motors.held);
 
     let mut listener = listen(
         &python,
@@ -1239,8 +1216,7 @@ async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
     buses.lower.unplug().expect("unplug");
     tokio::time::sleep(Duration::from_millis(1500)).await;
     events.extend(listener.drain());
-    moving.store(false, Ordering::Relaxed);
-    mover.join().expect("mover");
+    motors.stop();
     drop(planner.drain());
     let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.stop())
         .await

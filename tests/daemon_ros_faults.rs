@@ -32,29 +32,12 @@ use serde_json::Value;
 use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
 mod daemon_common;
-use daemon_common::{robot_joints, Daemon};
-
-fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
-}
+use daemon_common::{bundled_config_on, robot_joints, write_head_jpeg, Daemon};
 
 /// The bundled config run live (joints and plan from ROS 2), on `domain`,
 /// loopback only, edited by `edit`.
 fn live_config(dir: &Path, domain: u16, edit: impl Fn(String) -> String) -> PathBuf {
-    let text = std::fs::read_to_string(repo("config/replay.toml")).expect("config/replay.toml");
-    let text = text
-        .replace(
-            "dir = \"models\"",
-            &format!("dir = \"{}\"", repo("models").display()),
-        )
-        .replace(
-            "[ros]\nenabled = true",
-            &format!("[ros]\nenabled = true\ndomain_id = {domain}\nlocalhost_only = true"),
-        );
-    assert!(
-        text.contains("localhost_only = true") && text.contains("joints = \"ros\""),
-        "config/replay.toml changed shape"
-    );
+    let text = bundled_config_on(domain);
     let path = dir.join("fall_guard.toml");
     std::fs::write(&path, edit(text)).expect("write config");
     path
@@ -371,13 +354,7 @@ async fn undecodable_jpeg_and_empty_plan_are_rejected_and_the_daemon_recovers() 
     let config = live_config(dir.path(), domain, |t| {
         t.replace("camera = \"none\"", "camera = \"ros\"")
     });
-    let jpeg = dir.path().join("head.jpg");
-    let frame = fall_guard::frame::Frame::solid(64, 48, [90, 120, 150]);
-    std::fs::write(
-        &jpeg,
-        fall_guard::frame::encode_jpeg(&frame, 90).expect("jpeg"),
-    )
-    .expect("write jpeg");
+    let jpeg = write_head_jpeg(dir.path());
     let walk = [
         "--camera",
         "/head_camera/image_raw/compressed",

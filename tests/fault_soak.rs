@@ -32,7 +32,6 @@ mod support;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -42,7 +41,9 @@ use heard::{forecast_values, level, status_named, statuses};
 use serde_json::{json, Value};
 use support::{diag_value as kv, domain_id, rclpy_python, Peer};
 
-use daemon_common::{parse_lines, robot_joints, Daemon, Line};
+use daemon_common::{
+    bundled_config_on, parse_lines, robot_joints, write_head_jpeg, Daemon, Line, MovingMotors,
+};
 
 /// After a fault clears, this long still counts as the fault's (the
 /// window refills, discovery, the 10 s error window) for "outside the faults".
@@ -499,24 +500,11 @@ fn rss_kb(pid: u32) -> Option<u64> {
         .ok()
 }
 
-fn repo(path: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
-}
-
 /// The bundled config live: joints from the two emulated buses (50 Hz,
 /// USB2AX sync read), the camera and the plan from ROS 2, on `domain`,
 /// loopback only, the shipped networks (EMP, MP, P).
 fn soak_config(dir: &Path, domain: u16, buses: &PoppyBuses) -> PathBuf {
-    let text = std::fs::read_to_string(repo("config/replay.toml")).expect("config/replay.toml");
-    let text = text
-        .replace(
-            "dir = \"models\"",
-            &format!("dir = \"{}\"", repo("models").display()),
-        )
-        .replace(
-            "[ros]\nenabled = true",
-            &format!("[ros]\nenabled = true\ndomain_id = {domain}\nlocalhost_only = true"),
-        )
+    let text = bundled_config_on(domain)
         .replace("joints = \"ros\"", "joints = \"dynamixel\"")
         .replace("camera = \"none\"", "camera = \"ros\"");
     assert!(
@@ -593,30 +581,8 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
     let config = soak_config(dir.path(), domain, &buses);
 
     // The motors move all along; every raw position a motor held is kept.
-    let held: Arc<Mutex<BTreeMap<u8, BTreeSet<u16>>>> = Arc::default();
-    let moving = Arc::new(AtomicBool::new(true));
-    let mover = {
-        let (buses, held, moving) = (Arc::clone(&buses), Arc::clone(&held), Arc::clone(&moving));
-        let joints = table.joints().to_vec();
-        std::thread::spawn(move || {
-            let mut step = 0u16;
-            while moving.load(Ordering::Relaxed) {
-                for (i, joint) in joints.iter().enumerate() {
-                    let centre =
-                        joint.deg_to_raw(0.5 * (joint.lower_limit_deg + joint.upper_limit_deg));
-                    let raw = centre + (step + i as u16) % 24;
-                    held.lock()
-                        .expect("held")
-                        .entry(joint.id)
-                        .or_default()
-                        .insert(raw);
-                    buses.set_raw_position(joint.id, raw).expect("motor");
-                }
-                step = step.wrapping_add(1);
-                std::thread::sleep(Duration::from_millis(40));
-            }
-        })
-    };
+    let motors = MovingMotors::start(Arc::clone(&buses), &table);
+    let held = Arc::clone(&motors.held);
 
     let timeout = format!("{}", soak_s + 600.0);
     let listener = {
@@ -648,13 +614,7 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
     let joints = robot_joints().join(",");
     let planner_fault = dir.path().join("planner.fault");
     let camera_fault = dir.path().join("camera.fault");
-    let jpeg = dir.path().join("head.jpg");
-    let frame = fall_guard::frame::Frame::solid(64, 48, [90, 120, 150]);
-    std::fs::write(
-        &jpeg,
-        fall_guard::frame::encode_jpeg(&frame, 90).expect("jpeg"),
-    )
-    .expect("write jpeg");
+    let jpeg = write_head_jpeg(dir.path());
     let planner_args: Vec<String> = [
         "walk",
         "--streams",
@@ -795,8 +755,7 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
     let end_wall = wall_s();
     let rss_end = rss_kb(daemon.pid());
     let still_running = daemon.running();
-    moving.store(false, Ordering::Relaxed);
-    mover.join().expect("mover");
+    motors.stop();
     drop(camera.drain());
     drop(planner);
     let (success, stdout, stderr) = tokio::task::spawn_blocking(move || daemon.stop())

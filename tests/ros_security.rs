@@ -18,7 +18,7 @@
 //!   runs open, with a WARN (and the same decision without the daemon).
 
 mod daemon_common;
-use daemon_common::Daemon;
+use daemon_common::{bundled_config_on, Daemon};
 
 #[path = "ros/support.rs"]
 mod support;
@@ -138,26 +138,12 @@ where
 /// The bundled replay config on `domain`, loopback only, the ROS inputs of
 /// `run` (joints and plan; no camera).
 fn config(dir: &Path, domain: u16) -> PathBuf {
-    let text = std::fs::read_to_string(repo("config/replay.toml")).expect("config/replay.toml");
-    let text = text
-        .replace(
-            "dir = \"models\"",
-            &format!("dir = \"{}\"", repo("models").display()),
-        )
-        .replace(
-            "recording = \"tests/fixtures/episode_00007.mcap\"",
-            &format!(
-                "recording = \"{}\"",
-                repo("tests/fixtures/episode_00007.mcap").display()
-            ),
-        )
-        .replace(
-            "[ros]\nenabled = true",
-            &format!("[ros]\nenabled = true\ndomain_id = {domain}\nlocalhost_only = true"),
-        );
-    assert!(
-        text.contains("localhost_only = true") && text.contains("joints = \"ros\""),
-        "config/replay.toml changed shape"
+    let text = bundled_config_on(domain).replace(
+        "recording = \"tests/fixtures/episode_00007.mcap\"",
+        &format!(
+            "recording = \"{}\"",
+            repo("tests/fixtures/episode_00007.mcap").display()
+        ),
     );
     let path = dir.join("fall_guard.toml");
     std::fs::write(&path, text).expect("write config");

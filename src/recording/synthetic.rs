@@ -273,13 +273,11 @@ pub fn learnable_episode(
     let range: Vec<(f32, f32)> = joint_names
         .iter()
         .map(|name| {
-            table.index_of(name).and_then(|i| table.get(i)).map_or(
-                (f32::NEG_INFINITY, f32::INFINITY),
-                |j| {
-                    let (lo, hi) = j.angle_range_deg();
+            table
+                .joint_range_deg(name)
+                .map_or((f32::NEG_INFINITY, f32::INFINITY), |(lo, hi)| {
                     (lo.to_radians() as f32, hi.to_radians() as f32)
-                },
-            )
+                })
         })
         .collect();
     for k in 0..n_ticks {

@@ -4,13 +4,18 @@
 
 #![allow(dead_code)]
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use fall_guard::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
 use fall_guard::recording::synthetic::learnable_episode;
 use fall_guard::recording::{topics, Recording, RecordingWriter};
 use fall_guard::robot::JointTable;
+use fall_guard::sources::dynamixel::emulator::PoppyBuses;
 
 /// Window and horizons of the test networks: small, so a replay is quick.
 pub const N_TICKS: usize = 16;
@@ -44,6 +49,95 @@ pub fn write_models(dir: &Path, joints: &[String]) {
         meta.trained_on = "untrained (test)".into();
         let emp = Emp::new(&config, ablation, &device);
         save_model(&dir.join(file), &meta, &emp).expect("save model");
+    }
+}
+
+/// A path in the repository.
+pub fn in_repo(path: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(path)
+}
+
+/// `config/replay.toml` with the shipped networks' directory made absolute
+/// and ROS 2 on `domain`, loopback only: the tests' live configs start
+/// from it.
+pub fn bundled_config_on(domain: u16) -> String {
+    let text = std::fs::read_to_string(in_repo("config/replay.toml")).expect("config/replay.toml");
+    let text = text
+        .replace(
+            "dir = \"models\"",
+            &format!("dir = \"{}\"", in_repo("models").display()),
+        )
+        .replace(
+            "[ros]\nenabled = true",
+            &format!("[ros]\nenabled = true\ndomain_id = {domain}\nlocalhost_only = true"),
+        );
+    assert!(
+        text.contains("localhost_only = true") && text.contains("joints = \"ros\""),
+        "config/replay.toml changed shape"
+    );
+    text
+}
+
+/// A 64 x 48 JPEG for a ROS 2 camera peer to publish, `dir/head.jpg`.
+pub fn write_head_jpeg(dir: &Path) -> PathBuf {
+    let path = dir.join("head.jpg");
+    let frame = fall_guard::frame::Frame::solid(64, 48, [90, 120, 150]);
+    std::fs::write(
+        &path,
+        fall_guard::frame::encode_jpeg(&frame, 90).expect("jpeg"),
+    )
+    .expect("write jpeg");
+    path
+}
+
+/// Raw positions each motor held (id -> raws).
+pub type HeldRaws = Arc<Mutex<BTreeMap<u8, BTreeSet<u16>>>>;
+
+/// The emulated motors moving all along (a step every 40 ms, each within
+/// 24 raw units of its range's centre), every raw position a motor held
+/// kept in `held`.
+pub struct MovingMotors {
+    pub held: HeldRaws,
+    moving: Arc<AtomicBool>,
+    thread: std::thread::JoinHandle<()>,
+}
+
+impl MovingMotors {
+    pub fn start(buses: Arc<PoppyBuses>, table: &JointTable) -> MovingMotors {
+        let held: HeldRaws = Arc::default();
+        let moving = Arc::new(AtomicBool::new(true));
+        let joints = table.joints().to_vec();
+        let thread = {
+            let (held, moving) = (Arc::clone(&held), Arc::clone(&moving));
+            std::thread::spawn(move || {
+                let mut step = 0u16;
+                while moving.load(Ordering::Relaxed) {
+                    for (i, joint) in joints.iter().enumerate() {
+                        let centre =
+                            joint.deg_to_raw(0.5 * (joint.lower_limit_deg + joint.upper_limit_deg));
+                        let raw = centre + (step + i as u16) % 24;
+                        held.lock()
+                            .expect("held")
+                            .entry(joint.id)
+                            .or_default()
+                            .insert(raw);
+                        buses.set_raw_position(joint.id, raw).expect("motor");
+                    }
+                    step = step.wrapping_add(1);
+                    std::thread::sleep(Duration::from_millis(40));
+                }
+            })
+        };
+        MovingMotors {
+            held,
+            moving,
+            thread,
+        }
+    }
+
+    pub fn stop(self) {
+        self.moving.store(false, Ordering::Relaxed);
+        self.thread.join().expect("mover");
     }
 }
 
