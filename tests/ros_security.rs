@@ -24,7 +24,7 @@ use daemon_common::{bundled_config_on, Daemon};
 mod support;
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -160,8 +160,6 @@ fn secured_daemon(args: &[&str], keystore: &Path, strategy: &str) -> Daemon {
         .env("ROS_SECURITY_KEYSTORE", keystore);
     Daemon::spawn(command)
 }
-
-use std::io::Read as _;
 
 /// The value of `key` in the status whose name ends with `suffix`.
 fn diag_value(d: &DiagnosticArray, suffix: &str, key: &str) -> Option<String> {
