@@ -774,7 +774,39 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
             .position(|(_, s, e)| t >= *s && t < *e + settle)
     };
     let valid = ticks.iter().filter(|l| l.valid).count();
-    let outside: Vec<&&Line> = ticks
+    // A joint gap that no fault made (no bus unplugged, no motor silent):
+    // a loaded machine's read cycles late several times in a row, as in
+    // daemon_ros's noisy-bus check. The short run leaves at most one out
+    // of its shares (the stale tick and the refill after it); a second
+    // fails. The hour's run leaves none out.
+    let gap_starts: Vec<usize> = (0..ticks.len())
+        .filter(|&i| {
+            ticks[i].reason.starts_with("joints stale")
+                && (i == 0 || !ticks[i - 1].reason.starts_with("joints stale"))
+                && in_fault(ticks[i].stamp_s, SETTLE_S)
+                    .is_none_or(|f| !soak.schedule[f].0.kind.loses_joints())
+        })
+        .collect();
+    let load_gaps: Vec<String> = gap_starts
+        .iter()
+        .map(|&i| format!("{:.1} s: {}", ticks[i].stamp_s - warm_wall, ticks[i].reason))
+        .collect();
+    let short = soak_s < 600.0;
+    let mut left_out = BTreeSet::new();
+    if short && gap_starts.len() == 1 {
+        let g = gap_starts[0];
+        let back = (g..ticks.len())
+            .find(|&i| ticks[i].valid)
+            .unwrap_or(ticks.len());
+        left_out.extend(g..back);
+    }
+    let counted: Vec<&Line> = ticks
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !left_out.contains(i))
+        .map(|(_, l)| *l)
+        .collect();
+    let outside: Vec<&&Line> = counted
         .iter()
         .filter(|l| in_fault(l.stamp_s, SETTLE_S).is_none())
         .collect();
@@ -803,7 +835,7 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
             .schedule
             .get(i + 1)
             .map_or(f64::INFINITY, |(_, s, _)| *s);
-        let during: Vec<&&Line> = ticks
+        let during: Vec<&&Line> = counted
             .iter()
             .filter(|l| l.stamp_s >= *start && l.stamp_s < *end)
             .collect();
@@ -889,6 +921,8 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
         "full_network_outside_faults": share(outside_full, outside.len()),
         "outside_ticks": outside.len(),
         "outside_not_valid_by_reason": outside_invalid,
+        "joint_gaps_no_fault_made": load_gaps,
+        "ticks_left_out": left_out.len(),
         "settle_s": SETTLE_S,
         "by_kind": kinds_report,
         "each_fault": faults_report,
@@ -924,6 +958,11 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
         soak.heard.bad_joint_values
     );
     assert!(ticks.len() > 10, "{} ticks", ticks.len());
+    assert!(
+        !short || gap_starts.len() <= 1,
+        "{} joint gaps that no fault made: {load_gaps:?}",
+        gap_starts.len()
+    );
     for (kind, f) in &by_kind {
         assert_eq!(
             f.named,
@@ -953,13 +992,9 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
             );
         }
     }
-    // Outside the faults: 95% over an hour; 90% in the short run, whose
-    // ~1,700 ticks outside lose 3.6% to one joint gap that a loaded
-    // machine's late read cycles make (`outside_not_valid_by_reason`).
     let outside_share = share(outside_valid, outside.len());
-    let outside_bound = if soak_s < 600.0 { 0.9 } else { 0.95 };
     assert!(
-        outside.len() < 100 || outside_share >= outside_bound,
+        outside.len() < 100 || outside_share >= 0.95,
         "{:.1}% of {} ticks outside the faults valid: {outside_invalid:?}",
         100.0 * outside_share,
         outside.len()
