@@ -290,17 +290,7 @@ impl StreamsConfig {
         table: &crate::robot::JointTable,
         frame_size: u32,
     ) -> crate::sources::input::InputLimits {
-        let margin = self.plan_limit_margin_deg;
-        let range: Vec<(f64, f64)> = joint_names
-            .iter()
-            .map(|name| {
-                table
-                    .joint_range_deg(name)
-                    .map_or((f64::NEG_INFINITY, f64::INFINITY), |(lo, hi)| {
-                        ((lo - margin).to_radians(), (hi + margin).to_radians())
-                    })
-            })
-            .collect();
+        let range = table.ranges_rad(joint_names, self.plan_limit_margin_deg);
         crate::sources::input::InputLimits {
             max_future_ns: i64::from(self.max_future_ms) * 1_000_000,
             max_past_ns: i64::from(self.max_past_ms) * 1_000_000,

@@ -228,12 +228,25 @@ impl JointTable {
         JointTable { joints }
     }
 
-    /// The angles `name`'s limits allow, degrees ([`Joint::angle_range_deg`]);
-    /// `None` for a joint the table lacks.
-    pub fn joint_range_deg(&self, name: &str) -> Option<(f64, f64)> {
-        self.index_of(name)
-            .and_then(|i| self.get(i))
-            .map(Joint::angle_range_deg)
+    /// For each of `names`, the angles its limits allow widened by
+    /// `margin_deg` on each side, radians ([`Joint::angle_range_deg`]);
+    /// unbounded for a joint the table lacks.
+    pub fn ranges_rad(&self, names: &[String], margin_deg: f64) -> Vec<(f64, f64)> {
+        names
+            .iter()
+            .map(|name| {
+                self.index_of(name).and_then(|i| self.get(i)).map_or(
+                    (f64::NEG_INFINITY, f64::INFINITY),
+                    |j| {
+                        let (lo, hi) = j.angle_range_deg();
+                        (
+                            (lo - margin_deg).to_radians(),
+                            (hi + margin_deg).to_radians(),
+                        )
+                    },
+                )
+            })
+            .collect()
     }
 
     /// Joint names in model order.

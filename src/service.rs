@@ -25,7 +25,7 @@ use crate::sources::input::InputLimits;
 use crate::sources::replay::{replay_samples, ReplayError};
 use crate::sources::{stream, PerStream, StreamFeed, StreamStats, StreamTap};
 use crate::tick::{LiveTaps, StreamSlot, TickCounters, TickSettings};
-use crate::window::{Sample, WindowError};
+use crate::window::{Sample, WindowError, WindowSpec};
 
 #[derive(Debug, Error)]
 pub enum ServiceError {
@@ -276,9 +276,9 @@ impl LiveStreams {
     }
 }
 
-/// The input boundary's limits for `config` and the loaded networks.
-pub fn input_limits(config: &Config, models: &ModelSet) -> InputLimits {
-    let spec = models.spec();
+/// The input boundary's limits for `config` and the windows of `spec`
+/// (the loaded networks', or a recorder's).
+pub fn input_limits(config: &Config, spec: &WindowSpec) -> InputLimits {
     config.streams.input_limits(
         &spec.joint_names,
         &JointTable::poppy_humanoid(),

@@ -269,23 +269,13 @@ pub fn learnable_episode(
     let mut plan_rad = Vec::with_capacity(n_ticks);
     let mut frames = Vec::with_capacity(n_ticks);
     // A plan the daemon accepts: inside each Poppy joint's limits.
-    let table = crate::robot::JointTable::poppy_humanoid();
-    let range: Vec<(f32, f32)> = joint_names
-        .iter()
-        .map(|name| {
-            table
-                .joint_range_deg(name)
-                .map_or((f32::NEG_INFINITY, f32::INFINITY), |(lo, hi)| {
-                    (lo.to_radians() as f32, hi.to_radians() as f32)
-                })
-        })
-        .collect();
+    let range = crate::robot::JointTable::poppy_humanoid().ranges_rad(joint_names, 0.0);
     for k in 0..n_ticks {
         let t = k as f32 / rate_hz as f32;
         let plan: Vec<f32> = (0..c)
             .map(|j| {
                 let p = 0.3 * (std::f32::consts::TAU * 0.5 * t + phase + j as f32 * 0.3).sin();
-                p.clamp(range[j].0, range[j].1)
+                p.clamp(range[j].0 as f32, range[j].1 as f32)
             })
             .collect();
         // 0 before the precursor, rising to 1 at the onset, 1 after

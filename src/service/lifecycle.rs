@@ -187,14 +187,7 @@ impl Running {
         let trigger = Arc::new(ShutdownTrigger::new().0);
         let signals = shutdown_on_signals(Arc::clone(&trigger));
         // 5. The streams, each behind its input boundary.
-        let limits = match &networks {
-            Some(n) => input_limits(&config, &n.models),
-            None => config.streams.input_limits(
-                &spec.joint_names,
-                &crate::robot::JointTable::poppy_humanoid(),
-                spec.frame_size,
-            ),
-        };
+        let limits = input_limits(&config, &spec);
         let mut camera_raw = None;
         let inputs = match recording {
             Some(recording) => {

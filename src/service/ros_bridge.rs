@@ -26,7 +26,7 @@ use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_
 use crate::service::LiveStreams;
 use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
-use crate::sources::input::{Rejection, StreamValue};
+use crate::sources::input::{InputLimits, Rejection, StreamValue};
 use crate::sources::ros::{InputErrors, InputMessage, InputTopics, Latest, RosInputs};
 use crate::sources::{PerStream, Stamped, StreamFeed, StreamKind, StreamTap};
 use crate::window::{frame_from_msg, joints_from_msg, Plan, Sample, WindowSpec};
@@ -174,10 +174,10 @@ impl RosBridge {
             };
             let spec = spec.clone();
             let feed = streams.feeds[kind].clone();
-            let max_image_bytes = feed.limits().max_image_bytes;
+            let limits = feed.limits().clone();
             let errors = Arc::clone(&inputs.errors);
             tasks.push(forward(rx, feed, errors, shutdown.clone(), move |m| {
-                model_sample(m, &spec, max_image_bytes)
+                model_sample(m, &spec, &limits)
             }));
         }
         if let (Some(rx), Some(feed)) = (inputs.latest.camera.clone(), camera_raw) {
@@ -265,12 +265,12 @@ pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
 /// A ROS 2 message in model form (the conversions a replay uses), with
 /// its stamp on the tick clock: a sensor reading's header stamp (its
 /// reception when the header has none); a plan's reception, since a plan
-/// is known from the moment it arrives. An image larger than
-/// `max_image_bytes` is rejected before it is decoded.
+/// is known from the moment it arrives. An image too large for `limits`
+/// is rejected before it is decoded.
 fn model_sample(
     m: &Stamped<InputMessage>,
     spec: &WindowSpec,
-    max_image_bytes: usize,
+    limits: &InputLimits,
 ) -> (i64, Result<Sample, Rejection>) {
     let (stamp_ns, sample) = match &m.value {
         InputMessage::Joints(msg) => {
@@ -284,11 +284,7 @@ fn model_sample(
         }
         InputMessage::Camera(msg) => {
             let stamp_ns = header_stamp(&msg.header, m.stamp_ns);
-            if msg.data.len() > max_image_bytes {
-                let too_large = Rejection::TooLarge {
-                    bytes: msg.data.len(),
-                    max: max_image_bytes,
-                };
+            if let Err(too_large) = limits.image_size(msg.data.len()) {
                 return (stamp_ns, Err(too_large));
             }
             let sample = frame_from_msg(msg, spec.frame_size).map(|frame| Sample::Frame {

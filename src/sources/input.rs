@@ -55,6 +55,18 @@ pub struct InputLimits {
 }
 
 impl InputLimits {
+    /// The size check of a compressed image of `bytes` bytes, before
+    /// anything decodes it.
+    pub fn image_size(&self, bytes: usize) -> Result<(), Rejection> {
+        if bytes > self.max_image_bytes {
+            return Err(Rejection::TooLarge {
+                bytes,
+                max: self.max_image_bytes,
+            });
+        }
+        Ok(())
+    }
+
     /// Limits that check only the shapes (tests, tools).
     pub fn shapes(n_joints: usize, frame_size: u32) -> InputLimits {
         InputLimits {
@@ -316,7 +328,7 @@ pub fn validate(
                     what: "an image of 0 bytes".to_string(),
                 });
             }
-            image_size(limits, bytes.len())?;
+            limits.image_size(bytes.len())?;
         }
         ValueRef::Frame(f) => {
             if f.width != limits.frame_size || f.height != limits.frame_size {
@@ -372,17 +384,6 @@ pub fn validate(
                 }
             }
         }
-    }
-    Ok(())
-}
-
-/// The size check of a compressed image, before anything decodes it.
-fn image_size(limits: &InputLimits, bytes: usize) -> Result<(), Rejection> {
-    if bytes > limits.max_image_bytes {
-        return Err(Rejection::TooLarge {
-            bytes,
-            max: limits.max_image_bytes,
-        });
     }
     Ok(())
 }
