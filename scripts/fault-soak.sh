@@ -10,6 +10,9 @@
 # (default 1); REPORT: where the report goes (default
 # fault-soak-SEED-SECONDSs.json here). Needs the rclpy venv
 # (scripts/setup-python.sh). The tests run the 2-minute version.
+# FALL_GUARD_SOAK_PROFILE=dev runs the daemon the test suite built (the dev
+# profile: dependencies at opt-level 3, fall-guard at 1) instead of a
+# release build.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 seconds=${1:-3600}
@@ -18,5 +21,6 @@ report=${3:-$PWD/fault-soak-$seed-${seconds}s.json}
 case $report in /*) ;; *) report=$PWD/$report ;; esac
 export FALL_GUARD_REQUIRE_ROS=1
 FALL_GUARD_SOAK_S=$seconds FALL_GUARD_SOAK_SEED=$seed FALL_GUARD_SOAK_REPORT=$report \
-  cargo test --release --features test-kits --test fault_soak -- --nocapture
+  cargo test $([ "${FALL_GUARD_SOAK_PROFILE:-release}" = dev ] || echo --release) \
+    --features test-kits --test fault_soak -- --nocapture
 echo "report: $report"

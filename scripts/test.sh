@@ -4,6 +4,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# The library's layers import only downwards, without a cycle
+# (docs/architecture.md).
+python3 scripts/check-layers.py
+
 # DDS Security (cargo feature `security`, docs/ros.md "Security"): secured
 # peers against the daemon. Only the DDS crates and fall-guard are built
 # again for it. First, so that target/debug/fall-guard (packaged by

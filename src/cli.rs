@@ -10,9 +10,9 @@ use clap::{Args, Parser, Subcommand};
 
 use clap::ValueEnum;
 
-use fall_guard::daemon_bench::BenchDaemonOptions;
+use fall_guard::daemon::bench::BenchDaemonOptions;
+use fall_guard::daemon::{LabelOptions, RecordOptions, ReplayOptions, RunOptions};
 use fall_guard::model::{Ablation, ProjectionWeights, TrajectoryInput};
-use fall_guard::service::{LabelOptions, RecordOptions, ReplayOptions, RunOptions};
 use fall_guard::train::bench::BenchOptions;
 use fall_guard::train::calibrate::CalibrateOptions;
 use fall_guard::train::cli::{EvalOptions, HalfOptions, TrainOptions};
@@ -217,6 +217,24 @@ impl From<ProtocolArg> for Protocol {
     }
 }
 
+/// `--projection` (`bench`, `eval`): `model::ProjectionWeights`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ProjectionArg {
+    /// At the file's precision (f16 for the shipped files).
+    AsFile,
+    /// Symmetric int8, one scale per input row (as the daemon holds it by default).
+    Int8,
+}
+
+impl From<ProjectionArg> for ProjectionWeights {
+    fn from(p: ProjectionArg) -> Self {
+        match p {
+            ProjectionArg::AsFile => ProjectionWeights::AsFile,
+            ProjectionArg::Int8 => ProjectionWeights::Int8,
+        }
+    }
+}
+
 /// `train --trajectory`: `model::TrajectoryInput`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum TrajectoryArg {
@@ -380,8 +398,8 @@ pub struct EvalArgs {
     pub per_tick_out: Option<PathBuf>,
     /// How each network's classifier input projection is held: as the
     /// file stores it, or int8 (`[model].projection`).
-    #[arg(long, value_enum, default_value_t = ProjectionWeights::AsFile)]
-    pub projection: ProjectionWeights,
+    #[arg(long, value_enum, default_value_t = ProjectionArg::AsFile)]
+    pub projection: ProjectionArg,
 }
 
 impl From<EvalArgs> for EvalOptions {
@@ -397,7 +415,7 @@ impl From<EvalArgs> for EvalOptions {
             protocol: a.protocol.into(),
             recording: a.recording,
             per_tick_out: a.per_tick_out,
-            projection: a.projection,
+            projection: a.projection.into(),
         }
     }
 }
@@ -455,8 +473,8 @@ pub struct BenchArgs {
     /// How the classifier's input projection is held for the inference
     /// part: int8, as the daemon holds it by default (`[model].projection`),
     /// or as the file stores it.
-    #[arg(long, value_enum, default_value_t = ProjectionWeights::Int8)]
-    pub projection: ProjectionWeights,
+    #[arg(long, value_enum, default_value_t = ProjectionArg::Int8)]
+    pub projection: ProjectionArg,
 }
 
 impl From<BenchArgs> for BenchOptions {
@@ -470,7 +488,7 @@ impl From<BenchArgs> for BenchOptions {
             ablations: a.ablations,
             train_only: a.train_only,
             device: a.device,
-            projection: a.projection,
+            projection: a.projection.into(),
         }
     }
 }

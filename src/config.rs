@@ -9,6 +9,8 @@
 //! with the same error shape. Relative paths are relative to the config
 //! file's directory (to the working directory for the embedded default).
 
+pub use crate::ros::TopicsConfig;
+pub use crate::sources::camera::{CameraConfig, PixelFormat};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
@@ -289,9 +291,9 @@ impl StreamsConfig {
         joint_names: &[String],
         table: &crate::robot::JointTable,
         frame_size: u32,
-    ) -> crate::sources::input::InputLimits {
+    ) -> crate::streams::input::InputLimits {
         let range = table.ranges_rad(joint_names, self.plan_limit_margin_deg);
-        crate::sources::input::InputLimits {
+        crate::streams::input::InputLimits {
             max_future_ns: i64::from(self.max_future_ms) * 1_000_000,
             max_past_ns: i64::from(self.max_past_ms) * 1_000_000,
             n_joints: joint_names.len(),
@@ -300,26 +302,6 @@ impl StreamsConfig {
             max_image_bytes: self.max_image_bytes,
         }
     }
-}
-
-/// Pixel format asked from a V4L2 camera.
-#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
-#[serde(rename_all = "snake_case")]
-pub enum PixelFormat {
-    Mjpeg,
-    Yuyv,
-}
-
-/// `[camera]`: the head camera when `[streams].camera = "v4l2"`.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct CameraConfig {
-    /// `/dev/videoN`.
-    pub device: PathBuf,
-    pub format: PixelFormat,
-    pub width: u32,
-    pub height: u32,
-    pub fps: u32,
 }
 
 /// `[replay]`: defaults of `fall-guard replay` (the command line wins).
@@ -392,45 +374,6 @@ fn default_namespace() -> String {
 }
 fn default_enclave() -> String {
     crate::ros::security::DEFAULT_ENCLAVE.to_string()
-}
-
-/// `[ros.topics]`: topic names (relative names get the namespace).
-#[derive(Debug, Clone, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct TopicsConfig {
-    pub joint_states: String,
-    pub planned_trajectory: String,
-    pub camera: String,
-    pub forecast: String,
-    pub fall_imminent: String,
-    pub horizons_ms: String,
-    pub diagnostics: String,
-}
-
-impl Default for TopicsConfig {
-    fn default() -> Self {
-        TopicsConfig {
-            joint_states: "joint_states".into(),
-            planned_trajectory: "planned_trajectory".into(),
-            camera: "head_camera/image_raw/compressed".into(),
-            forecast: "fall_guard/forecast".into(),
-            fall_imminent: "fall_guard/fall_imminent".into(),
-            horizons_ms: "fall_guard/horizons_ms".into(),
-            diagnostics: "/diagnostics".into(),
-        }
-    }
-}
-
-impl TopicsConfig {
-    /// The topic of an input stream.
-    pub fn input(&self, kind: crate::sources::StreamKind) -> &str {
-        use crate::sources::StreamKind;
-        match kind {
-            StreamKind::Joints => &self.joint_states,
-            StreamKind::Camera => &self.camera,
-            StreamKind::Plan => &self.planned_trajectory,
-        }
-    }
 }
 
 /// `[output]`
@@ -552,7 +495,7 @@ impl Config {
                 ),
             ));
         }
-        if let Err(e) = crate::window::TickGrid::new(self.robot.tick_rate_hz) {
+        if let Err(e) = crate::clock::TickGrid::new(self.robot.tick_rate_hz) {
             return Err(self.value_error("[robot].tick_rate_hz", e.to_string()));
         }
         let m = &self.model;

@@ -1,23 +1,25 @@
 //! fall-guard: forecasts falls of a walking Poppy Humanoid before they happen.
 //!
-//! Data flows one way (see `docs/contracts.md`, "The flow"): sources ->
-//! tick grid (`window`) -> inference (`model`, `forecast`) -> outputs
-//! (ROS 2, safety latch, diagnostics, recorder). Training (`train`) builds
-//! its windows with the same `window` code the daemon uses.
+//! Data flows one way (`docs/architecture.md`): sources -> streams (the
+//! feeds, each with its input boundary) -> pipeline (resampling onto the
+//! tick grid, the window ring, the model choice and the inference) ->
+//! outputs (ROS 2, safety latch, diagnostics, recorder). The daemon wires
+//! them per command; training (`train`) builds its windows with the same
+//! `pipeline::window` code the daemon uses. Layers import only downwards
+//! (`scripts/check-layers.py`).
 
+pub mod clock;
 pub mod config;
-pub mod daemon_bench;
-pub mod forecast;
+pub mod daemon;
 pub mod frame;
 pub mod model;
 pub mod msgs;
 pub mod outputs;
+pub mod pipeline;
 pub mod recording;
 pub mod robot;
 pub mod ros;
-pub mod service;
 pub mod shutdown;
 pub mod sources;
-pub mod tick;
+pub mod streams;
 pub mod train;
-pub mod window;

@@ -8,7 +8,7 @@ use anyhow::Result;
 use clap::Parser;
 
 use cli::{Cli, Command};
-use fall_guard::service;
+use fall_guard::daemon;
 
 /// Logs when `RUST_LOG` is unset: fall-guard at info; DDS (rustdds,
 /// ros2-client) only from warnings up, less two sources that say nothing an
@@ -53,25 +53,25 @@ fn main() -> Result<()> {
         Command::Half(args) => fall_guard::train::cli::run_half(&args.into())?,
         Command::Calibrate(args) => fall_guard::train::calibrate::run_calibrate(&args.into())?,
         Command::Run(args) => {
-            runtime.block_on(service::run(args.into()))?;
+            runtime.block_on(daemon::run(args.into()))?;
         }
         Command::Replay(args) => {
-            let report = runtime.block_on(service::replay(args.into()))?;
+            let report = runtime.block_on(daemon::replay(args.into()))?;
             if report.interrupted {
                 anyhow::bail!("replay of {} interrupted", report.recording.display());
             }
         }
         Command::Record(args) => {
-            let summary = runtime.block_on(service::record(args.into()))?;
+            let summary = runtime.block_on(daemon::record(args.into()))?;
             eprintln!(
                 "recorded {} joint states, {} frames, {} plans over {:.1} s",
-                summary.counts[0],
-                summary.counts[1],
-                summary.counts[2],
+                summary.counts.joints,
+                summary.counts.camera,
+                summary.counts.plan,
                 summary.duration_ns as f64 / 1e9
             );
         }
-        Command::Label(args) => match service::label(&args.clone().into())? {
+        Command::Label(args) => match daemon::label(&args.clone().into())? {
             Some(onset_ns) => eprintln!(
                 "{}: fall onset at log time {onset_ns} ns",
                 args.recording.display()
@@ -79,7 +79,7 @@ fn main() -> Result<()> {
             None => eprintln!("{}: labelled as not falling", args.recording.display()),
         },
         Command::BenchDaemon(args) => {
-            runtime.block_on(fall_guard::daemon_bench::run(args.into()))?;
+            runtime.block_on(fall_guard::daemon::bench::run(args.into()))?;
         }
         Command::Bench(args) => {
             fall_guard::train::bench::run_bench(&args.into())?;

@@ -21,23 +21,7 @@ use mcap::records::{self, Record};
 
 use crate::msgs::{self, Bool, CompressedImage, JointState, JointTrajectory, MsgError, RosMessage};
 
-/// Topic names of a recording (see `docs/contracts.md`).
-pub mod topics {
-    pub const JOINT_STATES: &str = "/joint_states";
-    pub const PLANNED_TRAJECTORY: &str = "/planned_trajectory";
-    pub const HEAD_CAMERA: &str = "/head_camera/image_raw/compressed";
-    pub const GROUND_TRUTH_FALLEN: &str = "/ground_truth/fallen";
-
-    /// The topic of an input stream.
-    pub fn of_stream(kind: crate::sources::StreamKind) -> &'static str {
-        use crate::sources::StreamKind;
-        match kind {
-            StreamKind::Joints => JOINT_STATES,
-            StreamKind::Camera => HEAD_CAMERA,
-            StreamKind::Plan => PLANNED_TRAJECTORY,
-        }
-    }
-}
+pub use crate::streams::topics;
 
 /// Name of the metadata record that describes the episode.
 pub const EPISODE_METADATA: &str = "fall_guard.episode";
@@ -188,7 +172,7 @@ impl EpisodeMeta {
 
 /// One message with its log time.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Stamped<T> {
+pub struct Logged<T> {
     pub log_time_ns: i64,
     /// Position among all messages of the file (ties in log time keep it).
     pub file_order: u64,
@@ -211,10 +195,10 @@ pub struct Recording {
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
     /// `fall_guard.episode`, parsed (`None` when the record is absent).
     pub episode: Option<EpisodeMeta>,
-    pub joint_states: Vec<Stamped<JointState>>,
-    pub plans: Vec<Stamped<JointTrajectory>>,
-    pub images: Vec<Stamped<CompressedImage>>,
-    pub fallen: Vec<Stamped<Bool>>,
+    pub joint_states: Vec<Logged<JointState>>,
+    pub plans: Vec<Logged<JointTrajectory>>,
+    pub images: Vec<Logged<CompressedImage>>,
+    pub fallen: Vec<Logged<Bool>>,
     /// Every topic in the file (ours and others), with its message count.
     pub topics: BTreeMap<String, TopicInfo>,
 }
@@ -397,7 +381,7 @@ pub fn read_topic<T: RosMessage>(
             offset: m.offset,
             reason: format!("log time {} ns does not fit i64", m.log_time),
         })?;
-        let s: Stamped<T> = decode(path, &raw, channel, m, log_time_ns, order as u64)?;
+        let s: Logged<T> = decode(path, &raw, channel, m, log_time_ns, order as u64)?;
         out.push((s.log_time_ns, s.msg));
     }
     Ok(out)
@@ -410,7 +394,7 @@ fn decode<T: RosMessage>(
     m: &RawMessage,
     log_time_ns: i64,
     file_order: u64,
-) -> Result<Stamped<T>, RecordingError> {
+) -> Result<Logged<T>, RecordingError> {
     let type_name = raw.schema_name(channel);
     let short = format!("{}/{}", T::PACKAGE, T::NAME);
     if (type_name != T::TYPE_NAME && type_name != short) || channel.message_encoding != "cdr" {
@@ -429,7 +413,7 @@ fn decode<T: RosMessage>(
         log_time_ns,
         source,
     })?;
-    Ok(Stamped {
+    Ok(Logged {
         log_time_ns,
         file_order,
         msg,

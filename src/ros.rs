@@ -16,6 +16,8 @@ pub mod security;
 use std::net::{IpAddr, Ipv4Addr};
 use std::path::PathBuf;
 
+use serde::Deserialize;
+
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{Context, MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile};
 use rustdds::{
@@ -511,6 +513,45 @@ fn participant(settings: &RosSettings) -> Result<DomainParticipant, RosError> {
         );
     }
     Ok(participant)
+}
+
+/// `[ros.topics]`: topic names (relative names get the namespace).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct TopicsConfig {
+    pub joint_states: String,
+    pub planned_trajectory: String,
+    pub camera: String,
+    pub forecast: String,
+    pub fall_imminent: String,
+    pub horizons_ms: String,
+    pub diagnostics: String,
+}
+
+impl Default for TopicsConfig {
+    fn default() -> Self {
+        TopicsConfig {
+            joint_states: "joint_states".into(),
+            planned_trajectory: "planned_trajectory".into(),
+            camera: "head_camera/image_raw/compressed".into(),
+            forecast: "fall_guard/forecast".into(),
+            fall_imminent: "fall_guard/fall_imminent".into(),
+            horizons_ms: "fall_guard/horizons_ms".into(),
+            diagnostics: "/diagnostics".into(),
+        }
+    }
+}
+
+impl TopicsConfig {
+    /// The topic of an input stream.
+    pub fn input(&self, kind: crate::streams::StreamKind) -> &str {
+        use crate::streams::StreamKind;
+        match kind {
+            StreamKind::Joints => &self.joint_states,
+            StreamKind::Camera => &self.camera,
+            StreamKind::Plan => &self.planned_trajectory,
+        }
+    }
 }
 
 #[cfg(test)]

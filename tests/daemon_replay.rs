@@ -12,8 +12,8 @@ mod daemon_common;
 use daemon_common::*;
 use fall_guard::model::{LoadedModel, ProjectionWeights};
 use fall_guard::msgs::DiagnosticArray;
+use fall_guard::pipeline::window::{EpisodeTicks, Streams, WindowSpec};
 use fall_guard::recording::{read_topic, topics, Recording};
-use fall_guard::window::{EpisodeTicks, Streams, WindowSpec};
 
 fn spec() -> WindowSpec {
     WindowSpec {

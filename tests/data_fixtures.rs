@@ -3,10 +3,10 @@
 
 use std::path::Path;
 
+use fall_guard::pipeline::window::{Streams, WindowSpec};
 use fall_guard::recording::{topics, Recording};
 use fall_guard::train::dataset::{Dataset, Split};
 use fall_guard::train::sampler::{SamplerConfig, WindowSampler};
-use fall_guard::window::{Streams, WindowSpec};
 
 #[test]
 fn python_written_fixtures_read_resample_and_sample() {

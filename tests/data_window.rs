@@ -4,14 +4,16 @@
 
 use std::sync::Arc;
 
+use fall_guard::clock::TickGrid;
 use fall_guard::frame::Frame;
 use fall_guard::msgs::{Duration, Header, JointTrajectory, JointTrajectoryPoint, Time};
+use fall_guard::pipeline::window::{
+    samples_from_recording, EpisodeTicks, Resampler, Ring, Streams, TickInput, Window, WindowError,
+    WindowSpec,
+};
 use fall_guard::recording::synthetic::{joint_names, learnable_episode};
 use fall_guard::recording::Recording;
-use fall_guard::window::{
-    samples_from_recording, EpisodeTicks, Plan, Resampler, Ring, Sample, Streams, TickGrid,
-    TickInput, Window, WindowError, WindowSpec,
-};
+use fall_guard::streams::sample::{Plan, Sample};
 use proptest::prelude::*;
 
 fn spec(n_ticks: usize, c: usize) -> WindowSpec {
@@ -407,7 +409,7 @@ fn episode_ticks_from_synthetic_recording() {
 /// it is the same bytes, at the recorded size and resized.
 #[test]
 fn compressed_frames_give_the_windows_of_decoded_ones() {
-    use fall_guard::window::{FrameStorage, TickFrame};
+    use fall_guard::pipeline::window::{FrameStorage, TickFrame};
     let path =
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/episode_00005.mcap");
     let rec = Recording::open(&path).unwrap();

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use fall_guard::msgs::{CompressedImage, Header, JointState};
 use fall_guard::ros::RosNode;
 use fall_guard::sources::ros::{default_topics, InputMessage, Latest, RosInputs};
-use fall_guard::sources::Stamped;
+use fall_guard::streams::Stamped;
 use support::{domain_id, localhost_settings, rclpy_python, Peer};
 
 // The scenario of `ros_peer.py publish` (same numbers there).

@@ -77,14 +77,21 @@ fn rustypot_protocol_1_sync_read_is_0x82_which_the_usb2ax_ignores() {
 }
 
 #[test]
-fn present_position_address_and_model_numbers_agree_with_rustypot() {
+fn present_position_of_every_poppy_model_is_the_register_read_and_model_numbers_agree() {
+    // The daemon takes Present Position from rustypot's MX map; its AX map
+    // (the AX-12s of the head) must agree for one sync read to cover both.
     for info in [
         rustypot::servo::dynamixel::mx::register("present_position"),
         rustypot::servo::dynamixel::ax::register("present_position"),
     ] {
         let info = info.expect("present_position in rustypot's register map");
-        assert_eq!(info.addr, protocol::PRESENT_POSITION_ADDR);
-        assert_eq!(info.size, protocol::PRESENT_POSITION_LEN);
+        assert_eq!(info.addr, protocol::PRESENT_POSITION.addr);
+        assert_eq!(info.size, protocol::PRESENT_POSITION.len);
+        assert_eq!(
+            (info.addr, info.size),
+            (36, 2),
+            "the control table's Present Position"
+        );
     }
     for model in [ServoModel::Mx28, ServoModel::Mx64, ServoModel::Ax12] {
         let (number, _) =

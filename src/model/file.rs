@@ -488,17 +488,7 @@ pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelE
 /// How the classifier's input projection, most of a network's weights
 /// (7,260 x 1,024 for EMP lite), is held in memory for inference
 /// (`[model].projection`, `bench --projection`, `eval --projection`).
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    Default,
-    PartialEq,
-    Eq,
-    serde::Deserialize,
-    serde::Serialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ProjectionWeights {
     /// At the file's precision (f16 for the shipped files): the product is

@@ -689,8 +689,10 @@ fn calibration_is_stored_applied_everywhere_and_checked() {
 /// A small episode whose plan and joints say which tick they belong to:
 /// the plan's joint `j` at tick `k` is `k + j/10`, the measured one
 /// `1000 + k + j/10`.
-fn labelled_episode(c: usize, ticks: i64) -> crate::window::EpisodeTicks {
-    use crate::window::{Plan, TickGrid, TickInput};
+fn labelled_episode(c: usize, ticks: i64) -> crate::pipeline::window::EpisodeTicks {
+    use crate::clock::TickGrid;
+    use crate::pipeline::window::TickInput;
+    use crate::streams::sample::Plan;
     use std::sync::Arc;
     let grid = TickGrid::new(30.0).unwrap();
     let value = |k: i64, j: usize| k as f64 + j as f64 / 10.0;
@@ -703,7 +705,7 @@ fn labelled_episode(c: usize, ticks: i64) -> crate::window::EpisodeTicks {
             .collect(),
         n_joints: c,
     });
-    crate::window::EpisodeTicks {
+    crate::pipeline::window::EpisodeTicks {
         path: "mem".into(),
         grid,
         ticks: (0..ticks)
@@ -723,7 +725,7 @@ fn labelled_episode(c: usize, ticks: i64) -> crate::window::EpisodeTicks {
 
 #[test]
 fn trajectory_inputs_hold_what_their_names_say_everywhere() {
-    use crate::window::Streams;
+    use crate::pipeline::window::Streams;
     let mut cfg = small_config(); // N = 12, h_K = 12
     let (n, c, hk) = (cfg.n_ticks, cfg.n_joints, cfg.max_horizon_ticks());
     let end = 20i64;

@@ -8,7 +8,9 @@
 
 use super::file::ModelError;
 use super::streaming::StreamingForecaster;
-use crate::window::{Plan, TickGrid, TickInput, WindowSpec};
+use crate::clock::TickGrid;
+use crate::pipeline::window::{TickInput, WindowSpec};
+use crate::streams::sample::Plan;
 
 impl StreamingForecaster {
     /// The window spec of the loaded model (for `check_compatible` and the ring).
@@ -123,7 +125,10 @@ impl super::file::ModelMeta {
 
 impl super::file::LoadedModel {
     /// Whole-window forecast of a `Window` built by `window.rs`: `K` probabilities.
-    pub fn forecast_window(&self, window: &crate::window::Window) -> Result<Vec<f32>, ModelError> {
+    pub fn forecast_window(
+        &self,
+        window: &crate::pipeline::window::Window,
+    ) -> Result<Vec<f32>, ModelError> {
         self.forecast_arrays(&window.joints, &window.plan, &window.frames)
     }
 }

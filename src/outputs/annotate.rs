@@ -18,8 +18,8 @@ use tokio::task::JoinHandle;
 use super::ros::{diagnostic_array, forecast_message, OutputTopics};
 use super::{DiagnosticsSnapshot, ForecastOutput, OutputBus};
 use crate::msgs::{Bool, DiagnosticArray, Float32MultiArray};
+use crate::outputs::{publish_imminent_change, published_probabilities};
 use crate::recording::{copy_with, RecordingError, RecordingWriter};
-use crate::service::ros_bridge::{publish_imminent_change, published_probabilities};
 use crate::shutdown::Shutdown;
 
 /// One output message, in publish order.

@@ -28,6 +28,8 @@ pub mod ros;
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
+
+pub use crate::streams::{DeviceDiagnostics, DiagnosticLevel};
 use std::time::{Duration, Instant};
 
 use tokio::sync::broadcast;
@@ -58,36 +60,6 @@ pub struct ForecastOutput {
     pub invalid_reason: String,
     /// When the newest sensor sample used by this tick reached the daemon.
     pub sensed_at: Instant,
-}
-
-/// Level of one diagnostic status (values as in `diagnostic_msgs/DiagnosticStatus`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum DiagnosticLevel {
-    Ok,
-    Warn,
-    Error,
-    Stale,
-}
-
-impl DiagnosticLevel {
-    /// The `level` byte of `diagnostic_msgs/msg/DiagnosticStatus`.
-    pub fn as_byte(self) -> u8 {
-        match self {
-            DiagnosticLevel::Ok => 0,
-            DiagnosticLevel::Warn => 1,
-            DiagnosticLevel::Error => 2,
-            DiagnosticLevel::Stale => 3,
-        }
-    }
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            DiagnosticLevel::Ok => "OK",
-            DiagnosticLevel::Warn => "WARN",
-            DiagnosticLevel::Error => "ERROR",
-            DiagnosticLevel::Stale => "STALE",
-        }
-    }
 }
 
 /// Health of one input stream.
@@ -159,20 +131,6 @@ where
     pub fn latest(&self) -> Option<&T> {
         self.history.back().map(|(_, c)| c)
     }
-}
-
-/// Health of one device behind a stream (a servo bus), reported by its
-/// source: published as a status of its own, `<node>: <name>`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DeviceDiagnostics {
-    /// Status name after the node prefix, e.g. `servo bus lower`.
-    pub name: String,
-    /// The device, e.g. the serial port path.
-    pub hardware_id: String,
-    pub level: DiagnosticLevel,
-    /// One line for a human that names the fault.
-    pub message: String,
-    pub values: Vec<(String, String)>,
 }
 
 /// Health of the inference.
@@ -396,6 +354,41 @@ impl OutputSubscription {
     /// Call right after a forecast went out: records its sensor-to-publish latency.
     pub fn published(&self, forecast: &ForecastOutput) {
         self.latency.record(forecast.sensed_at.elapsed());
+    }
+}
+
+/// Publishes `fall_imminent` on its first value and on every change
+/// (`last`: the value subscribers were last sent). `last` moves only when
+/// the publish succeeded, so a change that failed (a full send window) is
+/// sent again on the next tick instead of being lost: a safety node must
+/// not be left holding the old state.
+pub fn publish_imminent_change<E>(
+    last: &mut Option<bool>,
+    now: bool,
+    publish: impl FnOnce(bool) -> Result<(), E>,
+) -> Result<(), E> {
+    if *last == Some(now) {
+        return Ok(());
+    }
+    publish(now)?;
+    *last = Some(now);
+    Ok(())
+}
+
+/// What goes on `/fall_guard/forecast` for one tick: the probabilities of a
+/// valid forecast, or NaN for every horizon when it is not valid (the ring
+/// is filling, a stream the network needs is stale, absent, or back but not
+/// yet fresh for a whole window). A subscriber reading only this topic can
+/// thus never mistake a forecast on held data for one it may trust
+/// (`p >= threshold` is false for NaN, `isnan` says "unknown"). The forecast
+/// is published every tick either way, so that a subscriber can tell
+/// silence from "safe"; `/diagnostics` (model status, `invalid_reason`)
+/// says why it is not valid.
+pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
+    if f.valid && f.probabilities.len() == f.horizons_ms.len() {
+        f.probabilities.clone()
+    } else {
+        vec![f32::NAN; f.horizons_ms.len()]
     }
 }
 

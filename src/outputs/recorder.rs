@@ -24,7 +24,8 @@ use crate::msgs::{
     CompressedImage, Duration, Header, JointState, JointTrajectory, JointTrajectoryPoint, Time,
 };
 use crate::recording::{topics, EpisodeMeta, RecordingError, RecordingWriter};
-use crate::window::{Plan, Sample};
+use crate::streams::sample::{Plan, Sample};
+use crate::streams::PerStream;
 
 /// JPEG quality of recorded frames.
 const JPEG_QUALITY: u8 = 90;
@@ -38,7 +39,7 @@ pub struct Recorder {
     rate_hz: f64,
     first_ns: Option<i64>,
     last_ns: Option<i64>,
-    counts: [u64; 3],
+    counts: PerStream<u64>,
 }
 
 impl std::fmt::Debug for Recorder {
@@ -53,8 +54,8 @@ impl std::fmt::Debug for Recorder {
 /// What was recorded.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct RecordSummary {
-    /// Messages per stream: joints, camera, plan.
-    pub counts: [u64; 3],
+    /// Messages per stream.
+    pub counts: PerStream<u64>,
     pub duration_ns: i64,
 }
 
@@ -78,7 +79,7 @@ impl Recorder {
             rate_hz,
             first_ns: None,
             last_ns: None,
-            counts: [0; 3],
+            counts: PerStream::default(),
         })
     }
 
@@ -89,7 +90,7 @@ impl Recorder {
         msg: &CompressedImage,
     ) -> Result<(), RecordingError> {
         self.writer.write(topics::HEAD_CAMERA, stamp_ns, msg)?;
-        self.counts[1] += 1;
+        self.counts.camera += 1;
         self.stamped(stamp_ns);
         Ok(())
     }
@@ -117,7 +118,7 @@ impl Recorder {
                     effort: Vec::new(),
                 };
                 self.writer.write(topics::JOINT_STATES, stamp_ns, &msg)?;
-                self.counts[0] += 1;
+                self.counts.joints += 1;
             }
             Sample::Frame { frame, .. } => {
                 let msg = frame_message(header, frame).map_err(|reason| RecordingError::Write {
@@ -125,13 +126,13 @@ impl Recorder {
                     reason,
                 })?;
                 self.writer.write(topics::HEAD_CAMERA, stamp_ns, &msg)?;
-                self.counts[1] += 1;
+                self.counts.camera += 1;
             }
             Sample::Plan { plan, .. } => {
                 let msg = plan_message(plan, &self.joint_names);
                 self.writer
                     .write(topics::PLANNED_TRAJECTORY, stamp_ns, &msg)?;
-                self.counts[2] += 1;
+                self.counts.plan += 1;
             }
         }
         self.stamped(stamp_ns);
@@ -159,8 +160,8 @@ impl Recorder {
             other,
         })?;
         self.writer.finish()?;
-        tracing::info!(path = %self.path.display(), joints = self.counts[0], frames = self.counts[1],
-            plans = self.counts[2], "recording finished");
+        tracing::info!(path = %self.path.display(), joints = self.counts.joints, frames = self.counts.camera,
+            plans = self.counts.plan, "recording finished");
         Ok(RecordSummary {
             counts: self.counts,
             duration_ns,
@@ -205,8 +206,8 @@ mod tests {
     use std::sync::Arc;
 
     use super::*;
+    use crate::pipeline::window::{samples_from_recording, WindowSpec};
     use crate::recording::Recording;
-    use crate::window::{samples_from_recording, WindowSpec};
 
     fn names() -> Vec<String> {
         vec!["a".into(), "b".into()]
@@ -260,7 +261,14 @@ mod tests {
             .record_image(33_337_000, &received)
             .expect("record image");
         let summary = recorder.finish().expect("finish");
-        assert_eq!(summary.counts, [2, 2, 1]);
+        assert_eq!(
+            summary.counts,
+            PerStream {
+                joints: 2,
+                camera: 2,
+                plan: 1
+            }
+        );
         assert_eq!(summary.duration_ns, 33_336_000);
 
         let rec = Recording::open(&path).expect("read back");

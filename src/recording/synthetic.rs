@@ -17,12 +17,12 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use super::{topics, EpisodeMeta, RecordingError, RecordingWriter};
+use crate::clock::TickGrid;
 use crate::frame::{encode_jpeg, Frame};
 use crate::msgs::{
     Bool, CompressedImage, Duration, Header, JointState, JointTrajectory, JointTrajectoryPoint,
     Time,
 };
-use crate::window::TickGrid;
 
 /// What the camera shows at one tick.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -11,11 +11,33 @@
 //! stops delivering is counted, logged once per kind, and reopened with
 //! backoff until shutdown.
 
-use crate::config::PixelFormat;
+use serde::Deserialize;
+
 use crate::frame::{decode_compressed, encode_jpeg, resize_area, Frame};
 use crate::msgs::{CompressedImage, Header, Time};
+use std::path::PathBuf;
 
 use thiserror::Error;
+
+/// Pixel format asked from a V4L2 camera.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum PixelFormat {
+    Mjpeg,
+    Yuyv,
+}
+
+/// `[camera]`: the head camera when `[streams].camera = "v4l2"`.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    /// `/dev/videoN`.
+    pub device: PathBuf,
+    pub format: PixelFormat,
+    pub width: u32,
+    pub height: u32,
+    pub fps: u32,
+}
 
 #[derive(Debug, Error, PartialEq)]
 pub enum CameraError {
@@ -146,11 +168,11 @@ mod capture {
     use nokhwa::Camera;
 
     use super::{compressed_raw, decode_raw, CameraError};
-    use crate::config::{CameraConfig, PixelFormat};
+    use super::{CameraConfig, PixelFormat};
     use crate::msgs::CompressedImage;
     use crate::shutdown::Shutdown;
-    use crate::sources::StreamFeed;
-    use crate::window::Sample;
+    use crate::streams::sample::Sample;
+    use crate::streams::StreamFeed;
 
     /// The V4L2 index of `/dev/videoN` (nokhwa addresses cameras by index).
     fn index_of(device: &std::path::Path) -> CameraIndex {
@@ -212,7 +234,7 @@ mod capture {
 
     /// The capture loop; `convert(width, height, buffer, stamp_ns)` makes
     /// the stream's value of each buffer.
-    fn spawn_capture<T: crate::sources::input::StreamValue>(
+    fn spawn_capture<T: crate::streams::input::StreamValue>(
         config: CameraConfig,
         feed: StreamFeed<T>,
         shutdown: Shutdown,
@@ -247,10 +269,10 @@ mod capture {
                                 break;
                             }
                         };
-                        let stamp_ns = crate::tick::unix_now_ns();
+                        let stamp_ns = crate::clock::unix_now_ns();
                         let res = buffer.resolution();
                         let value = convert(res.width(), res.height(), buffer.buffer(), stamp_ns)
-                            .map_err(|e| crate::sources::input::Rejection::from_frame(&e));
+                            .map_err(|e| crate::streams::input::Rejection::from_frame(&e));
                         let _ = feed.offer(stamp_ns, value);
                     }
                     let _ = camera.stop_stream();

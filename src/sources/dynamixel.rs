@@ -217,9 +217,9 @@ impl JointReading {
 pub type Clock = Arc<dyn Fn() -> i64 + Send + Sync>;
 
 /// Nanoseconds since the UNIX epoch (the stamp ROS 2 messages carry): the
-/// daemon's one clock, [`crate::tick::unix_now_ns`].
+/// daemon's one clock, [`crate::clock::unix_now_ns`].
 pub fn system_clock_ns() -> i64 {
-    crate::tick::unix_now_ns()
+    crate::clock::unix_now_ns()
 }
 
 /// Reads all buses, one cycle per call, on the caller's thread.

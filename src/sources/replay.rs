@@ -16,21 +16,19 @@
 //! goes on, the stream holding its previous sample. A file whose structure
 //! is broken (not MCAP, truncated, a corrupt chunk, a topic of the wrong
 //! type) is an error at load. Counters of each replayed stream go to the
-//! same [`StreamStats`](crate::sources::StreamStats) the diagnostics read
+//! same [`StreamStats`](crate::streams::StreamStats) the diagnostics read
 //! for live sources.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
 
 use thiserror::Error;
 
+use crate::pipeline::window::{recorded_samples, WindowError, WindowSpec};
 use crate::recording::{topics, Recording, RecordingError};
-use crate::shutdown::Shutdown;
-use crate::sources::input::{Gate, Rejection};
-use crate::sources::{PerStream, StreamKind};
-use crate::tick::TickLoop;
-use crate::window::{recorded_samples, Plan, Sample, WindowError, WindowSpec};
+use crate::streams::input::Rejection;
+use crate::streams::sample::{Plan, Sample};
+use crate::streams::StreamKind;
 
 #[derive(Debug, Error)]
 pub enum ReplayError {
@@ -102,7 +100,7 @@ impl ReplayRecording {
                 let recorded = Recorded {
                     kind: r.kind,
                     stamp_ns: r.stamp_ns,
-                    sample: r.sample.map_err(|e| Rejection::from_window(&e)),
+                    sample: r.sample.map_err(|e| Rejection::from_sample(&e)),
                 };
                 (r.stamp_ns, r.file_order, recorded)
             })
@@ -179,178 +177,5 @@ fn shifted_sample(sample: &Sample, offset_ns: i64) -> Sample {
                 n_joints: plan.n_joints,
             }),
         },
-    }
-}
-
-/// What one replay did.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct ReplaySummary {
-    pub samples: u64,
-    pub interrupted: bool,
-    /// The inference thread ended (a panic in the network): replay stopped.
-    pub inference_failed: bool,
-}
-
-/// Sleeps until `due`; false when a shutdown came first.
-async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> bool {
-    tokio::select! {
-        () = tokio::time::sleep_until(due.into()) => true,
-        () = shutdown.recv() => false,
-    }
-}
-
-/// Recorded time on the wall clock of a paced replay: the first stamp
-/// placed on it is due at once, every later one `speed` times faster than
-/// recorded (a stamp before the first is due at once too). One clock runs
-/// on over several [`replay_samples_on`] calls whose samples continue each
-/// other in time (the bench's passes, each shifted by the recording's
-/// span): the tick after one pass's last is then due one tick period after
-/// it, as live, not at once when the next pass starts.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct ReplayClock {
-    /// (wall time, stamp) of the first stamp placed.
-    origin: Option<(Instant, i64)>,
-}
-
-impl ReplayClock {
-    /// A clock that starts at the first stamp placed on it.
-    pub fn new() -> ReplayClock {
-        ReplayClock::default()
-    }
-
-    /// Starts the clock at `stamp_ns` now, unless it runs already.
-    pub fn start_at(&mut self, stamp_ns: i64) {
-        self.origin.get_or_insert((Instant::now(), stamp_ns));
-    }
-
-    /// When `stamp_ns` is due at `speed` times real time (starting the
-    /// clock at it if it has not started).
-    pub fn due(&mut self, stamp_ns: i64, speed: f64) -> Instant {
-        let (wall, t0) = *self.origin.get_or_insert((Instant::now(), stamp_ns));
-        wall + Duration::from_secs_f64(((stamp_ns - t0) as f64 / 1e9 / speed).max(0.0))
-    }
-}
-
-/// Push `samples` (sorted by stamp) through `tick_loop` with recorded time,
-/// then advance to `end_ns`. Each sample passes its stream's `gates` (the
-/// input boundary, with the recorded time as the tick clock) as a live one
-/// does: a rejected one (or a message that was not a sample) is counted
-/// there and not pushed.
-pub async fn replay_samples<I>(
-    tick_loop: &mut TickLoop,
-    samples: I,
-    end_ns: i64,
-    pacing: Pacing,
-    gates: &PerStream<Gate>,
-    shutdown: &mut Shutdown,
-) -> ReplaySummary
-where
-    I: IntoIterator<Item = Recorded>,
-{
-    let mut clock = ReplayClock::new();
-    replay_samples_on(
-        tick_loop, samples, end_ns, pacing, gates, shutdown, &mut clock,
-    )
-    .await
-}
-
-/// [`replay_samples`] paced by `clock`, which may already run (a
-/// recording replayed in passes that continue each other in time).
-pub async fn replay_samples_on<I>(
-    tick_loop: &mut TickLoop,
-    samples: I,
-    end_ns: i64,
-    pacing: Pacing,
-    gates: &PerStream<Gate>,
-    shutdown: &mut Shutdown,
-    clock: &mut ReplayClock,
-) -> ReplaySummary
-where
-    I: IntoIterator<Item = Recorded>,
-{
-    let lockstep = pacing == Pacing::MaxSpeed;
-    let mut summary = ReplaySummary::default();
-    // When the newest sample entered (sensor-to-publish latency of a tick).
-    let mut last_sensed = Instant::now();
-    let mut samples = samples.into_iter().peekable();
-    while let Some(sample) = samples.next() {
-        if shutdown.is_shutdown() {
-            summary.interrupted = true;
-            return summary;
-        }
-        let stamp_ns = sample.stamp_ns;
-        if let Pacing::Speed(speed) = pacing {
-            clock.start_at(stamp_ns);
-            // The tick clock runs on between samples, as it does live: a tick
-            // becomes final at its own time, not when the next sample comes
-            // (that would hand two ticks over at once and skip one).
-            while let Some(tick_ns) = tick_loop.next_tick_stamp().filter(|&t| t < stamp_ns) {
-                if !sleep_until_unless_shutdown(clock.due(tick_ns, speed), shutdown).await {
-                    summary.interrupted = true;
-                    return summary;
-                }
-                tick_loop.advance_to(tick_ns);
-                if tick_loop.pending_ticks() == 0 {
-                    break;
-                }
-                tick_loop.run_pending(last_sensed, false).await;
-            }
-            if !sleep_until_unless_shutdown(clock.due(stamp_ns, speed), shutdown).await {
-                summary.interrupted = true;
-                return summary;
-            }
-        }
-        let sensed_at = Instant::now();
-        let mut admitted = None;
-        let _ = gates[sample.kind].pass(stamp_ns, stamp_ns, sample.sample, |_, s| {
-            admitted = Some(s);
-        });
-        if let Some(sample) = admitted {
-            summary.samples += 1;
-            last_sensed = sensed_at;
-            tick_loop.push_sample(sample);
-        }
-        // Every sample at this stamp is in: the tick at this stamp is final.
-        if samples.peek().is_none_or(|next| next.stamp_ns > stamp_ns) {
-            tick_loop.advance_to(stamp_ns);
-        }
-        if tick_loop.pending_ticks() > 0 {
-            tick_loop.run_pending(sensed_at, lockstep).await;
-        }
-        if tick_loop.inference().is_dead() {
-            summary.inference_failed = true;
-            return summary;
-        }
-    }
-    tick_loop.advance_to(end_ns);
-    tick_loop.run_pending(Instant::now(), lockstep).await;
-    summary
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_clock_that_runs_on_puts_the_next_pass_one_tick_after_the_last() {
-        let tick = 33_333_333;
-        let mut clock = ReplayClock::new();
-        clock.start_at(1_000);
-        let first = clock.due(1_000, 1.0);
-        // A stamp before the start is due at once.
-        assert_eq!(clock.due(0, 1.0), first);
-        // The last tick of a 10 s pass, then the first of the next pass
-        // (its samples shifted by the span): one tick apart on the wall
-        // clock, as recorded.
-        let last = clock.due(1_000 + 10_000_000_000, 1.0);
-        clock.start_at(1_000 + 10_000_000_000 + tick);
-        let next = clock.due(1_000 + 10_000_000_000 + tick, 1.0);
-        assert_eq!(next - last, Duration::from_nanos(tick as u64));
-        assert_eq!(last - first, Duration::from_secs(10));
-        // Twice real time: half the wall time.
-        assert_eq!(
-            clock.due(1_000 + 2 * tick, 2.0) - first,
-            Duration::from_nanos(tick as u64)
-        );
     }
 }

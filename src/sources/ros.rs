@@ -23,7 +23,7 @@ use tokio::sync::watch;
 
 use crate::msgs::{CompressedImage, JointState, JointTrajectory};
 use crate::ros::{qos, RosError, RosNode};
-use crate::sources::{PerStream, Stamped, StreamKind};
+use crate::streams::{PerStream, Stamped, StreamKind};
 
 pub const JOINT_STATE: &str = "sensor_msgs/msg/JointState";
 pub const JOINT_TRAJECTORY: &str = "trajectory_msgs/msg/JointTrajectory";
@@ -59,7 +59,7 @@ pub type InputTopics = PerStream<Option<String>>;
 
 /// Every stream on its default topic (`[ros.topics]`, see `docs/ros.md`).
 pub fn default_topics() -> InputTopics {
-    let topics = crate::config::TopicsConfig::default();
+    let topics = crate::ros::TopicsConfig::default();
     PerStream::from_fn(|kind| Some(topics.input(kind).to_owned()))
 }
 
@@ -175,7 +175,7 @@ where
                     }
                     tx.send_replace(Some(Arc::new(Stamped {
                         seq,
-                        stamp_ns: crate::tick::unix_now_ns(),
+                        stamp_ns: crate::clock::unix_now_ns(),
                         received: Instant::now(),
                         value: message(msg),
                     })));

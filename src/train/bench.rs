@@ -15,6 +15,7 @@ use crate::model::{
     cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelMeta, ProjectionWeights,
     StreamingForecaster,
 };
+use crate::train::error::{refused, CommandResult, Doing};
 
 /// Arguments of `fall-guard bench`.
 #[derive(Debug, Clone)]
@@ -152,15 +153,16 @@ fn noise(len: usize, seed: u64) -> Vec<f32> {
 }
 
 /// Runs the benchmark.
-pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
+pub fn run_bench(args: &BenchOptions) -> CommandResult<BenchReport> {
     let file_model = match &args.model {
         Some(p) => Some(LoadedModel::load(p)?.with_projection(args.projection)),
         None => None,
     };
     let cfg = match &file_model {
         Some(m) => m.meta.config.clone(),
-        None => ModelConfig::named(&args.config, 60, 25, vec![15, 30, 45, 60], 64)
-            .map_err(anyhow::Error::msg)?,
+        None => {
+            ModelConfig::named(&args.config, 60, 25, vec![15, 30, 45, 60], 64).map_err(refused)?
+        }
     };
     let device = cpu_device();
     if !args.train_only {
@@ -267,20 +269,19 @@ pub fn run_bench(args: &BenchOptions) -> anyhow::Result<BenchReport> {
     };
     if let Some(path) = &args.json {
         std::fs::write(path, serde_json::to_string_pretty(&report)?)
-            .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
+            .doing(|| format!("writing {}", path.display()))?;
     }
     Ok(report)
 }
 
-fn train_throughput(cfg: &ModelConfig, steps: usize, on: TrainDevice) -> anyhow::Result<f64> {
+fn train_throughput(cfg: &ModelConfig, steps: usize, on: TrainDevice) -> CommandResult<f64> {
     keep_freed_memory();
     let device = on.device()?.autodiff();
     let mut run = TrainRun::new(cfg, Emp::new(cfg, Ablation::EMP, &device), device);
     let mut elapsed = 0.0;
     for step in 0..steps + 1 {
         let start = Instant::now();
-        run.step()
-            .map_err(|e| anyhow::anyhow!("training step on {on}: {e}"))?;
+        run.step().doing(|| format!("training step on {on}"))?;
         if step > 0 {
             elapsed += start.elapsed().as_secs_f64();
         }
@@ -331,7 +332,7 @@ impl TrainRun {
     /// One step, once the device has done it; its loss (before the update),
     /// still on the device: reading it is a transfer the benchmark does not
     /// time.
-    fn step(&mut self) -> anyhow::Result<burn::prelude::Tensor<1>> {
+    fn step(&mut self) -> CommandResult<burn::prelude::Tensor<1>> {
         use burn::optim::GradientsParams;
         let device = &self.device;
         let j: Vec<&[f32]> = self.batch.iter().map(|w| w.joints.as_slice()).collect();
@@ -353,7 +354,9 @@ impl TrainRun {
         let grads = GradientsParams::from_grads(loss.backward(), &self.model);
         self.model = self.opt.step(1e-4, self.model.clone(), grads);
         // A GPU queues its work: wait for it before reading the clock.
-        device.sync().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        device
+            .sync()
+            .map_err(|e| refused(format!("waiting for the device: {e:?}")))?;
         Ok(value)
     }
 }

@@ -8,7 +8,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Context};
+use crate::train::error::{refused, CommandResult, Doing};
 
 use super::cli::{needs_of_model, SplitWindows, EVAL_BATCH};
 use super::dataset::{Dataset, Split};
@@ -167,14 +167,16 @@ pub fn fit_calibration(
 }
 
 /// Runs `fall-guard calibrate`.
-pub fn run_calibrate(args: &CalibrateOptions) -> anyhow::Result<()> {
-    let split: Split = args.split.parse().map_err(anyhow::Error::msg)?;
+pub fn run_calibrate(args: &CalibrateOptions) -> CommandResult<()> {
+    let split: Split = args.split.parse().map_err(refused)?;
     if split == Split::Train {
-        bail!("--split train: calibrate on windows the network was not trained on (validation)");
+        return Err(refused(
+            "--split train: calibrate on windows the network was not trained on (validation)",
+        ));
     }
     // One read of the file: the trainable network is what gets written back.
     let device = crate::model::cpu_device();
-    let (meta, emp) = load_emp(&args.model, &device).with_context(|| {
+    let (meta, emp) = load_emp(&args.model, &device).doing(|| {
         format!(
             "reading {} (calibrate takes a network model file, not the logistic baseline)",
             args.model.display()
@@ -182,8 +184,8 @@ pub fn run_calibrate(args: &CalibrateOptions) -> anyhow::Result<()> {
     })?;
     let model = LoadedModel::from_parts(meta, &emp, device, args.model.clone());
     let meta = &model.meta;
-    let dataset = Dataset::open(&args.data)
-        .with_context(|| format!("opening data set {}", args.data.display()))?;
+    let dataset =
+        Dataset::open(&args.data).doing(|| format!("opening data set {}", args.data.display()))?;
     let mut windows = SplitWindows::load(
         &dataset,
         split,
@@ -206,11 +208,11 @@ pub fn run_calibrate(args: &CalibrateOptions) -> anyhow::Result<()> {
         })?;
     }
     if logits.is_empty() {
-        bail!(
+        return Err(refused(format!(
             "the {} split of {} has no usable window",
             split.name(),
             args.data.display()
-        );
+        )));
     }
     let fitted_on = format!(
         "{} split of {}, {} windows ({} draws per episode, sampler seed {}, {} protocol)",
@@ -241,8 +243,8 @@ pub fn run_calibrate(args: &CalibrateOptions) -> anyhow::Result<()> {
         WeightPrecision::Full
     };
     crate::model::save_model_as(&args.out, &meta, &emp, precision)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    LoadedModel::load(&args.out).with_context(|| format!("reading back {}", args.out.display()))?;
+        .doing(|| format!("writing {}", args.out.display()))?;
+    LoadedModel::load(&args.out).doing(|| format!("reading back {}", args.out.display()))?;
     eprintln!("calibrated model written to {}", args.out.display());
     Ok(())
 }

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use anyhow::{bail, Context};
+use crate::train::error::{refused, CommandResult, Doing};
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -23,9 +23,9 @@ use crate::model::{
     save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, ProjectionWeights,
     StreamingForecaster, TrajectoryInput,
 };
+use crate::pipeline::window::{EpisodeTicks, Streams, WindowSpec};
 use crate::train::dataset::{Dataset, Split};
 use crate::train::sampler::{labels_at, Protocol, SamplerConfig, SamplerError, WindowSampler};
-use crate::window::{EpisodeTicks, Streams, WindowSpec};
 
 /// Windows built at a time by `eval` and `calibrate` (each 2.9 MB as `f32`
 /// for N = 60 at 64 x 64): what bounds their memory, whatever the split.
@@ -409,29 +409,29 @@ pub fn per_horizon_path(out: &Path, horizon_ticks: usize) -> PathBuf {
 
 /// Runs `fall-guard train`: one model for all horizons, or with
 /// `--per-horizon` one per horizon.
-pub fn run_train(args: &TrainOptions) -> anyhow::Result<()> {
+pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
     if args.device != TrainDevice::Cpu && args.ablation.eq_ignore_ascii_case("logreg") {
-        bail!(
+        return Err(refused(format!(
             "--device {}: the logistic baseline trains on the CPU only",
             args.device
-        );
+        )));
     }
     // Refuse a device not compiled in before reading any data.
     args.device.device()?;
-    let dataset = Dataset::open(&args.data)
-        .with_context(|| format!("opening data set {}", args.data.display()))?;
+    let dataset =
+        Dataset::open(&args.data).doing(|| format!("opening data set {}", args.data.display()))?;
     let joint_names = args.joint_names.clone().unwrap_or_else(default_joint_names);
     let logreg = args.ablation.eq_ignore_ascii_case("logreg");
     let ablation: Option<Ablation> = if logreg {
         None
     } else {
-        Some(args.ablation.parse().map_err(anyhow::Error::msg)?)
+        Some(args.ablation.parse().map_err(refused)?)
     };
     if logreg && args.trajectory != TrajectoryInput::Planned {
-        bail!(
+        return Err(refused(format!(
             "--trajectory {}: the logistic baseline reads the planned window only",
             args.trajectory
-        );
+        )));
     }
     let mut cfg = ModelConfig::named(
         &args.config,
@@ -440,9 +440,9 @@ pub fn run_train(args: &TrainOptions) -> anyhow::Result<()> {
         args.horizons.clone(),
         args.frame_size as usize,
     )
-    .map_err(anyhow::Error::msg)?;
+    .map_err(refused)?;
     cfg.trajectory = args.trajectory;
-    cfg.validate().map_err(anyhow::Error::msg)?;
+    cfg.validate().map_err(refused)?;
     let spec = WindowSpec {
         n_ticks: cfg.n_ticks,
         max_horizon_ticks: cfg.max_horizon_ticks(),
@@ -563,7 +563,7 @@ impl NetworkCheckpoint {
     }
 
     /// Its model file is written: marks it done and removes its epochs.
-    fn finish(&self) -> anyhow::Result<()> {
+    fn finish(&self) -> CommandResult<()> {
         write_atomically(&self.done, b"")?;
         self.checkpoint.remove()?;
         Ok(())
@@ -608,7 +608,7 @@ impl RunCheckpoint {
         args: &TrainOptions,
         dataset: &Dataset,
         networks: Vec<String>,
-    ) -> anyhow::Result<RunCheckpoint> {
+    ) -> CommandResult<RunCheckpoint> {
         let dir = args
             .checkpoint_dir
             .clone()
@@ -618,7 +618,7 @@ impl RunCheckpoint {
         match std::fs::read(&path) {
             Ok(bytes) => {
                 let have: serde_json::Value = serde_json::from_slice(&bytes)
-                    .with_context(|| format!("reading {}", path.display()))?;
+                    .doing(|| format!("reading {}", path.display()))?;
                 if have != want {
                     let differ: Vec<&str> = want
                         .as_object()
@@ -627,20 +627,19 @@ impl RunCheckpoint {
                         .filter(|&(k, v)| have.get(k.as_str()) != Some(v))
                         .map(|(k, _)| k.as_str())
                         .collect();
-                    bail!(
+                    return Err(refused(format!(
                         "{} holds the checkpoint of a run with other arguments (they differ in: {}): rerun with that run's arguments to resume it, remove the directory to start afresh, or give another --checkpoint-dir",
                         dir.display(),
                         differ.join(", ")
-                    );
+                    )));
                 }
                 eprintln!("resuming the run checkpointed in {}", dir.display());
             }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                std::fs::create_dir_all(&dir)
-                    .with_context(|| format!("creating {}", dir.display()))?;
+                std::fs::create_dir_all(&dir).doing(|| format!("creating {}", dir.display()))?;
                 write_atomically(&path, &serde_json::to_vec_pretty(&want)?)?;
             }
-            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+            Err(e) => return Err(e).doing(|| format!("reading {}", path.display())),
         }
         Ok(RunCheckpoint { dir, networks })
     }
@@ -653,13 +652,13 @@ impl RunCheckpoint {
     }
 
     /// The run is over: its files go, then the directory if left empty.
-    fn remove(self) -> anyhow::Result<()> {
+    fn remove(self) -> CommandResult<()> {
         for name in &self.networks {
             Checkpoint::new(self.dir.join(name)).remove()?;
             let _ = std::fs::remove_file(self.dir.join(format!("{name}.done")));
         }
         std::fs::remove_file(self.dir.join("args.json"))
-            .with_context(|| format!("removing {}", self.dir.display()))?;
+            .doing(|| format!("removing {}", self.dir.display()))?;
         let _ = std::fs::remove_dir(&self.dir);
         Ok(())
     }
@@ -677,10 +676,9 @@ fn train_one(
     validation: SplitEpoch,
     out: &Path,
     checkpoint: Option<&NetworkCheckpoint>,
-) -> anyhow::Result<()> {
+) -> CommandResult<()> {
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("creating {}", parent.display()))?;
+        std::fs::create_dir_all(parent).doing(|| format!("creating {}", parent.display()))?;
     }
     match ablation {
         None => {
@@ -705,7 +703,7 @@ fn train_one(
             let rates = match args.rates.as_str() {
                 "sim" => EncoderRates::sim(),
                 "robot" => EncoderRates::robot(),
-                other => bail!("unknown --rates {other:?}: sim or robot"),
+                other => return Err(refused(format!("unknown --rates {other:?}: sim or robot"))),
             };
             let opts = FitOptions {
                 seed: args.seed,
@@ -747,7 +745,7 @@ enum AnyModel {
     LogReg(Box<LogRegModel>, PathBuf),
 }
 
-fn load_any(path: &Path, projection: ProjectionWeights) -> anyhow::Result<AnyModel> {
+fn load_any(path: &Path, projection: ProjectionWeights) -> CommandResult<AnyModel> {
     if let Some(m) = LogRegModel::load(path)? {
         return Ok(AnyModel::LogReg(Box::new(m), path.to_path_buf()));
     }
@@ -757,12 +755,12 @@ fn load_any(path: &Path, projection: ProjectionWeights) -> anyhow::Result<AnyMod
 }
 
 /// Runs `fall-guard eval`.
-pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
+pub fn run_eval(args: &EvalOptions) -> CommandResult<()> {
     if let Some(rec) = &args.recording {
         let out = args
             .per_tick_out
             .as_ref()
-            .context("--recording needs --per-tick-out FILE")?;
+            .ok_or_else(|| refused("--recording needs --per-tick-out FILE"))?;
         let model = LoadedModel::load(&args.model)?.with_projection(args.projection);
         let n = per_tick_forecast(&model, rec, out)?;
         eprintln!("{n} per-tick forecasts written to {}", out.display());
@@ -773,20 +771,19 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
     let data = args
         .data
         .as_ref()
-        .context("--data DIR is needed to evaluate on a split")?;
+        .ok_or_else(|| refused("--data DIR is needed to evaluate on a split"))?;
     let out_dir = args
         .out
         .as_ref()
-        .context("--out DIR is needed to evaluate on a split")?;
-    let split: Split = args.split.parse().map_err(anyhow::Error::msg)?;
-    let dataset =
-        Dataset::open(data).with_context(|| format!("opening data set {}", data.display()))?;
+        .ok_or_else(|| refused("--out DIR is needed to evaluate on a split"))?;
+    let split: Split = args.split.parse().map_err(refused)?;
+    let dataset = Dataset::open(data).doing(|| format!("opening data set {}", data.display()))?;
     let mut paths = vec![args.model.clone()];
     paths.extend(args.seeds.iter().cloned());
     let models: Vec<AnyModel> = paths
         .iter()
         .map(|p| load_any(p, args.projection))
-        .collect::<anyhow::Result<_>>()?;
+        .collect::<CommandResult<_>>()?;
     // Windows come from the first model's description; the others must agree.
     let (spec, needs, horizons, rate_hz, ablation_name, history) = match &models[0] {
         AnyModel::Network(m) => (
@@ -815,12 +812,12 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
     for m in &models[1..] {
         if let AnyModel::Network(m) = m {
             if m.meta.horizons_ticks != horizons {
-                bail!(
+                return Err(refused(format!(
                     "{} forecasts horizons {:?} ticks, the first model {:?}: --seeds must be the same model trained with other seeds (evaluate a per-horizon network on its own)",
                     m.path.display(),
                     m.meta.horizons_ticks,
                     horizons
-                );
+                )));
             }
             m.meta.check_compatible_with(
                 &spec.joint_names,
@@ -846,11 +843,11 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
             protocol,
         )
         .map_err(|e| {
-            anyhow::anyhow!(
+            refused(format!(
                 "{} split of {} under the {protocol} protocol: {e}",
                 split.name(),
                 data.display()
-            )
+            ))
         })?;
         let mut windows = split_windows.epoch();
         for _ in 1..args.draws.max(1) {
@@ -902,7 +899,7 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
         sections,
     );
     rep.write(out_dir)
-        .with_context(|| format!("writing to {}", out_dir.display()))?;
+        .doing(|| format!("writing to {}", out_dir.display()))?;
     let (windows, preds) = primary.expect("at least one protocol");
     // Plots of the first model, primary protocol, each horizon on the
     // windows that score it.
@@ -943,7 +940,7 @@ pub fn run_eval(args: &EvalOptions) -> anyhow::Result<()> {
 pub fn forecast_ticks(
     model: &LoadedModel,
     episode: &EpisodeTicks,
-) -> anyhow::Result<Vec<(i64, i64, Vec<f32>)>> {
+) -> CommandResult<Vec<(i64, i64, Vec<f32>)>> {
     let needs = needs_of_model(&model.meta);
     let mut stream = StreamingForecaster::new(model);
     let mut out = Vec::with_capacity(episode.ticks.len());
@@ -952,13 +949,9 @@ pub fn forecast_ticks(
             continue;
         }
         let at = || format!("{}: tick {}", episode.path.display(), tick.tick);
-        stream.push(tick).with_context(at)?;
+        stream.push(tick).doing(at)?;
         if stream.is_full() {
-            out.push((
-                tick.tick,
-                tick.stamp_ns,
-                stream.forecast().with_context(at)?,
-            ));
+            out.push((tick.tick, tick.stamp_ns, stream.forecast().doing(at)?));
         }
     }
     Ok(out)
@@ -971,14 +964,14 @@ pub fn per_tick_forecast(
     model: &LoadedModel,
     recording: &Path,
     out: &Path,
-) -> anyhow::Result<usize> {
+) -> CommandResult<usize> {
     use std::io::Write;
     let spec = model.meta.window_spec();
     let needs = needs_of_model(&model.meta);
     let episode = crate::train::dataset::load_episode(recording, &spec, needs)
-        .with_context(|| format!("reading {}", recording.display()))?;
+        .doing(|| format!("reading {}", recording.display()))?;
     let forecasts = forecast_ticks(model, &episode)?;
-    let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
+    let file = std::fs::File::create(out).doing(|| format!("creating {}", out.display()))?;
     let mut w = std::io::BufWriter::new(file);
     for (tick, stamp_ns, p) in &forecasts {
         serde_json::to_writer(
@@ -1002,13 +995,13 @@ pub struct HalfOptions {
 
 /// Rewrites a model file with f16 weights (metadata unchanged), then loads
 /// it back to check it reads.
-pub fn run_half(args: &HalfOptions) -> anyhow::Result<()> {
+pub fn run_half(args: &HalfOptions) -> CommandResult<()> {
     let device = crate::model::cpu_device();
     let (meta, emp) = crate::model::file::load_emp(&args.model, &device)
-        .with_context(|| format!("reading {}", args.model.display()))?;
+        .doing(|| format!("reading {}", args.model.display()))?;
     crate::model::save_model_as(&args.out, &meta, &emp, crate::model::WeightPrecision::Half)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    LoadedModel::load(&args.out).with_context(|| format!("reading back {}", args.out.display()))?;
+        .doing(|| format!("writing {}", args.out.display()))?;
+    LoadedModel::load(&args.out).doing(|| format!("reading back {}", args.out.display()))?;
     let size = |p: &Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
     eprintln!(
         "{} ({} bytes) -> {} ({} bytes, f16 weights)",

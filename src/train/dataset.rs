@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::pipeline::window::{EpisodeTicks, FrameStorage, Streams, WindowError, WindowSpec};
 use crate::recording::{topics, Recording, RecordingError};
-use crate::window::{EpisodeTicks, FrameStorage, Streams, WindowError, WindowSpec};
 
 /// Why a data set could not be opened or loaded.
 #[derive(Debug, thiserror::Error)]

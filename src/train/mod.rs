@@ -13,6 +13,7 @@ pub mod checkpoint;
 pub mod cli;
 pub mod dataset;
 pub mod device;
+pub mod error;
 pub mod eval;
 pub mod fit;
 pub mod logreg;

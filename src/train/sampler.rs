@@ -49,7 +49,7 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 
-use crate::window::{EpisodeTicks, Streams};
+use crate::pipeline::window::{EpisodeTicks, Streams};
 
 /// Why a sampler could not be built.
 #[derive(Debug, thiserror::Error)]

@@ -14,7 +14,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
+use crate::train::error::{refused, CommandResult, Doing};
 use serde::Serialize;
 
 use super::cli::{forecast_ticks, needs_of_model};
@@ -97,13 +97,13 @@ pub fn warning_stats(
     trigger: f32,
     release: f32,
     tick_s: f64,
-) -> anyhow::Result<WarningStats> {
+) -> CommandResult<WarningStats> {
     let mut leads = Vec::new();
     let (mut falling, mut warned, mut calm, mut minutes, mut alarms) = (0, 0, 0, 0.0, 0u64);
     for ep in episodes {
         // The latch sees one probability: index 0 of a one-element forecast.
         let mut latch = SafetyLatch::new(0, trigger, release)
-            .with_context(|| format!("thresholds {trigger} / {release}"))?
+            .doing(|| format!("thresholds {trigger} / {release}"))?
             .silent();
         match ep.onset_ns {
             Some(onset) => {
@@ -181,13 +181,13 @@ pub fn forecast_split(
     data: &Dataset,
     split: Split,
     horizon_index: usize,
-) -> anyhow::Result<Vec<EpisodeForecasts>> {
+) -> CommandResult<Vec<EpisodeForecasts>> {
     let spec = model.meta.window_spec();
     let needs = needs_of_model(&model.meta);
     let mut out = Vec::new();
     for path in data.paths(split) {
-        let episode = load_episode(&path, &spec, needs)
-            .with_context(|| format!("reading {}", path.display()))?;
+        let episode =
+            load_episode(&path, &spec, needs).doing(|| format!("reading {}", path.display()))?;
         let onset_ns = episode.fall_onset_tick.map(|t| episode.grid.stamp_ns(t));
         let ticks = forecast_ticks(model, &episode)?
             .into_iter()
@@ -206,19 +206,19 @@ pub fn forecast_split(
 }
 
 /// `fall-guard warnings`: prints a table, writes JSON with `--out`.
-pub fn run_warnings(args: &WarningsOptions) -> anyhow::Result<()> {
-    let model = LoadedModel::load(&args.model)
-        .with_context(|| format!("reading {}", args.model.display()))?;
+pub fn run_warnings(args: &WarningsOptions) -> CommandResult<()> {
+    let model =
+        LoadedModel::load(&args.model).doing(|| format!("reading {}", args.model.display()))?;
     let tick_s = 1.0 / model.meta.rate_hz;
     let horizons_ms = model.meta.horizons_ms();
     let horizon_index = horizons_ms
         .iter()
         .position(|&h| h == args.horizon_ms)
-        .with_context(|| {
-            format!(
+        .ok_or_else(|| {
+            refused(format!(
                 "--horizon-ms {}: the model's horizons are {horizons_ms:?} ms",
                 args.horizon_ms
-            )
+            ))
         })?;
     let data = Dataset::open(&args.data)?;
     let episodes = forecast_split(&model, &data, args.split, horizon_index)?;
@@ -230,7 +230,7 @@ pub fn run_warnings(args: &WarningsOptions) -> anyhow::Result<()> {
     let grid = pairs
         .iter()
         .map(|&(t, r)| warning_stats(&episodes, t, r, tick_s))
-        .collect::<anyhow::Result<Vec<_>>>()?;
+        .collect::<CommandResult<Vec<_>>>()?;
     println!(
         "| trigger | release | falls warned | warned >= {EARLY_LEAD_S} s ahead | lead median s | lead p10 s | false alarms / min |"
     );
@@ -280,7 +280,7 @@ pub fn run_warnings(args: &WarningsOptions) -> anyhow::Result<()> {
             "max_false_alarms_per_min": args.max_false_alarms_per_min,
         });
         std::fs::write(out, serde_json::to_vec_pretty(&report)?)
-            .with_context(|| format!("writing {}", out.display()))?;
+            .doing(|| format!("writing {}", out.display()))?;
     }
     Ok(())
 }

@@ -15,7 +15,7 @@ use rustypot::{CommunicationErrorKind, DynamixelProtocolHandler};
 use serialport::SerialPort;
 use tracing::{debug, info, warn};
 
-use super::protocol::{self, Scanned, PRESENT_POSITION_ADDR, PRESENT_POSITION_LEN, USB2AX_ID};
+use super::protocol::{self, Scanned, PRESENT_POSITION, USB2AX_ID};
 use super::stats::{BusStats, ServoErrorKind};
 use super::BusConfig;
 use crate::robot::Joint;
@@ -96,7 +96,7 @@ impl BusReader {
         let ids: Vec<u8> = motors.iter().map(|m| m.joint.id).collect();
         // Validated by the caller: 1 to 31 ids.
         let request =
-            protocol::sync_read_request(PRESENT_POSITION_ADDR, PRESENT_POSITION_LEN, &ids)
+            protocol::sync_read_request(PRESENT_POSITION.addr, PRESENT_POSITION.len, &ids)
                 .unwrap_or_default();
         let mode = if config.sync_read && !request.is_empty() {
             ReadMode::Sync
@@ -371,7 +371,7 @@ impl BusReader {
     fn retry_sync(&mut self, stats: &BusStats, raw: &mut [Option<u16>], lost: &[usize]) {
         let ids: Vec<u8> = lost.iter().map(|&i| self.motors[i].joint.id).collect();
         let Ok(request) =
-            protocol::sync_read_request(PRESENT_POSITION_ADDR, PRESENT_POSITION_LEN, &ids)
+            protocol::sync_read_request(PRESENT_POSITION.addr, PRESENT_POSITION.len, &ids)
         else {
             return;
         };
@@ -433,8 +433,8 @@ impl BusReader {
                         .read_with_error(
                             port.as_mut(),
                             id,
-                            PRESENT_POSITION_ADDR,
-                            PRESENT_POSITION_LEN,
+                            PRESENT_POSITION.addr,
+                            PRESENT_POSITION.len,
                         )
                         .map_err(classify)
                 });
@@ -452,7 +452,7 @@ impl BusReader {
                             );
                         }
                     }
-                    if params.len() == usize::from(PRESENT_POSITION_LEN) {
+                    if params.len() == usize::from(PRESENT_POSITION.len) {
                         let value = u16::from_le_bytes([params[0], params[1]]);
                         *slot = self.checked(stats, i, value);
                     } else {
@@ -540,7 +540,7 @@ fn sync_read(
     port.write_all(request)
         .map_err(|e| Failure::Lost(format!("write: {e}")))?;
     let deadline = Instant::now() + timeout;
-    let data_len = n_ids * usize::from(PRESENT_POSITION_LEN);
+    let data_len = n_ids * usize::from(PRESENT_POSITION.len);
     let expected_len = (data_len + 2) as u8;
     buf.clear();
     let mut received = 0;

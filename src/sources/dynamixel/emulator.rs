@@ -378,7 +378,10 @@ impl BusEmulator {
     pub fn raw_position(&self, id: u8) -> Result<u16, EmulatorError> {
         self.with_motor(id, |m| {
             let bytes = m
-                .read(protocol::PRESENT_POSITION_ADDR, 2)
+                .read(
+                    protocol::PRESENT_POSITION.addr,
+                    protocol::PRESENT_POSITION.len,
+                )
                 .unwrap_or(&[0, 0]);
             u16::from_le_bytes([bytes[0], bytes[1]])
         })
@@ -634,7 +637,7 @@ fn answer(state: &mut State, request: &Packet) -> Option<(Vec<u8>, Duration)> {
                         let goal =
                             usize::from(mx::register("goal_position").map_or(30, |r| r.addr));
                         if addr <= goal + 1 && goal < addr + data.len() {
-                            let position = usize::from(protocol::PRESENT_POSITION_ADDR);
+                            let position = usize::from(protocol::PRESENT_POSITION.addr);
                             let (lo, hi) = (motor.registers[goal], motor.registers[goal + 1]);
                             motor.registers[position] = lo;
                             motor.registers[position + 1] = hi;

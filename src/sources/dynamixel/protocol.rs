@@ -23,11 +23,27 @@ pub const USB2AX_ID: u8 = 0xFD;
 /// The most ids one USB2AX sync read may name.
 pub const USB2AX_MAX_SYNC_IDS: usize = 31;
 
-/// Present Position: address and size (from rustypot's MX/AX register maps,
-/// which agree on both).
-pub const PRESENT_POSITION_ADDR: u8 = 36;
-/// Size of Present Position in bytes (little endian).
-pub const PRESENT_POSITION_LEN: u8 = 2;
+/// A register's place in a servo's control table.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Register {
+    /// Address in the control table.
+    pub addr: u8,
+    /// Size in bytes (little endian).
+    pub len: u8,
+}
+
+/// Present Position, the one register the daemon reads, as rustypot's MX
+/// register map places it. Every motor of a Poppy Humanoid is an MX-28,
+/// MX-64 or AX-12, and rustypot's AX map puts it at the same address with
+/// the same size (a test checks), so one sync read covers a bus of both.
+pub static PRESENT_POSITION: std::sync::LazyLock<Register> = std::sync::LazyLock::new(|| {
+    let info = rustypot::servo::dynamixel::mx::register("present_position")
+        .expect("rustypot's MX register map names present_position");
+    Register {
+        addr: info.addr,
+        len: info.size,
+    }
+});
 
 /// Instruction bytes of protocol 1.0, plus the USB2AX's sync read.
 pub mod instruction {

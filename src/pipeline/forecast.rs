@@ -37,8 +37,8 @@ use crate::model::{
 };
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
-use crate::sources::StreamKind;
-use crate::window::{TickInput, WindowSpec};
+use crate::pipeline::window::{TickInput, WindowSpec};
+use crate::streams::StreamKind;
 
 #[derive(Debug, Error)]
 pub enum ForecastError {
@@ -353,7 +353,7 @@ fn release_freed_memory() {
 }
 
 /// Which streams are fresh (not stale) at one tick.
-pub type Freshness = crate::sources::PerStream<bool>;
+pub type Freshness = crate::streams::PerStream<bool>;
 
 /// Chooses the network per tick from stream freshness (see module docs).
 #[derive(Debug, Clone)]
@@ -361,10 +361,10 @@ pub struct ModelChoice {
     available: Vec<Ablation>,
     active: Ablation,
     /// Consecutive fresh ticks of each stream (0 on a stale tick).
-    runs: crate::sources::PerStream<usize>,
+    runs: crate::streams::PerStream<usize>,
     /// Fresh ticks after which a stream counts as back
     /// ([`ModelChoice::refill_ticks`]).
-    refill: crate::sources::PerStream<usize>,
+    refill: crate::streams::PerStream<usize>,
     switches: u64,
 }
 
@@ -386,7 +386,7 @@ impl ModelChoice {
             available,
             active: Ablation::EMP,
             runs: Default::default(),
-            refill: crate::sources::PerStream {
+            refill: crate::streams::PerStream {
                 joints: window_ticks,
                 camera: window_ticks,
                 plan: 1,

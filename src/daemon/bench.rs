@@ -15,8 +15,10 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::service::{load_config, Inputs, Running, ServiceError, What};
-use crate::sources::replay::{replay_samples_on, shifted, ReplayClock};
+use crate::clock::ReplayClock;
+use crate::daemon::replay::replay_samples_on;
+use crate::daemon::{load_config, Inputs, Running, ServiceError, What};
+use crate::sources::replay::shifted;
 
 /// `fall-guard bench-daemon`.
 #[derive(Debug, Clone)]
@@ -305,7 +307,7 @@ impl LatencyHistogram {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::forecast::percentiles_ms;
+    use crate::pipeline::forecast::percentiles_ms;
 
     #[test]
     fn histogram_quantiles_are_within_one_bucket_of_the_exact_ones() {

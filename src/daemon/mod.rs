@@ -16,16 +16,18 @@ use std::sync::Arc;
 use thiserror::Error;
 
 use crate::config::{Config, ConfigError};
-use crate::forecast::{ablation_name, ForecastError, ModelSet};
+use crate::daemon::replay::replay_samples;
 use crate::outputs::latch::{LatchError, SafetyLatch};
 use crate::outputs::recorder::Recorder;
+use crate::pipeline::forecast::{ablation_name, ForecastError, ModelSet};
+use crate::pipeline::tick::{LiveTaps, StreamSlot, TickCounters, TickSettings};
+use crate::pipeline::window::{WindowError, WindowSpec};
 use crate::recording::RecordingError;
 use crate::robot::JointTable;
-use crate::sources::input::InputLimits;
-use crate::sources::replay::{replay_samples, ReplayError};
-use crate::sources::{stream, PerStream, StreamFeed, StreamStats, StreamTap};
-use crate::tick::{LiveTaps, StreamSlot, TickCounters, TickSettings};
-use crate::window::{Sample, WindowError, WindowSpec};
+use crate::sources::replay::ReplayError;
+use crate::streams::input::InputLimits;
+use crate::streams::sample::Sample;
+use crate::streams::{stream, PerStream, StreamFeed, StreamStats, StreamTap};
 
 #[derive(Debug, Error)]
 pub enum ServiceError {
@@ -301,7 +303,8 @@ pub async fn run(args: RunOptions) -> Result<TickCounters, ServiceError> {
     let spec = forecasting.models.spec();
     tracing::info!(config = %args.config.display(), rate_hz = spec.rate_hz,
         n_ticks = spec.n_ticks, "fall-guard running");
-    crate::tick::run_live(&mut forecasting.tick_loop, streams.taps.clone(), shutdown).await;
+    crate::pipeline::tick::run_live(&mut forecasting.tick_loop, streams.taps.clone(), shutdown)
+        .await;
     let stopped = daemon.stop().await;
     if stopped.inference_died {
         return Err(ServiceError::Source(
@@ -368,7 +371,7 @@ pub async fn record(
     Ok(summary?)
 }
 
-async fn changed<T>(tap: &mut StreamTap<T>) -> Option<Arc<crate::sources::Stamped<T>>> {
+async fn changed<T>(tap: &mut StreamTap<T>) -> Option<Arc<crate::streams::Stamped<T>>> {
     tap.changed().await
 }
 
@@ -383,7 +386,9 @@ pub fn label(args: &LabelOptions) -> Result<Option<i64>, ServiceError> {
     Ok(crate::recording::label(&args.recording, fall_at)?)
 }
 
+pub mod bench;
 pub mod lifecycle;
+pub mod replay;
 pub mod ros_bridge;
 pub mod servo_bridge;
 

@@ -14,30 +14,23 @@
 //! also pets the systemd watchdog.
 
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
-use crate::forecast::{
-    ablation_name, best_configured, percentiles_ms, Freshness, Inference, InferenceJob,
-    ModelChoice, ModelSet,
-};
+use crate::clock::unix_now_ns;
 use crate::model::Ablation;
 use crate::outputs::{
     CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, OutputBus,
     StreamDiagnostics, ERROR_WINDOW_S,
 };
+use crate::pipeline::forecast::{
+    ablation_name, best_configured, percentiles_ms, Freshness, Inference, InferenceJob,
+    ModelChoice, ModelSet,
+};
+use crate::pipeline::window::{Resampler, Ring, TickInput, WindowError};
 use crate::shutdown::Shutdown;
-use crate::sources::input::Seq;
-use crate::sources::{PerStream, Stamped, StreamKind, StreamStats, StreamTap};
-use crate::window::{Resampler, Ring, Sample, TickInput, WindowError};
-
-/// Now, in ns since the UNIX epoch: the daemon's one clock (the live tick,
-/// the input boundary, the stamps of servo reads, camera frames and ROS 2
-/// receipts), as ROS stamps.
-pub fn unix_now_ns() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
-}
+use crate::streams::input::Seq;
+use crate::streams::sample::Sample;
+use crate::streams::{PerStream, Stamped, StreamKind, StreamStats, StreamTap};
 
 /// One input stream as the tick sees it.
 #[derive(Debug, Clone)]
@@ -654,7 +647,7 @@ impl TickLoop {
 /// window), `rejected_<reason>` (total per reason seen) and
 /// `last_rejection` (empty before the first).
 fn rejection_details(
-    stats: &crate::sources::StreamStatsSnapshot,
+    stats: &crate::streams::StreamStatsSnapshot,
     recent: u64,
 ) -> Vec<(String, String)> {
     let mut out = vec![
@@ -749,13 +742,13 @@ fn take_new<T>(tap: &StreamTap<T>, seen: &mut Seq) -> Option<Arc<Stamped<T>>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sources::input::InputLimits;
+    use crate::streams::input::InputLimits;
 
     #[test]
     fn a_sample_is_taken_once_by_its_sequence_number() {
         let now = unix_now_ns();
         let (feed, tap) =
-            crate::sources::stream::<Vec<f32>>(StreamKind::Joints, InputLimits::shapes(1, 4));
+            crate::streams::stream::<Vec<f32>>(StreamKind::Joints, InputLimits::shapes(1, 4));
         let mut seen = 0;
         assert!(take_new(&tap, &mut seen).is_none());
         feed.offer_at(now, now, Ok(vec![1.0])).expect("admitted");
@@ -775,7 +768,7 @@ mod tests {
     /// Ticks at 30 Hz of a 3-joint servo reading every 20 ms, `missed(k, j)`
     /// saying whether joint `j` missed reading `k`.
     fn servo_ticks(readings: i64, missed: impl Fn(i64, usize) -> bool) -> Vec<TickInput> {
-        let spec = crate::window::WindowSpec {
+        let spec = crate::pipeline::window::WindowSpec {
             n_ticks: 4,
             max_horizon_ticks: 1,
             rate_hz: 30.0,

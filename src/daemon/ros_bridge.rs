@@ -18,18 +18,19 @@ use tokio::sync::broadcast::error::RecvError;
 use tokio::task::JoinHandle;
 
 use crate::config::Config;
-use crate::forecast::ModelSet;
+use crate::daemon::LiveStreams;
+use crate::daemon::ServiceError;
 use crate::msgs::{CompressedImage, Header, JointState};
 use crate::outputs::ros::{ros_time, OutputTopics, RosOutputs};
-use crate::outputs::{ForecastOutput, OutputBus};
+use crate::outputs::{publish_imminent_change, published_probabilities, ForecastOutput, OutputBus};
+use crate::pipeline::forecast::ModelSet;
+use crate::pipeline::window::WindowSpec;
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
-use crate::service::LiveStreams;
-use crate::service::ServiceError;
 use crate::shutdown::Shutdown;
-use crate::sources::input::{InputLimits, Rejection, StreamValue};
 use crate::sources::ros::{InputErrors, InputMessage, InputTopics, Latest, RosInputs};
-use crate::sources::{PerStream, Stamped, StreamFeed, StreamKind, StreamTap};
-use crate::window::{frame_from_msg, joints_from_msg, Plan, Sample, WindowSpec};
+use crate::streams::input::{InputLimits, Rejection, StreamValue};
+use crate::streams::sample::{frame_from_msg, joints_from_msg, Plan, Sample};
+use crate::streams::{PerStream, Stamped, StreamFeed, StreamKind, StreamTap};
 
 impl From<RosError> for ServiceError {
     fn from(e: RosError) -> Self {
@@ -227,41 +228,6 @@ fn publish_tick(outputs: &RosOutputs, imminent: &mut Option<bool>, f: &ForecastO
     let _ = publish_imminent_change(imminent, f.imminent, |v| outputs.publish_fall_imminent(v));
 }
 
-/// Publishes `fall_imminent` on its first value and on every change
-/// (`last`: the value subscribers were last sent). `last` moves only when
-/// the publish succeeded, so a change that failed (a full send window) is
-/// sent again on the next tick instead of being lost: a safety node must
-/// not be left holding the old state.
-pub fn publish_imminent_change<E>(
-    last: &mut Option<bool>,
-    now: bool,
-    publish: impl FnOnce(bool) -> Result<(), E>,
-) -> Result<(), E> {
-    if *last == Some(now) {
-        return Ok(());
-    }
-    publish(now)?;
-    *last = Some(now);
-    Ok(())
-}
-
-/// What goes on `/fall_guard/forecast` for one tick: the probabilities of a
-/// valid forecast, or NaN for every horizon when it is not valid (the ring
-/// is filling, a stream the network needs is stale, absent, or back but not
-/// yet fresh for a whole window). A subscriber reading only this topic can
-/// thus never mistake a forecast on held data for one it may trust
-/// (`p >= threshold` is false for NaN, `isnan` says "unknown"). The forecast
-/// is published every tick either way, so that a subscriber can tell
-/// silence from "safe"; `/diagnostics` (model status, `invalid_reason`)
-/// says why it is not valid.
-pub fn published_probabilities(f: &ForecastOutput) -> Vec<f32> {
-    if f.valid && f.probabilities.len() == f.horizons_ms.len() {
-        f.probabilities.clone()
-    } else {
-        vec![f32::NAN; f.horizons_ms.len()]
-    }
-}
-
 /// A ROS 2 message in model form (the conversions a replay uses), with
 /// its stamp on the tick clock: a sensor reading's header stamp (its
 /// reception when the header has none); a plan's reception, since a plan
@@ -302,7 +268,7 @@ fn model_sample(
             (stamp_ns, sample)
         }
     };
-    (stamp_ns, sample.map_err(|e| Rejection::from_window(&e)))
+    (stamp_ns, sample.map_err(|e| Rejection::from_sample(&e)))
 }
 
 /// A header's stamp, or `received_ns` when the sender left it zero.

@@ -34,15 +34,16 @@ use std::sync::Arc;
 use tokio::task::JoinHandle;
 
 use crate::config::{CameraSource, Config, JointsSource, PlanSource};
-use crate::forecast::{Inference, ModelSet};
 use crate::msgs::CompressedImage;
 use crate::outputs::OutputBus;
+use crate::pipeline::forecast::{Inference, ModelSet};
+use crate::pipeline::tick::{TickCounters, TickLoop};
+use crate::pipeline::window::WindowSpec;
 use crate::shutdown::{Shutdown, ShutdownTrigger};
-use crate::sources::input::Gate;
 use crate::sources::replay::ReplayRecording;
-use crate::sources::{stream, PerStream, StreamFeed, StreamKind, StreamStats, StreamTap};
-use crate::tick::{TickCounters, TickLoop};
-use crate::window::{Sample, WindowSpec};
+use crate::streams::input::Gate;
+use crate::streams::sample::Sample;
+use crate::streams::{stream, PerStream, StreamFeed, StreamKind, StreamStats, StreamTap};
 
 use super::ros_bridge::RosBridge;
 use super::{

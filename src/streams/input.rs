@@ -14,7 +14,7 @@
 //!
 //! Conversion errors of a source (an undecodable JPEG, a `JointState` that
 //! lacks a model joint, a trajectory with no points) are typed here too
-//! ([`Rejection::from_window`], [`Rejection::from_frame`]), so that a
+//! ([`Rejection::from_sample`], [`Rejection::from_frame`]), so that a
 //! subscriber and an operator see one vocabulary of reasons whatever the
 //! source.
 //!
@@ -27,7 +27,7 @@ use std::sync::Arc;
 use std::sync::Mutex;
 
 use crate::frame::Frame;
-use crate::window::{Plan, Sample, WindowError};
+use crate::streams::sample::{Plan, Sample, SampleError};
 
 use super::{StreamKind, StreamStats};
 
@@ -149,24 +149,21 @@ impl Rejection {
         }
     }
 
-    /// A conversion error of `window.rs` (message to model form), typed.
-    pub fn from_window(e: &WindowError) -> Rejection {
+    /// A conversion error (message to model form, `streams::sample`), typed.
+    pub fn from_sample(e: &SampleError) -> Rejection {
         match e {
-            WindowError::NonFinite { joint, value, .. } => Rejection::NonFinite {
+            SampleError::NonFinite { joint, value, .. } => Rejection::NonFinite {
                 what: format!("joint {joint} is {value}"),
             },
-            WindowError::MissingJoint { joint, .. } => Rejection::WrongJoints {
+            SampleError::MissingJoint { joint, .. } => Rejection::WrongJoints {
                 what: format!("joint {joint} missing"),
             },
-            WindowError::JointCount { what, .. } => Rejection::WrongJoints { what: what.clone() },
-            WindowError::EmptyPlan { .. } => Rejection::EmptyPlan,
-            WindowError::PlanTimes { point, .. } => Rejection::PlanTimes {
+            SampleError::JointCount { what, .. } => Rejection::WrongJoints { what: what.clone() },
+            SampleError::EmptyPlan { .. } => Rejection::EmptyPlan,
+            SampleError::PlanTimes { point, .. } => Rejection::PlanTimes {
                 what: format!("point {point}: time_from_start does not increase"),
             },
-            WindowError::Frame { source, .. } => Rejection::from_frame(source),
-            other => Rejection::BadMessage {
-                what: other.to_string(),
-            },
+            SampleError::Frame { source, .. } => Rejection::from_frame(source),
         }
     }
 
@@ -578,9 +575,10 @@ mod tests {
             position,
             ..JointState::default()
         };
-        let key = |e: WindowError| Rejection::from_window(&e).key();
-        let joints =
-            |m: JointState| crate::window::joints_from_msg(&m, &names).expect_err("rejected");
+        let key = |e: SampleError| Rejection::from_sample(&e).key();
+        let joints = |m: JointState| {
+            crate::streams::sample::joints_from_msg(&m, &names).expect_err("rejected")
+        };
         assert_eq!(
             key(joints(js(vec!["a", "b"], vec![0.0, f64::NAN]))),
             "non_finite"
@@ -601,7 +599,7 @@ mod tests {
             ..CompressedImage::default()
         };
         assert_eq!(
-            key(crate::window::frame_from_msg(&jpeg, 4).expect_err("not a JPEG")),
+            key(crate::streams::sample::frame_from_msg(&jpeg, 4).expect_err("not a JPEG")),
             "undecodable"
         );
     }

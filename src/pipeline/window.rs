@@ -41,10 +41,12 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use crate::frame::{decode_compressed, CompressedFrame, Frame, FrameError};
-use crate::msgs::{CompressedImage, JointState, JointTrajectory};
+use crate::clock::{BadRate, TickGrid};
+use crate::frame::{CompressedFrame, Frame, FrameError};
+use crate::msgs::{JointState, JointTrajectory};
 use crate::recording::{topics, Recording};
-use crate::sources::{PerStream, StreamKind};
+use crate::streams::sample::{frame_from_msg, joints_from_msg, Plan, Sample, SampleError};
+use crate::streams::{PerStream, StreamKind};
 
 /// A resampler that sees no sample for longer than this restarts its grid at
 /// the next sample instead of emitting every tick of the gap.
@@ -53,33 +55,13 @@ pub const MAX_GAP_TICKS: i64 = 1_000_000;
 /// Why a sample, tick or window could not be made.
 #[derive(Debug, thiserror::Error)]
 pub enum WindowError {
-    #[error(
-        "tick rate must be a positive, finite number of Hz with at most 3 decimals (got {rate_hz})"
-    )]
-    BadRate { rate_hz: f64 },
+    #[error(transparent)]
+    BadRate(#[from] BadRate),
     #[error("bad window spec: {reason}")]
     BadSpec { reason: String },
-    #[error("{topic}: joint {joint:?} (needed by the model) is missing from the message")]
-    MissingJoint { topic: &'static str, joint: String },
-    #[error("{topic}: {what}")]
-    BadMessage { topic: &'static str, what: String },
-    #[error("{topic}: {what}")]
-    JointCount { topic: &'static str, what: String },
-    #[error("{topic}: trajectory has no points")]
-    EmptyPlan { topic: &'static str },
-    #[error("{topic}: point {point}: time_from_start does not increase")]
-    PlanTimes { topic: &'static str, point: usize },
-    #[error("{topic}: joint {joint:?} is {value} (not finite)")]
-    NonFinite {
-        topic: &'static str,
-        joint: String,
-        value: f64,
-    },
-    #[error("{topic}: frame: {source}")]
-    Frame {
-        topic: &'static str,
-        source: FrameError,
-    },
+    /// A message that does not convert to model form.
+    #[error(transparent)]
+    Sample(#[from] SampleError),
     #[error("window ending at tick {end_tick} needs {need} consecutive ticks, has {have}")]
     NotFull {
         end_tick: i64,
@@ -138,7 +120,7 @@ impl WindowSpec {
                 reason: "frame_size must be at least 1".into(),
             });
         }
-        TickGrid::new(self.rate_hz)
+        Ok(TickGrid::new(self.rate_hz)?)
     }
 
     /// `N + hK`: plan ticks per window.
@@ -149,228 +131,6 @@ impl WindowSpec {
     /// `C`.
     pub fn n_joints(&self) -> usize {
         self.joint_names.len()
-    }
-}
-
-/// The tick grid: tick `k` at `ceil(k * 1e12 / rate_mHz)` ns (see module doc).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct TickGrid {
-    rate_mhz: i64,
-}
-
-impl TickGrid {
-    /// A grid at `rate_hz` (a whole number of mHz, e.g. 30 or 29.97).
-    pub fn new(rate_hz: f64) -> Result<TickGrid, WindowError> {
-        let mhz = (rate_hz * 1000.0).round();
-        if !rate_hz.is_finite()
-            || rate_hz <= 0.0
-            || !(1.0..=1e9).contains(&mhz)
-            || ((mhz / 1000.0) - rate_hz).abs() > 1e-9 * rate_hz.max(1.0)
-        {
-            return Err(WindowError::BadRate { rate_hz });
-        }
-        Ok(TickGrid {
-            rate_mhz: mhz as i64,
-        })
-    }
-
-    pub fn rate_hz(&self) -> f64 {
-        self.rate_mhz as f64 / 1000.0
-    }
-
-    /// Stamp of tick `tick`, ns.
-    pub fn stamp_ns(&self, tick: i64) -> i64 {
-        let num = i128::from(tick) * 1_000_000_000_000;
-        let den = i128::from(self.rate_mhz);
-        (-((-num).div_euclid(den))) as i64
-    }
-
-    /// The first tick whose stamp is at or after `stamp_ns`.
-    pub fn first_tick_at_or_after(&self, stamp_ns: i64) -> i64 {
-        let num = (i128::from(stamp_ns) - 1) * i128::from(self.rate_mhz);
-        (num.div_euclid(1_000_000_000_000) + 1) as i64
-    }
-
-    /// The last tick whose stamp is at or before `stamp_ns`.
-    pub fn last_tick_at_or_before(&self, stamp_ns: i64) -> i64 {
-        self.first_tick_at_or_after(stamp_ns + 1) - 1
-    }
-}
-
-/// A planned trajectory, joints in model order, ready to be evaluated at any time.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Plan {
-    /// `header.stamp` of the message, ns.
-    pub stamp_ns: i64,
-    /// Absolute time of each point, ns, strictly increasing.
-    pub times_ns: Vec<i64>,
-    /// `[P, C]` positions, radians, model joint order.
-    pub positions_rad: Vec<f64>,
-    /// `C`.
-    pub n_joints: usize,
-}
-
-impl Plan {
-    /// Reorders a `JointTrajectory` into model order and checks it.
-    pub fn from_msg(msg: &JointTrajectory, joint_names: &[String]) -> Result<Plan, WindowError> {
-        const TOPIC: &str = topics::PLANNED_TRAJECTORY;
-        let index = joint_indices(&msg.joint_names, joint_names, TOPIC)?;
-        if msg.points.is_empty() {
-            return Err(WindowError::EmptyPlan { topic: TOPIC });
-        }
-        let stamp_ns = msg.header.stamp.to_ns();
-        let mut times_ns = Vec::with_capacity(msg.points.len());
-        let mut positions_rad = Vec::with_capacity(msg.points.len() * joint_names.len());
-        for (p, point) in msg.points.iter().enumerate() {
-            if point.positions.len() != msg.joint_names.len() {
-                return Err(WindowError::JointCount {
-                    topic: TOPIC,
-                    what: format!(
-                        "point {p} has {} positions for {} joint names",
-                        point.positions.len(),
-                        msg.joint_names.len()
-                    ),
-                });
-            }
-            let t = stamp_ns + point.time_from_start.to_ns();
-            if let Some(&prev) = times_ns.last() {
-                if t <= prev {
-                    return Err(WindowError::PlanTimes {
-                        topic: TOPIC,
-                        point: p,
-                    });
-                }
-            }
-            times_ns.push(t);
-            for (j, &i) in index.iter().enumerate() {
-                let v = point.positions[i];
-                if !v.is_finite() {
-                    return Err(WindowError::NonFinite {
-                        topic: TOPIC,
-                        joint: joint_names[j].clone(),
-                        value: v,
-                    });
-                }
-                positions_rad.push(v);
-            }
-        }
-        Ok(Plan {
-            stamp_ns,
-            times_ns,
-            positions_rad,
-            n_joints: joint_names.len(),
-        })
-    }
-
-    /// The planned positions at `t_ns` (linear between points, first/last
-    /// point held outside), written as `f32` into `out[..C]`.
-    pub fn sample_into(&self, t_ns: i64, out: &mut [f32]) {
-        let c = self.n_joints;
-        let last = self.times_ns.len() - 1;
-        let row = |i: usize| &self.positions_rad[i * c..(i + 1) * c];
-        if t_ns <= self.times_ns[0] {
-            for (o, &v) in out.iter_mut().zip(row(0)) {
-                *o = v as f32;
-            }
-            return;
-        }
-        if t_ns >= self.times_ns[last] {
-            for (o, &v) in out.iter_mut().zip(row(last)) {
-                *o = v as f32;
-            }
-            return;
-        }
-        // times[i] <= t < times[i + 1]
-        let i = self.times_ns.partition_point(|&x| x <= t_ns) - 1;
-        let (t0, t1) = (self.times_ns[i], self.times_ns[i + 1]);
-        let w = (t_ns - t0) as f64 / (t1 - t0) as f64;
-        for ((o, &a), &b) in out.iter_mut().zip(row(i)).zip(row(i + 1)) {
-            *o = (a + (b - a) * w) as f32;
-        }
-    }
-}
-
-/// Joint positions of a `JointState` in model order, radians.
-pub fn joints_from_msg(msg: &JointState, joint_names: &[String]) -> Result<Vec<f32>, WindowError> {
-    const TOPIC: &str = topics::JOINT_STATES;
-    if msg.position.len() != msg.name.len() {
-        return Err(WindowError::JointCount {
-            topic: TOPIC,
-            what: format!(
-                "{} positions for {} joint names",
-                msg.position.len(),
-                msg.name.len()
-            ),
-        });
-    }
-    let index = joint_indices(&msg.name, joint_names, TOPIC)?;
-    index
-        .iter()
-        .zip(joint_names)
-        .map(|(&i, name)| {
-            let v = msg.position[i];
-            if v.is_finite() {
-                Ok(v as f32)
-            } else {
-                Err(WindowError::NonFinite {
-                    topic: TOPIC,
-                    joint: name.clone(),
-                    value: v,
-                })
-            }
-        })
-        .collect()
-}
-
-/// A `CompressedImage` decoded and resized to `size x size`.
-pub fn frame_from_msg(msg: &CompressedImage, size: u32) -> Result<Frame, WindowError> {
-    decode_compressed(&msg.format, &msg.data, size).map_err(|source| WindowError::Frame {
-        topic: topics::HEAD_CAMERA,
-        source,
-    })
-}
-
-/// For each model joint, its index in `names`.
-fn joint_indices(
-    names: &[String],
-    model_names: &[String],
-    topic: &'static str,
-) -> Result<Vec<usize>, WindowError> {
-    model_names
-        .iter()
-        .map(|joint| {
-            names
-                .iter()
-                .position(|n| n == joint)
-                .ok_or_else(|| WindowError::MissingJoint {
-                    topic,
-                    joint: joint.clone(),
-                })
-        })
-        .collect()
-}
-
-/// One timestamped input, already in model form.
-#[derive(Debug, Clone)]
-pub enum Sample {
-    /// Joint positions, radians, model order.
-    Joints {
-        stamp_ns: i64,
-        positions_rad: Vec<f32>,
-    },
-    /// A frame, already S x S.
-    Frame { stamp_ns: i64, frame: Arc<Frame> },
-    /// A new plan.
-    Plan { stamp_ns: i64, plan: Arc<Plan> },
-}
-
-impl Sample {
-    pub fn stamp_ns(&self) -> i64 {
-        match self {
-            Sample::Joints { stamp_ns, .. }
-            | Sample::Frame { stamp_ns, .. }
-            | Sample::Plan { stamp_ns, .. } => *stamp_ns,
-        }
     }
 }
 
@@ -802,7 +562,7 @@ impl Window {
                     });
                 }
                 if !last.as_ref().is_some_and(|(f, _)| f.same_as(held)) {
-                    let decoded = held.decoded().map_err(|source| WindowError::Frame {
+                    let decoded = held.decoded().map_err(|source| SampleError::Frame {
                         topic: topics::HEAD_CAMERA,
                         source,
                     })?;
@@ -1060,7 +820,7 @@ pub fn samples_from_recording(
                 path: rec.path.clone(),
                 topic: r.topic,
                 log_time_ns: r.stamp_ns,
-                source: Box::new(e),
+                source: Box::new(e.into()),
             })
         })
         .collect()
@@ -1090,7 +850,7 @@ fn inputs_with_compressed_frames(
         topic: &'static str,
         stamp_ns: i64,
         file_order: u64,
-        input: Result<EpisodeInput, WindowError>,
+        input: Result<EpisodeInput, SampleError>,
     }
     let mut out = Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
     for m in &rec.joint_states {
@@ -1105,7 +865,7 @@ fn inputs_with_compressed_frames(
     for m in &rec.images {
         let stamp_ns = m.log_time_ns;
         let frame = CompressedFrame::new(&m.msg.format, m.msg.data.clone(), spec.frame_size)
-            .map_err(|source| WindowError::Frame {
+            .map_err(|source| SampleError::Frame {
                 topic: topics::HEAD_CAMERA,
                 source,
             });
@@ -1135,13 +895,13 @@ fn inputs_with_compressed_frames(
                 path: rec.path.clone(),
                 topic: c.topic,
                 log_time_ns: c.stamp_ns,
-                source: Box::new(e),
+                source: Box::new(e.into()),
             })
         })
         .collect()
 }
 
-fn joint_sample(msg: &JointState, stamp_ns: i64, spec: &WindowSpec) -> Result<Sample, WindowError> {
+fn joint_sample(msg: &JointState, stamp_ns: i64, spec: &WindowSpec) -> Result<Sample, SampleError> {
     joints_from_msg(msg, &spec.joint_names).map(|positions_rad| Sample::Joints {
         stamp_ns,
         positions_rad,
@@ -1152,7 +912,7 @@ fn plan_sample(
     msg: &JointTrajectory,
     stamp_ns: i64,
     spec: &WindowSpec,
-) -> Result<Sample, WindowError> {
+) -> Result<Sample, SampleError> {
     Plan::from_msg(msg, &spec.joint_names).map(|plan| Sample::Plan {
         stamp_ns,
         plan: Arc::new(plan),
@@ -1168,7 +928,7 @@ pub struct RecordedSample {
     /// Its log time, ns.
     pub stamp_ns: i64,
     pub file_order: u64,
-    pub sample: Result<Sample, WindowError>,
+    pub sample: Result<Sample, SampleError>,
 }
 
 /// Every message of the input streams of `rec`, converted one by one (as

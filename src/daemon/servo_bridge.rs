@@ -22,13 +22,13 @@
 use std::time::{Duration, Instant};
 
 use crate::config::Config;
+use crate::daemon::{ServiceError, SourceHandle};
 use crate::outputs::{CounterWindow, DeviceDiagnostics, DiagnosticLevel, ERROR_WINDOW_S};
 use crate::robot::JointTable;
-use crate::service::{ServiceError, SourceHandle};
 use crate::shutdown::Shutdown;
 use crate::sources::dynamixel::{BusStatsSnapshot, DynamixelSource, ServoStatsSnapshot};
-use crate::sources::StreamFeed;
-use crate::window::Sample;
+use crate::streams::sample::Sample;
+use crate::streams::StreamFeed;
 
 /// Bus counters as the joints stream's key-values, and their error total
 /// (faults only: the probe that finds a plain adapter is not one).
@@ -384,7 +384,7 @@ pub fn start(
                     let snapshot = source.stats.snapshot();
                     let (errors, details) = servo_details(&snapshot);
                     feed.stats().set_external(errors, details);
-                    let buses = health.update(started.elapsed().as_secs_f64(), crate::tick::unix_now_ns(), snapshot);
+                    let buses = health.update(started.elapsed().as_secs_f64(), crate::clock::unix_now_ns(), snapshot);
                     feed.stats().set_devices(buses);
                 }
                 () = shutdown.recv() => break,
