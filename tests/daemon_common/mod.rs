@@ -115,7 +115,7 @@ impl MovingMotors {
                     for (i, joint) in joints.iter().enumerate() {
                         let centre =
                             joint.deg_to_raw(0.5 * (joint.lower_limit_deg + joint.upper_limit_deg));
-                        let raw = centre + (step + i as u16) % 24;
+                        let raw = centre + step.wrapping_add(i as u16) % 24;
                         held.lock()
                             .expect("held")
                             .entry(joint.id)
