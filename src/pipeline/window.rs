@@ -2,8 +2,8 @@
 //! last N ticks and the `Window` arrays the network reads.
 //!
 //! This is the one place where windows are made. The daemon (live and replay)
-//! and training both turn messages into [`Sample`]s with the functions here,
-//! feed them to a [`Resampler`], which emits one [`TickInput`] per tick, and
+//! and training both turn messages into [`Sample`]s with the conversions of
+//! `streams::sample`, feed them to a [`Resampler`], which emits one [`TickInput`] per tick, and
 //! cut windows with [`Window::from_ticks`] (through [`Ring::window`] live, or
 //! [`EpisodeTicks::window_ending_at`] in training). Same samples in, same
 //! bytes out.
@@ -81,7 +81,7 @@ pub enum WindowError {
         path: PathBuf,
         topic: &'static str,
         log_time_ns: i64,
-        source: Box<WindowError>,
+        source: Box<SampleError>,
     },
     #[error("{}: recording has no messages on {topic} (needed)", path.display())]
     NoSamples { path: PathBuf, topic: &'static str },
@@ -815,14 +815,7 @@ pub fn samples_from_recording(
     }
     recorded_samples(rec, spec)
         .into_iter()
-        .map(|r| {
-            r.sample.map_err(|e| WindowError::InRecording {
-                path: rec.path.clone(),
-                topic: r.topic,
-                log_time_ns: r.stamp_ns,
-                source: Box::new(e.into()),
-            })
-        })
+        .map(|r| r.sample.map_err(in_recording(rec, r.topic, r.stamp_ns)))
         .collect()
 }
 
@@ -890,15 +883,22 @@ fn inputs_with_compressed_frames(
     }
     out.sort_by_key(|c| (c.stamp_ns, c.file_order));
     out.into_iter()
-        .map(|c| {
-            c.input.map_err(|e| WindowError::InRecording {
-                path: rec.path.clone(),
-                topic: c.topic,
-                log_time_ns: c.stamp_ns,
-                source: Box::new(e.into()),
-            })
-        })
+        .map(|c| c.input.map_err(in_recording(rec, c.topic, c.stamp_ns)))
         .collect()
+}
+
+/// A message of `rec` that did not convert, named by its topic and log time.
+fn in_recording<'a>(
+    rec: &'a Recording,
+    topic: &'static str,
+    log_time_ns: i64,
+) -> impl FnOnce(SampleError) -> WindowError + 'a {
+    move |e| WindowError::InRecording {
+        path: rec.path.clone(),
+        topic,
+        log_time_ns,
+        source: Box::new(e),
+    }
 }
 
 fn joint_sample(msg: &JointState, stamp_ns: i64, spec: &WindowSpec) -> Result<Sample, SampleError> {
