@@ -7,7 +7,7 @@ Reads, under DIR (this data directory's reports): eval-GROUP-PROTOCOL/metrics.js
 (`fall-guard eval`), warnings-ABL-SET-SPLIT.json (`fall-guard warnings`),
 ABL-thresholds.json (chosen on scripts/choice_set.py's set, which holds the
 walking set's validation split: false alarms are counted on its train and
-test splits only), selected.txt, simv4-stats.json and walk-stats.json
+test splits only), selected.txt, set-stats.json and walk-stats.json
 (`python -m sim stats`).
 
 The results are kept in the repository, under --keep, so that seeds trained
@@ -34,10 +34,12 @@ import os
 import shutil
 from pathlib import Path
 
-GROUPS = [("emp", "EMP"), ("mp", "MP"), ("ep", "EP"), ("p", "P"), ("emp-hist", "EMP, historical-only plan"),
+GROUPS = [("emp", "EMP"), ("mp", "MP"), ("ep", "EP"), ("p", "P"),
+          ("mp-pp", "MP, trained under the paper protocol"), ("p-pp", "P, trained under the paper protocol"), ("emp-hist", "EMP, historical-only plan"),
           ("emp-real", "EMP, real-position trajectory"), ("logreg", "logistic baseline"),
           ("gen1-emp", "EMP trained on generator 1"), ("gen1-mp", "MP trained on generator 1"),
-          ("gen1-p", "P trained on generator 1")]
+          ("gen1-p", "P trained on generator 1"), ("gen4-emp", "EMP trained on generator 4"),
+          ("gen4-mp", "MP trained on generator 4"), ("gen4-p", "P trained on generator 4")]
 
 
 def load(path: Path):
@@ -303,7 +305,7 @@ def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     rows = ["| network | trigger / release | test falls warned | warned >= 0.5 s ahead | lead median | "
             "false alarms / min (walking set) | walking minutes |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for abl, name in selected:
-        test = load(reports / f"warnings-{abl}-simv4-test.json")
+        test = load(reports / f"warnings-{abl}-set-test.json")
         walks = [load(reports / f"warnings-{abl}-walk-{s}.json") for s in ("train", "test")]
         if not test:
             continue
@@ -343,7 +345,7 @@ def warning_checks(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     """The daemon-path targets, for the shipped EMP: >= 95% of test falls warned >= 0.5 s
     ahead, median lead >= 1.5 s, <= 0.1 false alarms per minute over >= 30 min of walking."""
     name = dict(selected).get("emp")
-    test = load(reports / "warnings-emp-simv4-test.json")
+    test = load(reports / "warnings-emp-set-test.json")
     if not (name and test):
         return []
     t = test["grid"][0]
@@ -404,7 +406,7 @@ def main() -> int:
     if sel.exists():
         selected = [tuple(line.split()[:2]) for line in sel.read_text().splitlines() if line.strip()]
     lines = ["<!-- Written by scripts/model_card.py from the reports of scripts/retrain.sh. -->", "",
-             "### Data (simulated)", "", *stats_rows(load(kept / "simv4-stats.json"), "Training set"), "",
+             "### Data (simulated)", "", *stats_rows(load(kept / "set-stats.json"), "Training set"), "",
              *stats_rows(load(kept / "walk-stats.json"), "Walking set (false alarms)"), "",
              "### Paper protocol (test split)", "", *protocol_table(evals, "paper"), "",
              "### Checks", "", *checks(evals), "",

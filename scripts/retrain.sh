@@ -44,7 +44,8 @@ PARALLEL=${RETRAIN_PARALLEL:-2}
 DEVICE=${RETRAIN_DEVICE:-cpu}
 FG=${FALL_GUARD_BIN:-$REPO/target/release/fall-guard}
 PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
-SET=$DATA_ROOT/simv4                # the 2,000-episode set (seed 1)
+SET_NAME=simv5                     # the 2,000-episode set's name (generator 5)
+SET=$DATA_ROOT/$SET_NAME            # the 2,000-episode set (seed 1)
 WALK=$DATA_ROOT/walk                # low sigma, no ball: false alarms per minute
 RUNS=$DATA_ROOT/runs
 REPORTS=$DATA_ROOT/reports
@@ -78,6 +79,14 @@ plan() {
     echo "mp-s$s --ablation MP --seed $s"
     echo "p-s$s --ablation P --seed $s"
   done
+  # MP and P trained under the paper protocol (each horizon on its own
+  # stop-line windows): the deployment windows hold almost no window that
+  # ends 1-2 s before a fall, so there the 1.5 s and 2 s outputs learn what
+  # the 1 s one does; these learn each horizon's own lead.
+  for s in 1 2; do
+    echo "mp-pp-s$s --ablation MP --seed $s --protocol paper"
+    echo "p-pp-s$s --ablation P --seed $s --protocol paper"
+  done
   echo "ep-s1 --ablation EP --seed 1"
   for s in 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
   for s in 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
@@ -97,8 +106,8 @@ train_plan() {
   done < <(plan)
 }
 
-KEEP=$REPO/models/card             # the results kept per run (scripts/model_card.py)
-TRAINED_ON="simv4 (sim generator 4, 2,000 episodes, seed 1; simulated data)"
+KEEP=$REPO/models/card/$SET_NAME   # the results kept per run (scripts/model_card.py)
+TRAINED_ON="$SET_NAME (sim generator 5, 2,000 episodes, seed 1; simulated data)"
 
 # The shipped networks are calibrated runs of this plan: in a data directory
 # without their run, put them back (RUNS/NAME.cal.bpk and NAME.done), with the
@@ -149,8 +158,8 @@ step_data() {
   "$PY" -m sim generate --out "$WALK" --episodes 200 --seed 3 --jobs "$JOBS" --sigmas 0.005,0.01 \
     --ball-probability 0 --quiet >>"$LOG"
   touch "$WALK/.complete"
-  "$PY" -m sim stats "$SET" --counterfactual 150 --jobs "$JOBS" >"$REPORTS/simv4-stats.json.partial"
-  mv "$REPORTS/simv4-stats.json.partial" "$REPORTS/simv4-stats.json"
+  "$PY" -m sim stats "$SET" --counterfactual 150 --jobs "$JOBS" >"$REPORTS/set-stats.json.partial"
+  mv "$REPORTS/set-stats.json.partial" "$REPORTS/set-stats.json"
   "$PY" -m sim stats "$WALK" >"$REPORTS/walk-stats.json.partial"
   mv "$REPORTS/walk-stats.json.partial" "$REPORTS/walk-stats.json"
   log "data: done"
@@ -212,7 +221,10 @@ step_calibrate() {
     cal="$RUNS/$name.cal.bpk"
     newer "$cal" "$out" && continue
     log "calibrate $name"
-    "$FG" calibrate --model "$out" --data "$SET" --split validation --out "$cal.partial" --half >>"$RUNS/$name.log" 2>&1
+    local protocol=deployment
+    case $name in *-pp-*) protocol=paper ;; esac
+    "$FG" calibrate --model "$out" --data "$SET" --split validation --protocol "$protocol" \
+      --out "$cal.partial" --half >>"$RUNS/$name.log" 2>&1
     mv "$cal.partial" "$cal"
   done
 }
@@ -278,11 +290,43 @@ eval_group() { # eval_group LABEL PROTOCOL FILES...
   rm -rf "$out"; mv "$out.partial" "$out"
 }
 
+# The evaluations, most needed first (a run stopped early has the comparison
+# of EMP, MP and P and the daemon's warnings before the rest).
 step_evaluate() {
   need_binary
-  local group files protocol abl name loss model
+  local group files abl name loss model
   # One eval reports both protocols (metrics.json `protocols`).
-  for group in emp mp ep p emp-hist emp-real; do
+  for group in emp mp p mp-pp p-pp; do
+    mapfile -t files < <(seeds_of "$group")
+    [ ${#files[@]} -gt 0 ] || continue
+    eval_group "$group" paper "${files[@]}"
+  done
+  # Within the event episodes (the test episodes at sigma >= 0.035): whether
+  # the plan and the camera add to the joints once an event is known to come.
+  "$PY" "$REPO/scripts/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
+  for group in emp mp p mp-pp p-pp; do
+    mapfile -t files < <(seeds_of "$group")
+    [ ${#files[@]} -gt 0 ] || continue
+    SET="$DATA_ROOT/bycause/high-sigma" eval_group "$group-highsigma" paper "${files[@]}"
+  done
+  # The daemon's own path: warnings on test and on the long walking set, then
+  # on the test falls of each cause with the test walks.
+  local target
+  for target in set:test walk:train walk:test collision:test perturbation:test; do
+    while read -r abl name loss; do
+      warnings_one "$abl" "$name" "$target"
+    done <"$REPORTS/selected.txt"
+  done
+  # By fall cause: EMP and MP on the test falls of one cause with the test walks.
+  local cause
+  for cause in collision perturbation; do
+    for group in emp mp; do
+      mapfile -t files < <(seeds_of "$group")
+      [ ${#files[@]} -gt 0 ] || continue
+      SET="$DATA_ROOT/bycause/$cause" eval_group "$group-$cause" paper "${files[@]}"
+    done
+  done
+  for group in ep emp-hist emp-real; do
     mapfile -t files < <(seeds_of "$group")
     [ ${#files[@]} -gt 0 ] || continue
     eval_group "$group" paper "${files[@]}"
@@ -296,68 +340,55 @@ step_evaluate() {
   if [ -e "$RUNS/logreg-s1.json" ]; then
     eval_group logreg paper "$RUNS/logreg-s1.json"
   fi
-  # The generator-1 networks that shipped before, on the same test split, for
-  # contrast: the newest version of models/ABL.bpk in git's history that was
-  # not trained on simv4 (the generator-1 networks; kept once).
-  local rev blob
+  # The networks that shipped before, on the same test split, for contrast:
+  # the generator-1 ones (trained_on "simulated", the newest such version of
+  # models/ABL.bpk in git's history) and the generator-4 ones (simv4).
+  local rev blob tag on
   for abl in emp mp p; do
-    [ -e "$REPORTS/gen1-$abl.bpk" ] && continue
-    for rev in $(git -C "$REPO" log --format=%H -- "models/$abl.bpk" 2>/dev/null); do
-      blob="$REPORTS/gen1-$abl.bpk.partial"
-      git -C "$REPO" show "$rev:models/$abl.bpk" >"$blob" 2>/dev/null || continue
-      if ! "$PY" "$REPO/scripts/model_meta.py" "$blob" trained_on | grep -q "simv4"; then
-        mv "$blob" "$REPORTS/gen1-$abl.bpk"
-        break
-      fi
-      rm -f "$blob"
+    for tag in gen1 gen4; do
+      [ -e "$REPORTS/$tag-$abl.bpk" ] && continue
+      for rev in $(git -C "$REPO" log --format=%H -- "models/$abl.bpk" 2>/dev/null); do
+        blob="$REPORTS/$tag-$abl.bpk.partial"
+        git -C "$REPO" show "$rev:models/$abl.bpk" >"$blob" 2>/dev/null || continue
+        on=$("$PY" "$REPO/scripts/model_meta.py" "$blob" trained_on)
+        if { [ $tag = gen1 ] && [ "$on" = simulated ]; } || { [ $tag = gen4 ] && [ "${on%% *}" = simv4 ]; }; then
+          mv "$blob" "$REPORTS/$tag-$abl.bpk"
+          break
+        fi
+        rm -f "$blob"
+      done
     done
   done
   for abl in emp mp p; do
-    [ -e "$REPORTS/gen1-$abl.bpk" ] && eval_group "gen1-$abl" paper "$REPORTS/gen1-$abl.bpk"
-  done
-  # By fall cause: EMP and MP on the test falls of one cause with the test walks.
-  "$PY" "$REPO/scripts/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
-  local cause
-  for cause in collision perturbation; do
-    for group in emp mp; do
-      mapfile -t files < <(seeds_of "$group")
-      [ ${#files[@]} -gt 0 ] || continue
-      SET="$DATA_ROOT/bycause/$cause" eval_group "$group-$cause" paper "${files[@]}"
+    for tag in gen1 gen4; do
+      [ -e "$REPORTS/$tag-$abl.bpk" ] && eval_group "$tag-$abl" paper "$REPORTS/$tag-$abl.bpk"
     done
   done
-  # Within one level of perturbation (the test episodes at sigma >= 0.035):
-  # whether the plan and the camera add to the joints once the sigma is known.
-  for group in emp mp p; do
-    mapfile -t files < <(seeds_of "$group")
-    [ ${#files[@]} -gt 0 ] || continue
-    SET="$DATA_ROOT/bycause/high-sigma" eval_group "$group-highsigma" paper "${files[@]}"
-  done
-  # The daemon's own path: warnings on test and on the long walking set.
-  while read -r abl name loss; do
-    model="$RUNS/$name.cal.bpk"
-    local trig rel
-    # The chosen pair, or the highest trigger of the grid when none keeps within the budget.
-    read -r trig rel < <("$PY" -c "
+}
+
+# warnings_one ABL RUN SET:SPLIT: the daemon's path (`fall-guard warnings`)
+# with the network's chosen pair (or the grid's highest trigger when none
+# keeps within the budget). SET: the data set, the walking set (no choice is
+# made on it) or the test falls of one cause with the test walks.
+warnings_one() {
+  local abl=$1 name=$2 target=$3
+  local model="$RUNS/$name.cal.bpk" trig rel
+  local set=${target%%:*} split=${target##*:} data=$SET
+  case $set in
+    walk) data=$WALK ;;
+    collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
+  esac
+  local out="$REPORTS/warnings-$abl-$set-$split.json"
+  newer "$out" "$model" "$REPORTS/$abl-thresholds.json" && return 0
+  read -r trig rel < <("$PY" -c "
 import json, sys
 r = json.load(open(sys.argv[1]))
 c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
 print(c['trigger'], c['release'])" "$REPORTS/$abl-thresholds.json")
-    # Test split of the set; every split of the walking set (no choice is made
-    # on it); the test falls of each cause with the test walks.
-    for target in simv4:test walk:train walk:test collision:test perturbation:test; do
-      local set=${target%%:*} split=${target##*:} data=$SET
-      case $set in
-        walk) data=$WALK ;;
-        collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
-      esac
-      local out="$REPORTS/warnings-$abl-$set-$split.json"
-      newer "$out" "$model" "$REPORTS/$abl-thresholds.json" && continue
-      log "warnings $abl on $set $split (trigger $trig, release $rel)"
-      "$FG" warnings --model "$model" --data "$data" --split "$split" --trigger "$trig" --release "$rel" \
-        --out "$out.partial" >>"$LOG" 2>&1
-      mv "$out.partial" "$out"
-    done
-  done <"$REPORTS/selected.txt"
+  log "warnings $abl on $set $split (trigger $trig, release $rel)"
+  "$FG" warnings --model "$model" --data "$data" --split "$split" --trigger "$trig" --release "$rel" \
+    --out "$out.partial" >>"$LOG" 2>&1
+  mv "$out.partial" "$out"
 }
 
 step_card() {

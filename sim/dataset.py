@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .episode import (DURATION_S, GENERATOR_VERSION, HAZARD_PROBABILITY, KNOT_TICKS, PERTURBATION_SCALE,
+from .episode import (BACKGROUND_SIGMA_MAX, BACKGROUND_SIGMAS, DURATION_S, EVENT_GAIN, EVENT_KNOTS, EVENT_START_S,
+                      GENERATOR_VERSION, HAZARD_PROBABILITY, KNOT_TICKS, PERTURBATION_SCALE,
                       PHYSICS_HZ, PLAN_STREAM, RATE_HZ, SIGMAS, VALIDATION_DRAWS, VALIDATION_SIGMA, KeptPlan,
                       search_plan, simulate_episode)
 from .recording import write_episode
@@ -226,6 +227,8 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
         "episodes": episodes, "duration_s": duration_s, "sigmas": list(sigmas),
         "fall_fraction": FALL_FRACTION, "joint_names": list(JOINT_NAMES),
         "knot_ticks": KNOT_TICKS, "perturbation_scale_rad": PERTURBATION_SCALE,
+        "event": {"above_sigma": BACKGROUND_SIGMA_MAX, "background_sigmas": list(BACKGROUND_SIGMAS),
+                  "knots": EVENT_KNOTS, "gain": EVENT_GAIN, "start_s": list(EVENT_START_S)},
         "validation": {"draws": VALIDATION_DRAWS, "sigma": VALIDATION_SIGMA},
         "hazard_probability": hazard_probability,
         "plan_groups": groups, "episodes_per_plan": EPISODES_PER_PLAN,

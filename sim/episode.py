@@ -1,4 +1,4 @@
-"""One simulated episode (generator 2): plan search, perturbation, hazard, physics, camera, labels.
+"""One simulated episode (generator 5): plan search, perturbation, hazard, physics, camera, labels.
 
 Data enters as an episode seed (everything else is drawn from it) and leaves as
 an ``Episode``: per 30 Hz tick the measured joint angles (rad, pypot convention,
@@ -10,23 +10,27 @@ turns it into an MCAP file.
 Time: physics runs at 240 Hz (8 steps per tick). Waypoint k applies at tick k;
 between waypoints the command is interpolated linearly at each physics step.
 
-Why falls happen (generator 2), and what shows them coming:
+Why falls happen, and what shows them coming:
 
-- **Perturbed plan knots.** The perturbation lives on sparse plan knots, one
-  every ``KNOT_TICKS`` = 10 ticks (1/3 s), and is interpolated smoothly
-  (C1 smoothstep) between knots, so a deviation that will throw the robot over
-  is in the published plan (which reaches 3 s ahead) well before it acts.
-  Knot j (tick 10 j) of every joint but the head gets
-  ``PERTURBATION_SCALE * factor(rho_j) * eta``, ``eta ~ N(0, sigma^2)``, the
-  paper's eq. 1 with rho_j = 240 Hz physics steps from tick 0 to the knot
-  (80 per knot): the ramp is centred at 3 s and saturated by 4 s, inside the
-  10 s episode. Knots are independent (not cumulative).
+- **An event in the plan.** The perturbation lives on sparse plan knots, one
+  every ``KNOT_TICKS`` = 10 ticks (1/3 s), interpolated smoothly (C1
+  smoothstep) between knots. Knot j of every joint but the head gets
+  ``PERTURBATION_SCALE * eta``, ``eta ~ N(0, s_j^2)``, independent across
+  knots and joints. Every knot has the episode's *background* sigma (0.005
+  or 0.01: walking). An episode whose sigma is above ``BACKGROUND_SIGMA_MAX``
+  also has an *event*: ``EVENT_KNOTS`` consecutive knots at ``EVENT_GAIN``
+  x sigma, the first drawn within ``EVENT_START_S``. Until its event such an
+  episode is a walking one (same background, same joints' statistics), so
+  nothing in the joints foretells the fall; the event is in the published
+  plan (one message a second, reaching 3 s ahead) 2-3 s before it acts, and
+  the fall follows it by ~1.6 s (median).
 - **Plans that walk at low sigma.** A kept plan stays up unperturbed and
-  under ``VALIDATION_DRAWS`` knot perturbations at ``VALIDATION_SIGMA``, 1.5x
-  the largest low sigma, so that falls at sigma <= 0.01 are rare. The search
-  runs once per plan, on a bare floor (``search_plan``), and a kept plan
-  serves several episodes (``sim.dataset``), each with its own room, start
-  pose, ball and perturbation draw.
+  under ``VALIDATION_DRAWS`` knot perturbations at ``VALIDATION_SIGMA`` with
+  the paper's ramp (eq. 1, up to 1.5x that after 4 s: more than twice the
+  largest background sigma), so that falls without an event are rare. The
+  search runs once per plan, on a bare floor (``search_plan``), and a kept
+  plan serves several episodes (``sim.dataset``), each with its own room,
+  start pose, ball and perturbation draw.
 - **A ball rolled at the robot** in ``HAZARD_PROBABILITY`` of the episodes:
   launched from 1.4-2.0 m ahead inside the head camera's view, it reaches
   the robot about 1 s later. The camera sees it coming; the plan and the
@@ -57,9 +61,19 @@ PLAN_PAST_TICKS = 75                   # each plan covers [now - 2.5 s, now + 3 
 PLAN_FUTURE_TICKS = 90
 SETTLE_STEPS = 60                      # physics steps holding the first pose before tick 0
 SIGMAS = (0.005, 0.010, 0.035, 0.040)
+#: sigma above this: the episode has an event; at or below: background only (walking).
+BACKGROUND_SIGMA_MAX = 0.010
+#: An event episode's background sigma is drawn from these (as a walking episode's).
+BACKGROUND_SIGMAS = (0.005, 0.010)
+#: The event: EVENT_KNOTS consecutive knots at EVENT_GAIN x sigma, starting at a knot
+#: drawn within EVENT_START_S (s) of the episode.
+EVENT_KNOTS = 3
+EVENT_GAIN = 3.0
+EVENT_START_S = (3.0, 7.5)
+#: The paper's ramp (eq. 1), used by the plan search's validation draws.
 RAMP_A = 90.0
 RAMP_B = 0.125
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 #: One perturbation knot every this many ticks (1/3 s); rho counts physics steps.
 KNOT_TICKS = 10
 #: Radians of knot deviation per unit of eta (chosen by measurement, see sim/README.md).
@@ -122,14 +136,40 @@ def knot_ticks(n_plan: int) -> np.ndarray:
 
 
 def knot_deviation(knot_eta: np.ndarray, sigma: float, n_plan: int) -> np.ndarray:
-    """Plan deviation [n_plan, 25] (rad) from per-knot eta [n_knots, 25]: eq. 1 per knot, smoothstep between."""
+    """Plan deviation [n_plan, 25] (rad) from per-knot eta [n_knots, 25] with the paper's ramp
+    (eq. 1 per knot, ``perturbation_factor``), smoothstep between knots: the plan search's
+    validation draws."""
     rho = knot_ticks(n_plan) * STEPS_PER_TICK
-    dev = PERTURBATION_SCALE * perturbation_factor(sigma, rho)[:, None] * knot_eta
+    return smooth_knots(PERTURBATION_SCALE * perturbation_factor(sigma, rho)[:, None] * knot_eta, n_plan)
+
+
+def smooth_knots(knot_dev: np.ndarray, n_plan: int) -> np.ndarray:
+    """Plan deviation [n_plan, 25] (rad) from per-knot deviations [n_knots, 25] (rad): the head
+    joints left alone, a C1 smoothstep from each knot to the next."""
+    dev = knot_dev.copy()
     dev[:, [JOINT_NAMES.index(n) for n in UNPERTURBED_JOINTS]] = 0.0
     t = np.arange(n_plan)
     i, f = t // KNOT_TICKS, (t % KNOT_TICKS) / KNOT_TICKS
     s = f * f * (3 - 2 * f)
     return (1 - s)[:, None] * dev[i] + s[:, None] * dev[i + 1]
+
+
+def knot_sigmas(sigma: float, background_sigma: float, event_knot: int | None, n_knots: int) -> np.ndarray:
+    """Per-knot standard deviation of eta [n_knots]: BACKGROUND_SIGMA on every knot, and
+    EVENT_GAIN x SIGMA on the EVENT_KNOTS knots from EVENT_KNOT on (None: no event)."""
+    amp = np.full(n_knots, background_sigma, dtype=float)
+    if event_knot is not None:
+        amp[event_knot:event_knot + EVENT_KNOTS] = EVENT_GAIN * sigma
+    return amp
+
+
+def event_knot_range(n_plan: int, n_ticks: int) -> np.ndarray:
+    """The knots an event may start at: ticks within EVENT_START_S of the episode (an
+    episode too short for that window: any knot from its second on, inside the episode)."""
+    ticks = knot_ticks(n_plan)
+    lo, hi = (s * RATE_HZ for s in EVENT_START_S)
+    knots = np.flatnonzero((ticks >= lo) & (ticks <= min(hi, n_ticks - 1)))
+    return knots if knots.size else np.flatnonzero((ticks >= KNOT_TICKS) & (ticks < n_ticks))
 
 
 def perturbation_factor(sigma: float, rho_steps: np.ndarray) -> np.ndarray:
@@ -245,6 +285,11 @@ class Episode:
     counterfactual_from_tick: int | None = None
     #: The kept plan's name in its data set ("" when searched for this episode alone).
     plan_id: str = ""
+    #: The sigma of every knot outside the event (the episode's sigma when it has no event).
+    background_sigma: float = 0.0
+    #: The tick at which the plan leaves its background for the event (the knot before the
+    #: event's first); None: no event (sigma <= BACKGROUND_SIGMA_MAX).
+    event_tick: int | None = None
 
     @property
     def fall_threshold_m(self) -> float:
@@ -285,9 +330,11 @@ class Episode:
             "duration_s": f"{self.n_ticks / RATE_HZ:g}",
             "physics_hz": str(PHYSICS_HZ),
             "perturbation": (f"plan knots every {KNOT_TICKS} ticks, smoothstep between; knot deviation "
-                             f"{PERTURBATION_SCALE:g}*factor*eta rad per joint (not the head), eta~N(0,sigma^2); "
-                             f"factor=1 if sigma<=0.01 else 1.5/(1+exp({RAMP_A:g}-{RAMP_B:g}*rho)), "
-                             "rho=240 Hz physics steps from tick 0 to the knot"),
+                             f"{PERTURBATION_SCALE:g}*eta rad per joint (not the head), eta~N(0,s^2) with "
+                             f"s=background_sigma on every knot, and s={EVENT_GAIN:g}*sigma on the "
+                             f"{EVENT_KNOTS} knots of the event (sigma>{BACKGROUND_SIGMA_MAX:g} only), whose "
+                             f"first knot is drawn within {EVENT_START_S[0]:g}-{EVENT_START_S[1]:g} s"),
+            "background_sigma": f"{self.background_sigma:g}",
             "gait": json.dumps(self.params.as_dict() if self.params else None, sort_keys=True),
             "plan_attempts": str(self.plan_attempts),
             "plan_id": self.plan_id,
@@ -296,6 +343,8 @@ class Episode:
             "hazard": json.dumps(self.hazard.as_dict() if self.hazard else None, sort_keys=True),
             "scene": json.dumps(self.scene, sort_keys=True),
         }
+        if self.event_tick is not None:
+            meta["event_ns"] = str(stamp_ns(self.event_tick))
         onset = self.fall_onset_tick
         if onset is not None:
             meta["fall_onset_ns"] = str(stamp_ns(onset))
@@ -549,7 +598,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
                      render: bool = True, gait: bool = True, hazard: bool | None = None,
                      counterfactual_lead_ticks: int | None = None, counterfactual_draw: int = 1,
                      plan: KeptPlan | None = None, hazard_probability: float = HAZARD_PROBABILITY,
-                     sigmas: tuple[float, ...] = SIGMAS) -> Episode:
+                     sigmas: tuple[float, ...] = SIGMAS, counterfactual_walking: bool = False) -> Episode:
     """Simulate the episode of SEED. SIGMA None draws it from SIGMAS; 0 means unperturbed.
 
     A given SIGMA skips that draw, so the rest of the episode differs from the
@@ -563,7 +612,9 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
     robot (HAZARD_PROBABILITY); True or False forces it.
     COUNTERFACTUAL_LEAD_TICKS: when the episode falls, run it again with the
     perturbation knots from onset - lead on redrawn (draw COUNTERFACTUAL_DRAW)
-    and record that run's onset.
+    and record that run's onset. The knots are redrawn from their own
+    distribution (an event's knots at the event's sigma), or with
+    COUNTERFACTUAL_WALKING from the background's (the event taken out there).
     """
     rng = np.random.default_rng(seed)
     if sigma is None:
@@ -601,12 +652,20 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
         lo, hi = joint_limits(robot)
         initial_state = pb.saveState(physicsClientId=world.client)
 
-        def perturbed(s: float, eta: np.ndarray) -> np.ndarray:
-            return np.clip(base_plan + knot_deviation(eta, s, n_plan), lo, hi)
+        def perturbed(eta: np.ndarray) -> np.ndarray:
+            return np.clip(base_plan + smooth_knots(PERTURBATION_SCALE * eta, n_plan), lo, hi)
 
-        knot_eta = rng.normal(0.0, 1.0, (n_knots, len(JOINT_NAMES))) * sigma
-        final = perturbed(sigma, knot_eta)
+        unit_eta = rng.normal(0.0, 1.0, (n_knots, len(JOINT_NAMES)))
+        if sigma > BACKGROUND_SIGMA_MAX:
+            background = float(BACKGROUND_SIGMAS[rng.integers(len(BACKGROUND_SIGMAS))])
+            event_knot = int(rng.choice(event_knot_range(n_plan, n_ticks)))
+        else:
+            background, event_knot = sigma, None
+        amp = knot_sigmas(sigma, background, event_knot, n_knots)
+        knot_eta = unit_eta * amp[:, None]
+        final = perturbed(knot_eta)
         full_plan = np.vstack([np.tile(final[0], (PLAN_PAST_TICKS, 1)), final])
+        event_tick = int(knot_ticks(n_plan)[event_knot - 1]) if event_knot is not None else None
 
         pb.restoreState(initial_state, physicsClientId=world.client)
         run = _rollout(world, robot, final, n_ticks, threshold, False, camera, bodies, haz, ball)
@@ -620,9 +679,9 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
             redraw = knot_ticks(n_plan) >= cf_from
             cf_eta = knot_eta.copy()
             cf_rng = np.random.default_rng([seed, 2, counterfactual_draw])
-            cf_eta[redraw] = cf_rng.normal(0.0, 1.0, (int(redraw.sum()), len(JOINT_NAMES))) * sigma
+            cf_eta[redraw] = cf_rng.normal(0.0, 1.0, (int(redraw.sum()), len(JOINT_NAMES))) * (background if counterfactual_walking else amp[redraw, None])
             pb.restoreState(initial_state, physicsClientId=world.client)
-            cf_run = _rollout(world, robot, perturbed(sigma, cf_eta), n_ticks, threshold, True, None,
+            cf_run = _rollout(world, robot, perturbed(cf_eta), n_ticks, threshold, True, None,
                               bodies, haz, ball)
             cf_onset = cf_run.onset_tick
     finally:
@@ -635,8 +694,9 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
                    progress_m=progress, hazard=haz, first_contact_tick=run.first_contact_tick,
                    contact_with=run.contact_with, distance_m=distance,
                    counterfactual_onset_tick=cf_onset, counterfactual_from_tick=cf_from,
-                   plan_id=plan.plan_id if plan is not None else "")
+                   plan_id=plan.plan_id if plan is not None else "", background_sigma=background,
+                   event_tick=event_tick)
 
 
 __all__ = ["Episode", "Hazard", "KeptPlan", "search_plan", "simulate_episode", "stamp_ns", "perturbation_factor",
-           "knot_deviation", "SIGMAS", "RATE_HZ", "JOINT_NAMES", "GENERATOR_VERSION"]
+           "knot_deviation", "smooth_knots", "knot_sigmas", "SIGMAS", "RATE_HZ", "JOINT_NAMES", "GENERATOR_VERSION"]

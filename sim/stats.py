@@ -63,17 +63,20 @@ def _set_sigmas(directory: Path) -> tuple[float, ...]:
 
 
 def counterfactual(seed: int, sigma: float, duration_s: float, draw: int = 1, plan: dict | None = None,
-                   sigmas: tuple[float, ...] | None = None) -> dict:
+                   sigmas: tuple[float, ...] | None = None, walking: bool = False) -> dict:
     """Re-simulate one generated episode (no camera) and its counterfactual; what happened to the fall.
 
     ``generate`` lets each episode draw its sigma, so the re-simulation does
     too (passing it would shift the episode's random stream and make another
-    episode); SIGMA is the recorded one, checked against the draw.
+    episode); SIGMA is the recorded one, checked against the draw. WALKING:
+    the knots are redrawn at the episode's background sigma (its event taken
+    out from onset - lead on) instead of from their own distribution.
     """
     from .episode import SIGMAS, KeptPlan, simulate_episode
     ep = simulate_episode(seed, duration_s=duration_s, render=False,
                           counterfactual_lead_ticks=COUNTERFACTUAL_LEAD_TICKS, counterfactual_draw=draw,
-                          plan=KeptPlan.from_dict(plan) if plan else None, sigmas=sigmas or SIGMAS)
+                          plan=KeptPlan.from_dict(plan) if plan else None, sigmas=sigmas or SIGMAS,
+                          counterfactual_walking=walking)
     if ep.sigma != sigma:
         raise ValueError(f"episode seed {seed}: re-simulated sigma {ep.sigma} is not the recorded {sigma}; "
                          "was it made by `sim generate` with this generator?")
@@ -95,6 +98,7 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
         rows.append({
             "sigma": meta["sigma"], "seed": int(meta["seed"]), "duration_s": float(meta["duration_s"]),
             "onset_s": int(meta["fall_onset_ns"]) / 1e9 if "fall_onset_ns" in meta else None,
+            "event_s": int(meta["event_ns"]) / 1e9 if "event_ns" in meta else None,
             "cause": meta.get("fall_cause"),
             "hazard": hazard is not None and hazard.get("launched", True),
             "distance_m": float(meta.get("distance_m", "nan")),
@@ -116,6 +120,10 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
                                        if plain else None),
             "collision_falls": sum(r["cause"] == "collision" for r in falls),
             "onset_s": _spread([r["onset_s"] for r in falls], 2),
+            "event_to_onset_s": _spread([r["onset_s"] - r["event_s"] for r in falls
+                                         if r["event_s"] is not None and r["cause"] == "perturbation"], 2),
+            "perturbation_falls_before_event": sum(r["cause"] == "perturbation" and r["event_s"] is not None
+                                                   and r["onset_s"] < r["event_s"] for r in falls),
             "distance_m": _spread([r["distance_m"] for r in rs], 3),
             "distance_m_not_falling": _spread([r["distance_m"] for r in rs if r["onset_s"] is None], 3),
         }
@@ -138,18 +146,20 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
     if counterfactual_n > 0:
         picks = [r for r in falls if r["cause"] == "perturbation"][:counterfactual_n]
         sigmas = _set_sigmas(directory)
-        args = [(r["seed"], float(r["sigma"]), r["duration_s"], 1, r["plan"], sigmas) for r in picks]
-        if jobs > 1:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                results = list(pool.map(counterfactual, *zip(*args)))
-        else:
-            results = [counterfactual(*a) for a in args]
-        changed = [r for r in results if r["averted"] or r["moved"]]
-        summary["counterfactual"] = {
-            "lead_s": COUNTERFACTUAL_LEAD_TICKS / RATE_HZ, "move_ticks": COUNTERFACTUAL_MOVE_TICKS,
-            "perturbation_falls_tried": len(results),
-            "reproduced": sum(r["onset_tick"] is not None for r in results),
-            "averted": sum(r["averted"] for r in results), "moved": sum(r["moved"] for r in results),
-            "share_averted_or_moved": round(len(changed) / len(results), 3) if results else None,
-        }
+        for key, walking in (("counterfactual", False), ("counterfactual_walking", True)):
+            args = [(r["seed"], float(r["sigma"]), r["duration_s"], 1, r["plan"], sigmas, walking) for r in picks]
+            if jobs > 1:
+                with ProcessPoolExecutor(max_workers=jobs) as pool:
+                    results = list(pool.map(counterfactual, *zip(*args)))
+            else:
+                results = [counterfactual(*a) for a in args]
+            changed = [r for r in results if r["averted"] or r["moved"]]
+            summary[key] = {
+                "lead_s": COUNTERFACTUAL_LEAD_TICKS / RATE_HZ, "move_ticks": COUNTERFACTUAL_MOVE_TICKS,
+                "redrawn_from": "the background's sigma" if walking else "the knots' own sigma",
+                "perturbation_falls_tried": len(results),
+                "reproduced": sum(r["onset_tick"] is not None for r in results),
+                "averted": sum(r["averted"] for r in results), "moved": sum(r["moved"] for r in results),
+                "share_averted_or_moved": round(len(changed) / len(results), 3) if results else None,
+            }
     return summary

@@ -1,12 +1,13 @@
-"""Physics and determinism: the robot stands, kept plans walk, seeds reproduce; generator 2's causes."""
+"""Physics and determinism: the robot stands, kept plans walk, seeds reproduce; the causes of falls."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from sim.episode import (KNOT_TICKS, PERTURBATION_SCALE, PLAN_FUTURE_TICKS, PLAN_PAST_TICKS, RATE_HZ,
-                         STEPS_PER_TICK, UNPERTURBED_JOINTS, knot_deviation, knot_ticks, perturbation_factor,
-                         search_plan, simulate_episode)
+from sim.episode import (BACKGROUND_SIGMAS, EVENT_GAIN, EVENT_KNOTS, EVENT_START_S, KNOT_TICKS,
+                         PERTURBATION_SCALE, PLAN_FUTURE_TICKS, PLAN_PAST_TICKS, RATE_HZ, STEPS_PER_TICK,
+                         UNPERTURBED_JOINTS, knot_deviation, knot_sigmas, knot_ticks, perturbation_factor,
+                         search_plan, simulate_episode, stamp_ns)
 from sim.gait import gait_waypoints
 from sim.robot import JOINT_NAMES
 
@@ -65,46 +66,79 @@ def test_knot_deviation_is_sparse_smooth_and_spares_the_head():
     assert np.abs(dev[5 * RATE_HZ:]).std() > 0.5 * PERTURBATION_SCALE * 0.04
 
 
-def test_published_plan_carries_a_smooth_deviation_seconds_ahead():
-    ep = simulate_episode(21, sigma=0.04, duration_s=6.0, render=False, hazard=False)
+def test_an_event_episode_walks_like_a_walking_one_until_its_event():
+    """Sigma above BACKGROUND_SIGMA_MAX adds an event of EVENT_KNOTS knots; every other knot
+    has a walking episode's sigma, so the joints and the plan's past cannot tell it apart
+    before the event."""
+    amp = knot_sigmas(0.04, 0.005, 12, 40)
+    assert np.all(amp[12:12 + EVENT_KNOTS] == EVENT_GAIN * 0.04)
+    assert np.all(np.delete(amp, range(12, 12 + EVENT_KNOTS)) == 0.005)
+    assert np.all(knot_sigmas(0.01, 0.01, None, 40) == 0.01)
+    ep = simulate_episode(21, sigma=0.04, duration_s=10.0, render=False, hazard=False)
+    assert ep.background_sigma in BACKGROUND_SIGMAS
+    assert EVENT_START_S[0] * RATE_HZ - KNOT_TICKS <= ep.event_tick <= EVENT_START_S[1] * RATE_HZ
     n_plan = ep.n_ticks + PLAN_FUTURE_TICKS + 1
     deviation = ep.plan_rad[PLAN_PAST_TICKS:] - gait_waypoints(ep.params, n_plan, RATE_HZ)
     body = [i for i in range(len(JOINT_NAMES)) if i not in HEAD]
-    late = deviation[4 * RATE_HZ:, body]
-    assert late.std() > 0.01  # the perturbation is there, and large...
-    # ...and slow: most of its power lies below 1.5 Hz, half the knot rate (white noise per tick,
-    # generator 1, spreads evenly to 15 Hz: ~90% above 1.5 Hz).
-    spectrum = np.abs(np.fft.rfft(late - late.mean(0), axis=0)) ** 2
-    freqs = np.fft.rfftfreq(late.shape[0], 1 / RATE_HZ)
+    before = deviation[:ep.event_tick + 1, body]
+    during = deviation[ep.event_tick + KNOT_TICKS:ep.event_tick + KNOT_TICKS * EVENT_KNOTS, body]
+    assert before.std() < 1.5 * PERTURBATION_SCALE * ep.background_sigma
+    assert during.std() > 0.5 * PERTURBATION_SCALE * EVENT_GAIN * ep.sigma
+    # Slow: most of the event's power lies below 1.5 Hz, half the knot rate (white noise per
+    # tick, generator 1, spreads evenly to 15 Hz: ~90% above 1.5 Hz).
+    span = deviation[ep.event_tick:ep.event_tick + KNOT_TICKS * (EVENT_KNOTS + 1), body]
+    spectrum = np.abs(np.fft.rfft(span - span.mean(0), axis=0)) ** 2
+    freqs = np.fft.rfftfreq(span.shape[0], 1 / RATE_HZ)
     assert spectrum[freqs > 1.5].sum() < 0.2 * spectrum.sum()
-    # The plan published at 3 s reaches 3 s ahead with exactly these waypoints.
-    first, points = ep.plan_message_points(3 * RATE_HZ)
-    assert first == 3 * RATE_HZ - PLAN_PAST_TICKS
-    assert np.array_equal(points[PLAN_PAST_TICKS:], ep.plan_rad[PLAN_PAST_TICKS + 3 * RATE_HZ:][:PLAN_FUTURE_TICKS + 1])
+    meta = ep.metadata()
+    assert meta["event_ns"] == str(stamp_ns(ep.event_tick))
+    assert float(meta["background_sigma"]) == ep.background_sigma
+    walking = simulate_episode(21, sigma=0.01, duration_s=4.0, render=False, hazard=False)
+    assert walking.event_tick is None and walking.background_sigma == 0.01
+    assert "event_ns" not in walking.metadata()
+
+
+def test_published_plan_carries_the_event_seconds_before_it_acts():
+    ep = simulate_episode(21, sigma=0.04, duration_s=10.0, render=False, hazard=False)
+    # The first plan message (one a second, reaching 3 s ahead) that holds the event's first
+    # knot was published 2-3 s before that knot, with exactly the waypoints commanded then.
+    knot = ep.event_tick + KNOT_TICKS
+    published = -(-(knot - PLAN_FUTURE_TICKS) // RATE_HZ) * RATE_HZ
+    assert 2 * RATE_HZ <= knot - published <= 3 * RATE_HZ
+    first, points = ep.plan_message_points(published)
+    assert first == published - PLAN_PAST_TICKS
+    assert np.array_equal(points[knot - first], ep.plan_rad[PLAN_PAST_TICKS + knot])
+    assert np.array_equal(points[PLAN_PAST_TICKS:],
+                          ep.plan_rad[PLAN_PAST_TICKS + published:][:PLAN_FUTURE_TICKS + 1])
 
 
 def test_counterfactual_redraw_moves_or_averts_perturbation_falls():
-    """The cause of a fall lies in the plan: redraw the knots from 1.5 s before the onset on.
-
-    Generator 1 (white noise per tick) moved no onset by more than 6 ticks in
-    32 of 32 tries with a 1 s lead. Here at least half of the falls among a
-    fixed seed range are averted or move by more than 15 ticks (the full
-    measurement, on more falls, is `python -m sim stats --counterfactual`;
-    sim/README.md has its figure).
+    """The cause of a fall lies in the plan's last 1.5 s: with the knots from 1.5 s before the
+    onset on redrawn at the episode's background sigma (its event taken out there), at least
+    half of the falls among a fixed seed range are averted or move by more than 15 ticks
+    (generator 1, white noise per tick, moved none of 32). Redrawn from their own
+    distribution instead (the event kept, new values), the event still throws the robot
+    over at about the same time: an event of this size topples it whatever its draw. The
+    full measurement, on more falls, is `python -m sim stats --counterfactual`
+    (sim/README.md has its figures).
     """
-    changed, falls = 0, 0
     plan = search_plan(np.random.default_rng([1000, 31]), 10.0)  # one plan, as a data set shares it
-    for seed in range(1000, 1008):
-        ep = simulate_episode(seed, sigma=0.04, duration_s=10.0, render=False, hazard=False,
-                              counterfactual_lead_ticks=45, plan=plan)
-        if ep.fall_onset_tick is None:
-            continue
-        falls += 1
-        assert ep.counterfactual_from_tick == ep.fall_onset_tick - 45
-        cf = ep.counterfactual_onset_tick
-        changed += cf is None or abs(cf - ep.fall_onset_tick) > 15
-    assert falls >= 6
-    assert changed / falls >= 0.5, f"{changed} of {falls} falls moved or averted"
+    shares = {}
+    for walking in (True, False):
+        changed, falls = 0, 0
+        for seed in range(1000, 1008):
+            ep = simulate_episode(seed, sigma=0.04, duration_s=10.0, render=False, hazard=False,
+                                  counterfactual_lead_ticks=45, plan=plan, counterfactual_walking=walking)
+            if ep.fall_onset_tick is None:
+                continue
+            falls += 1
+            assert ep.counterfactual_from_tick == ep.fall_onset_tick - 45
+            cf = ep.counterfactual_onset_tick
+            changed += cf is None or abs(cf - ep.fall_onset_tick) > 15
+        assert falls >= 6
+        shares[walking] = changed / falls
+    assert shares[True] >= 0.5, shares
+    assert shares[True] > shares[False], shares
 
 
 def test_a_ball_rolled_at_the_robot_is_seen_before_it_hits():

@@ -9,7 +9,7 @@ import numpy as np
 from PIL import Image
 from rosbags.typesys import get_types_from_msg
 
-from sim.episode import RATE_HZ, stamp_ns
+from sim.episode import GENERATOR_VERSION, RATE_HZ, stamp_ns
 from sim.robot import JOINT_NAMES
 from sim.tests.readback import TYPESTORE, read_metadata, read_recording
 
@@ -112,10 +112,10 @@ def test_manifest(small_dataset):
     names = manifest["train"] + manifest["validation"] + manifest["test"]
     assert sorted(names) == ["episode_00000.mcap", "episode_00001.mcap"]
     assert manifest["generator"]["seed"] == 3 and manifest["generator"]["rate_hz"] == 30
-    assert manifest["generator"]["version"] == 4
+    assert manifest["generator"]["version"] == GENERATOR_VERSION
     for name in names:
         meta = read_metadata(out / name)
-        assert meta["generator"] == "4"
+        assert meta["generator"] == str(GENERATOR_VERSION)
         assert meta["plan_id"] == manifest["plans"][name]
 
 
@@ -124,7 +124,7 @@ def test_stats_report_causes_distance_and_refuse_nothing(small_dataset):
 
     out, stats = small_dataset
     s = summarise(out)
-    assert s["episodes"] == 2 and s["generators"] == ["4"] and s["distinct_plans"] == 2
+    assert s["episodes"] == 2 and s["generators"] == [str(GENERATOR_VERSION)] and s["distinct_plans"] == 2
     assert s["falling"] == sum(r["fall_onset_tick"] is not None for r in stats)
     for row in s["per_sigma"].values():
         assert row["distance_m"]["min"] >= 0.0
@@ -138,6 +138,6 @@ def test_generator_1_directory_is_refused(tmp_path):
     try:
         generate(tmp_path, episodes=1, seed=3, jobs=1, duration_s=4.0, progress=False)
     except DatasetError as e:
-        assert "version=1" in str(e) and "version=4" in str(e)
+        assert "version=1" in str(e) and f"version={GENERATOR_VERSION}" in str(e)
     else:
-        raise AssertionError("a generator 1 directory was extended with generator 2 episodes")
+        raise AssertionError("a generator 1 directory was extended with this generator's episodes")
