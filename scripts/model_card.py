@@ -35,7 +35,7 @@ import shutil
 from pathlib import Path
 
 GROUPS = [("emp", "EMP"), ("mp", "MP"), ("ep", "EP"), ("p", "P"),
-          ("mp-pp", "MP, trained under the paper protocol"), ("p-pp", "P, trained under the paper protocol"), ("emp-hist", "EMP, historical-only plan"),
+          ("emp-pp", "EMP, trained under the paper protocol"), ("mp-pp", "MP, trained under the paper protocol"), ("p-pp", "P, trained under the paper protocol"), ("emp-hist", "EMP, historical-only plan"),
           ("emp-real", "EMP, real-position trajectory"), ("logreg", "logistic baseline"),
           ("gen1-emp", "EMP trained on generator 1"), ("gen1-mp", "MP trained on generator 1"),
           ("gen1-p", "P trained on generator 1"), ("gen4-emp", "EMP trained on generator 4"),

@@ -87,6 +87,7 @@ plan() {
     echo "mp-pp-s$s --ablation MP --seed $s --protocol paper"
     echo "p-pp-s$s --ablation P --seed $s --protocol paper"
   done
+  echo "emp-pp-s1 --ablation EMP --seed 1 --protocol paper"
   echo "ep-s1 --ablation EP --seed 1"
   for s in 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
   for s in 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
@@ -296,7 +297,7 @@ step_evaluate() {
   need_binary
   local group files abl name loss model
   # One eval reports both protocols (metrics.json `protocols`).
-  for group in emp mp p mp-pp p-pp; do
+  for group in emp mp p emp-pp mp-pp p-pp; do
     mapfile -t files < <(seeds_of "$group")
     [ ${#files[@]} -gt 0 ] || continue
     eval_group "$group" paper "${files[@]}"
@@ -304,7 +305,7 @@ step_evaluate() {
   # Within the event episodes (the test episodes at sigma >= 0.035): whether
   # the plan and the camera add to the joints once an event is known to come.
   "$PY" "$REPO/scripts/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
-  for group in emp mp p mp-pp p-pp; do
+  for group in emp mp p emp-pp mp-pp p-pp; do
     mapfile -t files < <(seeds_of "$group")
     [ ${#files[@]} -gt 0 ] || continue
     SET="$DATA_ROOT/bycause/high-sigma" eval_group "$group-highsigma" paper "${files[@]}"
