@@ -246,9 +246,30 @@ pub struct StreamsConfig {
     pub camera: CameraSource,
     pub plan: PlanSource,
     /// A stream whose latest sample is older than this at a tick is stale.
+    ///
+    /// For the joints, the age of the oldest joint's value, from the time
+    /// its bus was asked for it (each bus's sync read, or the retry that
+    /// got it). 150 ms in the shipped configs: a motor whose reply is lost
+    /// in L read cycles in a row is, just before its next value reaches
+    /// the tick, (L + 1) cycles plus the rest of that value's cycle (at
+    /// most one more) plus the hand-over to the tick old; at the 23 ms a
+    /// cycle measured on a noisy bus (retries included) that is at most
+    /// 92 ms for two lost cycles and 115 ms for three, and 150 ms leaves
+    /// 35 ms for a late thread (`docs/daemon.md`, "Validity").
     pub joints_stale_ms: u32,
     pub camera_stale_ms: u32,
     pub plan_stale_ms: u32,
+    /// The longest gap of the joints that is bridged, in ticks: a run of at
+    /// most this many ticks whose joints were all read but some older than
+    /// `joints_stale_ms` (their last values held) makes those ticks' own
+    /// forecasts not valid, but not the ones after: the forecast is valid
+    /// again on the first fresh tick, while the window holds at most this
+    /// many such ticks. A longer gap (or a joint not read) is waited out
+    /// until it has left the window. 0 bridges nothing; default 3 (100 ms
+    /// at 30 Hz: a bridged tick holds no value older than the bound plus
+    /// 100 ms); at most 30, and below half the networks' window.
+    #[serde(default = "default_joints_max_held_ticks")]
+    pub joints_max_held_ticks: u32,
     /// The input boundary (`sources/input.rs`) rejects a sample stamped
     /// more than this after the tick clock (live: the system clock).
     #[serde(default = "default_max_future_ms")]
@@ -272,6 +293,10 @@ fn default_plan_limit_margin_deg() -> f64 {
 
 fn default_max_image_bytes() -> usize {
     2_000_000
+}
+
+fn default_joints_max_held_ticks() -> u32 {
+    3
 }
 
 fn default_max_future_ms() -> u32 {
@@ -401,6 +426,8 @@ pub struct ModelFacts {
     pub horizons_ms: Vec<u32>,
     pub joint_names: Vec<String>,
     pub rate_hz: f64,
+    /// `N`, the ticks of the window.
+    pub n_ticks: usize,
 }
 
 /// `a.b[1].c` -> `[a].b[1].c`; a top-level key stays bare.
@@ -544,6 +571,12 @@ impl Config {
                 return Err(self.value_error(key, format!("expected 1 to 60000 ms, got {ms}")));
             }
         }
+        if s.joints_max_held_ticks > 30 {
+            return Err(self.value_error(
+                "[streams].joints_max_held_ticks",
+                format!("expected 0 to 30 ticks, got {}", s.joints_max_held_ticks),
+            ));
+        }
         if !(0.0..=180.0).contains(&s.plan_limit_margin_deg) {
             return Err(self.value_error(
                 "[streams].plan_limit_margin_deg",
@@ -638,13 +671,24 @@ impl Config {
     }
 
     /// Checks against the loaded model: the latch horizon must be one of
-    /// the model's, and the model's joints must be the robot's.
+    /// the model's, the model's joints must be the robot's, and a bridged
+    /// gap of the joints must be shorter than half its window.
     pub fn check_against_model(
         &self,
         facts: &ModelFacts,
         robot_joints: &[String],
     ) -> Result<(), ConfigError> {
         self.latch_horizon_index(&facts.horizons_ms)?;
+        let held = self.streams.joints_max_held_ticks as usize;
+        if 2 * held >= facts.n_ticks {
+            return Err(self.value_error(
+                "[streams].joints_max_held_ticks",
+                format!(
+                    "{held} ticks, not below half the model's window of {} ticks",
+                    facts.n_ticks
+                ),
+            ));
+        }
         if (facts.rate_hz - self.robot.tick_rate_hz).abs() > 1e-9 {
             return Err(self.value_error(
                 "[robot].tick_rate_hz",
@@ -956,6 +1000,7 @@ mod tests {
             horizons_ms: vec![500, 1000, 1500, 2000],
             joint_names: vec!["a".into()],
             rate_hz: 30.0,
+            n_ticks: 60,
         };
         let err = config
             .check_against_model(&facts, &["a".to_string()])
@@ -980,6 +1025,21 @@ mod tests {
             .check_against_model(&facts, &["a".to_string()])
             .expect_err("rate mismatch");
         assert_eq!(err.key(), Some("[robot].tick_rate_hz"), "{err}");
+        // A bridged gap of the joints below half the window.
+        let facts = ModelFacts {
+            rate_hz: 30.0,
+            n_ticks: 6,
+            ..facts
+        };
+        config.streams.joints_max_held_ticks = 2;
+        config
+            .check_against_model(&facts, &["a".to_string()])
+            .expect("2 of 6 ticks");
+        config.streams.joints_max_held_ticks = 3;
+        let err = config
+            .check_against_model(&facts, &["a".to_string()])
+            .expect_err("3 of 6 ticks");
+        assert_eq!(err.key(), Some("[streams].joints_max_held_ticks"), "{err}");
     }
 
     #[test]

@@ -71,6 +71,7 @@ fn to_sample(c: usize, (stamp_ns, stream, value): (i64, u8, f32)) -> Sample {
         0 => Sample::Joints {
             stamp_ns,
             positions_rad: vec![value; c],
+            read_ns: None,
         },
         1 => Sample::Frame {
             stamp_ns,
@@ -467,6 +468,7 @@ fn a_joint_not_read_in_a_sample_keeps_its_value_and_its_age() {
     let joints = |stamp_ns: i64, v: [f32; 3]| Sample::Joints {
         stamp_ns,
         positions_rad: v.to_vec(),
+        read_ns: None,
     };
     let nan = f32::NAN;
     // Tick k at k/30 s; a servo reading every 20 ms, joint 1 missed twice,
@@ -506,4 +508,54 @@ fn a_joint_not_read_in_a_sample_keeps_its_value_and_its_age() {
     assert_eq!(t3.age_ns.joints, Some(20_000_000));
     assert_eq!(t3.joint_age_ns(1), Some(20_000_000));
     assert_eq!(t3.joints_rad.as_ref().unwrap(), &vec![0.13, 0.23, 0.33]);
+}
+
+#[test]
+fn each_joint_takes_its_own_read_stamp_when_the_sample_has_them() {
+    let mut r = Resampler::new(&spec(4, 3)).unwrap();
+    let mut out = Vec::new();
+    let joints = |stamp_ns: i64, v: [f32; 3], read_ns: [i64; 3]| Sample::Joints {
+        stamp_ns,
+        positions_rad: v.to_vec(),
+        read_ns: Some(read_ns.to_vec()),
+    };
+    let nan = f32::NAN;
+    // Two buses read one after the other: joints 0 and 1 at 0 ms, joint 2
+    // at 12 ms; the sample is stamped with its newest read.
+    r.push(
+        joints(12_000_000, [0.1, 0.2, 0.3], [0, 0, 12_000_000]),
+        &mut out,
+    );
+    // The next cycle: joint 1 got by a retry at 30 ms, joint 2 not read.
+    r.push(
+        joints(
+            30_000_000,
+            [0.11, 0.21, nan],
+            [23_000_000, 30_000_000, 30_000_000],
+        ),
+        &mut out,
+    );
+    r.advance_to(33_333_334, &mut out);
+    let t1 = out.iter().find(|t| t.tick == 1).unwrap();
+    assert_eq!(t1.joints_rad.as_ref().unwrap(), &vec![0.11, 0.21, 0.3]);
+    assert_eq!(t1.joint_age_ns(0), Some(33_333_334 - 23_000_000));
+    assert_eq!(t1.joint_age_ns(1), Some(33_333_334 - 30_000_000));
+    assert_eq!(t1.joint_age_ns(2), Some(33_333_334 - 12_000_000));
+    assert_eq!(t1.age_ns.joints, Some(33_333_334 - 12_000_000));
+    // A sample takes effect at its stamp (12 ms): the first tick is tick 1.
+    assert_eq!(out[0].tick, 1);
+    // A position read before the one held is not taken: the joint keeps
+    // its newer value and stamp.
+    r.push(
+        joints(
+            40_000_000,
+            [0.12, 0.19, 0.31],
+            [40_000_000, 25_000_000, 40_000_000],
+        ),
+        &mut out,
+    );
+    r.advance_to(66_666_667, &mut out);
+    let t2 = out.iter().find(|t| t.tick == 2).unwrap();
+    assert_eq!(t2.joints_rad.as_ref().unwrap(), &vec![0.12, 0.21, 0.31]);
+    assert_eq!(t2.joint_age_ns(1), Some(66_666_667 - 30_000_000));
 }

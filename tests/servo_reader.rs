@@ -487,6 +487,66 @@ fn seeded_reply_noise_repeats_and_a_sync_read_asks_again_for_the_motors_lost() {
 }
 
 #[test]
+fn each_bus_and_each_retry_stamps_its_positions_with_its_own_request() {
+    use std::sync::atomic::{AtomicI64, Ordering};
+
+    let rig = rig();
+    rig.set_distinct_positions();
+    rig.buses.upper.set_noise(Some(noise(4)));
+    let mut reader = rig.reader(true);
+    // A clock that counts its reads: the cycle's start, then one read just
+    // before each request (the lower bus's sync read, the upper's, and a
+    // retry of the motors lost in one).
+    let ticks = AtomicI64::new(0);
+    let clock = || ticks.fetch_add(1, Ordering::SeqCst) + 1;
+    let on_bus = |bus: &str| -> Vec<usize> {
+        (0..25)
+            .filter(|&i| rig.table.joints()[i].bus == bus)
+            .collect()
+    };
+    let (lower, upper) = (on_bus("lower"), on_bus("upper"));
+    let mut retried = 0;
+    for _ in 0..40 {
+        let start = ticks.load(Ordering::SeqCst) + 1;
+        let reading = reader.read_cycle_with(&clock);
+        for (p, t) in reading.positions_rad.iter().zip(&reading.read_ns) {
+            assert_eq!(p.is_some(), t.is_some(), "{reading:?}");
+        }
+        // The lower bus (no noise): every position from its one sync read,
+        // just after the cycle's start.
+        assert!(
+            lower.iter().all(|&i| reading.read_ns[i] == Some(start + 1)),
+            "{:?}",
+            reading.read_ns
+        );
+        // The upper bus, read after it: its sync read's stamp, or for a
+        // motor lost in it and got by the retry, the retry's.
+        let stamps: Vec<i64> = upper.iter().filter_map(|&i| reading.read_ns[i]).collect();
+        assert!(
+            stamps.iter().all(|&t| t == start + 2 || t == start + 3),
+            "{stamps:?}"
+        );
+        retried += stamps.iter().filter(|&&t| t == start + 3).count();
+        // The reading's stamp is its newest position's.
+        assert_eq!(
+            Some(reading.stamp_ns),
+            reading.read_ns.iter().flatten().copied().max()
+        );
+    }
+    assert!(retried > 0, "no position came from a retry");
+    // The bus statistics keep each motor's own stamp too.
+    let stats = reader.stats().snapshot();
+    let last_lower = stats.buses[0].motor_last_read_ns[0].expect("read");
+    let last_upper = stats.buses[1]
+        .motor_last_read_ns
+        .iter()
+        .flatten()
+        .max()
+        .copied();
+    assert!(last_upper > Some(last_lower), "{last_upper:?} {last_lower}");
+}
+
+#[test]
 fn seeded_reply_noise_on_per_motor_reads_is_counted_by_kind() {
     let rig = rig();
     let raws = rig.set_distinct_positions();

@@ -158,6 +158,7 @@ pub fn tick_settings(
     });
     TickSettings {
         streams,
+        joints_max_held_ticks: s.joints_max_held_ticks as usize,
         diagnostics_period_ns: i64::from(config.output.diagnostics_period_ms) * 1_000_000,
         hardware_id: config.robot.name.clone(),
         latch_horizon_ms: config.model.horizon_ms,

@@ -129,7 +129,7 @@ impl RosBridge {
                         }
                     } => match j {
                         Some(s) => {
-                            if let Sample::Joints { stamp_ns, positions_rad } = &s.value {
+                            if let Sample::Joints { stamp_ns, positions_rad, .. } = &s.value {
                                 if let Some(msg) = joint_state(&names, *stamp_ns, positions_rad) {
                                     let _ = outputs.publish_joint_states(msg);
                                 }
@@ -245,6 +245,7 @@ fn model_sample(
                 joints_from_msg(msg, &spec.joint_names).map(|positions_rad| Sample::Joints {
                     stamp_ns,
                     positions_rad,
+                    read_ns: None,
                 });
             (stamp_ns, sample)
         }

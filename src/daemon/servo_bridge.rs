@@ -7,8 +7,10 @@
 //! for those joints: `/joint_states` then carries the joints that were read,
 //! and the tick keeps each missing joint's last value while it is younger
 //! than `[streams].joints_stale_ms`; older, the forecast is not valid,
-//! naming the joint, until a whole window of fresh ticks has come back (see
-//! `tick.rs`).
+//! naming the joint, until a whole window of fresh ticks has come back, or
+//! from the first fresh tick after a gap of at most
+//! `[streams].joints_max_held_ticks` (see `tick.rs`). Each position goes
+//! with its own read stamp ([`joints_sample`]), so its age is its bus's.
 //!
 //! Every 500 ms the bus counters become a [`DeviceDiagnostics`] per bus
 //! ([`ServoHealth`]): port, adapter mode, read rate, missing ids and joints,
@@ -26,7 +28,9 @@ use crate::daemon::{ServiceError, SourceHandle};
 use crate::outputs::{CounterWindow, DeviceDiagnostics, DiagnosticLevel, ERROR_WINDOW_S};
 use crate::robot::JointTable;
 use crate::shutdown::Shutdown;
-use crate::sources::dynamixel::{BusStatsSnapshot, DynamixelSource, ServoStatsSnapshot};
+use crate::sources::dynamixel::{
+    BusStatsSnapshot, DynamixelSource, JointReading, ServoStatsSnapshot,
+};
 use crate::streams::sample::Sample;
 use crate::streams::StreamFeed;
 
@@ -347,6 +351,29 @@ impl ServoHealth {
     }
 }
 
+/// A reading as the joints stream's sample: NaN for a joint not read this
+/// cycle (the tick names it once its held value is too old), and each
+/// position's own stamp (`read_ns`: its bus's sync read, or the retry that
+/// got it), so that a joint's age at a tick is the age of its value, not
+/// of the cycle's start; the sample's stamp is the reading's, its newest.
+pub fn joints_sample(reading: &JointReading) -> Sample {
+    let positions_rad = reading
+        .positions_rad
+        .iter()
+        .map(|p| p.unwrap_or(f32::NAN))
+        .collect();
+    let read_ns = reading
+        .read_ns
+        .iter()
+        .map(|t| t.unwrap_or(reading.stamp_ns))
+        .collect();
+    Sample::Joints {
+        stamp_ns: reading.stamp_ns,
+        positions_rad,
+        read_ns: Some(read_ns),
+    }
+}
+
 /// Start the servo reader; its readings feed `feed` until `shutdown`.
 pub fn start(
     config: &Config,
@@ -375,10 +402,8 @@ pub fn start(
                         let missing = reading.positions_rad.iter().filter(|p| p.is_none()).count();
                         feed.error("incomplete read", &format_args!("{missing} joints not read this cycle"));
                     }
-                    let positions_rad: Vec<f32> = reading.positions_rad.iter().map(|p| p.unwrap_or(f32::NAN)).collect();
-                    // NaN: a joint not read this cycle (the tick names it).
-                    let stamp_ns = reading.stamp_ns;
-                    let _ = feed.offer(stamp_ns, Ok(Sample::Joints { stamp_ns, positions_rad }));
+                    let sample = joints_sample(&reading);
+                    let _ = feed.offer(reading.stamp_ns, Ok(sample));
                 }
                 _ = refresh.tick() => {
                     let snapshot = source.stats.snapshot();
@@ -449,6 +474,30 @@ mod tests {
             last_complete_ns: None,
             buses: vec![b],
         }
+    }
+
+    #[test]
+    fn a_reading_becomes_one_sample_with_each_position_s_own_stamp() {
+        let reading = JointReading {
+            stamp_ns: 1_012,
+            positions_rad: vec![Some(0.5), None, Some(-0.25)],
+            read_ns: vec![Some(1_000), None, Some(1_012)],
+        };
+        let Sample::Joints {
+            stamp_ns,
+            positions_rad,
+            read_ns,
+        } = joints_sample(&reading)
+        else {
+            panic!("not a joints sample");
+        };
+        assert_eq!(stamp_ns, 1_012);
+        assert_eq!(positions_rad[0], 0.5);
+        assert!(positions_rad[1].is_nan());
+        assert_eq!(positions_rad[2], -0.25);
+        // The joint not read: its entry is the sample's stamp (it means
+        // nothing: the NaN is not taken).
+        assert_eq!(read_ns, Some(vec![1_000, 1_012, 1_012]));
     }
 
     #[test]

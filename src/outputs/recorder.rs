@@ -234,6 +234,7 @@ mod tests {
             Sample::Joints {
                 stamp_ns: 2_000,
                 positions_rad: vec![0.5, -0.125],
+                read_ns: None,
             },
             Sample::Frame {
                 stamp_ns: 3_000,
@@ -242,6 +243,7 @@ mod tests {
             Sample::Joints {
                 stamp_ns: 33_336_000,
                 positions_rad: vec![0.25, 1.5],
+                read_ns: None,
             },
         ];
         for s in &input {

@@ -17,9 +17,14 @@
 //! stale frames; a lost plan as soon as a fresh plan message is there (the
 //! window's plan is cut from the newest tick's message alone). The same rule
 //! makes a forecast valid again after a stale input the active network
-//! reads ([`ModelChoice::refilled`]): the joints, too, need N fresh ticks.
-//! Each switch is logged and counted.
+//! reads ([`ModelChoice::refilled`]): the joints, too, need N fresh ticks,
+//! except after a brief gap: a run of at most `[streams].joints_max_held_ticks`
+//! ticks whose joints were all held (every joint read, some older than the
+//! bound) is bridged, and the forecast is valid again on the first fresh
+//! tick, while the window holds no more than that many such ticks
+//! ([`ModelChoice::stale_ticks`]). Each switch is logged and counted.
 
+use std::collections::VecDeque;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -237,6 +242,7 @@ impl ModelSet {
                 horizons_ms: horizons_ms.clone(),
                 joint_names: emp.meta.joint_names.clone(),
                 rate_hz: emp.meta.rate_hz,
+                n_ticks: emp.meta.n_ticks,
             },
             robot_joints,
         )?;
@@ -355,6 +361,31 @@ fn release_freed_memory() {
 /// Which streams are fresh (not stale) at one tick.
 pub type Freshness = crate::streams::PerStream<bool>;
 
+/// The joints of one tick, as the refill rule sees them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum JointsAt {
+    /// Every joint read, none older than `[streams].joints_stale_ms`.
+    Fresh,
+    /// Every joint read, some older than the bound: the tick holds their
+    /// last values (a gap of at most `joints_max_held_ticks` such ticks is
+    /// bridged).
+    Held,
+    /// A joint never read, or no joints sample yet: nothing to bridge with.
+    Missing,
+}
+
+/// The joints' gaps (runs of ticks that were not fresh) as counted by
+/// [`ModelChoice`], for `/diagnostics`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct JointGaps {
+    /// Gaps over when the forecast was valid on their first fresh tick (a
+    /// brief gap of held values, bridged).
+    pub bridged: u64,
+    /// Gaps over after which the window had to refill (longer than the
+    /// bridge, a joint not read, or too many held ticks in the window).
+    pub refilled: u64,
+}
+
 /// Chooses the network per tick from stream freshness (see module docs).
 #[derive(Debug, Clone)]
 pub struct ModelChoice {
@@ -365,6 +396,19 @@ pub struct ModelChoice {
     /// Fresh ticks after which a stream counts as back
     /// ([`ModelChoice::refill_ticks`]).
     refill: crate::streams::PerStream<usize>,
+    /// `N`, the ticks of the window.
+    window_ticks: usize,
+    /// `[streams].joints_max_held_ticks`: the longest gap of held joints
+    /// bridged, and the most held ticks a valid window may hold.
+    max_held: usize,
+    /// The joints of the last `N + max_held` ticks, oldest first: the
+    /// window and, before it, as many ticks as a bridged gap may last (to
+    /// tell whether a gap at the window's start began before it).
+    joints: VecDeque<JointsAt>,
+    /// Whether the joints were fresh at some tick (a run of stale ticks
+    /// before that is the start, not a gap).
+    joints_seen_fresh: bool,
+    gaps: JointGaps,
     switches: u64,
 }
 
@@ -381,6 +425,9 @@ pub fn best_configured(available: &[Ablation], camera: bool, plan: bool) -> Opti
 }
 
 impl ModelChoice {
+    /// A choice among `available` for windows of `window_ticks` ticks that
+    /// bridges no gap of the joints (each needs a whole window of fresh
+    /// ticks; [`ModelChoice::bridging`] sets the bridge).
     pub fn new(available: Vec<Ablation>, window_ticks: usize) -> ModelChoice {
         ModelChoice {
             available,
@@ -391,8 +438,82 @@ impl ModelChoice {
                 camera: window_ticks,
                 plan: 1,
             },
+            window_ticks,
+            max_held: 0,
+            joints: VecDeque::with_capacity(window_ticks + 1),
+            joints_seen_fresh: false,
+            gaps: JointGaps::default(),
             switches: 0,
         }
+    }
+
+    /// The same choice, bridging a gap of at most `max_held_ticks` ticks of
+    /// held joints (`[streams].joints_max_held_ticks`).
+    pub fn bridging(mut self, max_held_ticks: usize) -> ModelChoice {
+        self.max_held = max_held_ticks;
+        self.joints = VecDeque::with_capacity(self.window_ticks + max_held_ticks + 1);
+        self
+    }
+
+    /// `[streams].joints_max_held_ticks` as given to
+    /// [`ModelChoice::bridging`].
+    pub fn max_held_ticks(&self) -> usize {
+        self.max_held
+    }
+
+    /// The ticks of the window (the last N updates) whose joints were not
+    /// fresh: held past the bound (in a valid window: the bridged ones), or
+    /// missing.
+    pub fn stale_ticks(&self) -> usize {
+        self.window().filter(|&j| j != JointsAt::Fresh).count()
+    }
+
+    /// The joints' gaps so far.
+    pub fn joint_gaps(&self) -> JointGaps {
+        self.gaps
+    }
+
+    /// The joints of the last N updates, oldest first.
+    fn window(&self) -> impl Iterator<Item = JointsAt> + '_ {
+        let skip = self.joints.len().saturating_sub(self.window_ticks);
+        self.joints.iter().skip(skip).copied()
+    }
+
+    /// Whether the window's joints can be trusted: every tick fresh, or the
+    /// newest fresh and each other one fresh or held (not missing) in a run
+    /// of at most `max_held` held ticks (counted from where it began, also
+    /// before the window), with at most `max_held` held ticks in the
+    /// window.
+    fn joints_usable(&self) -> bool {
+        if self.runs.joints >= self.window_ticks {
+            return true;
+        }
+        if self.max_held == 0 || self.runs.joints == 0 || self.joints.len() < self.window_ticks {
+            return false;
+        }
+        let skip = self.joints.len().saturating_sub(self.window_ticks);
+        let mut held = 0;
+        // The run of held ticks being walked, and its length so far.
+        let mut run = 0;
+        for (i, &j) in self.joints.iter().enumerate() {
+            match j {
+                JointsAt::Fresh => run = 0,
+                JointsAt::Missing if i >= skip => return false,
+                // Before the window: only the length of a gap that goes on
+                // into it counts.
+                JointsAt::Missing => run = self.max_held,
+                JointsAt::Held => {
+                    run += 1;
+                    if i >= skip {
+                        held += 1;
+                        if run > self.max_held || held > self.max_held {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+        true
     }
 
     pub fn active(&self) -> Ablation {
@@ -419,16 +540,53 @@ impl ModelChoice {
 
     /// True when `stream` has been fresh for [`ModelChoice::refill_ticks`]
     /// ticks: a stream that was stale or absent counts as back only then,
-    /// so that no window holding a stale value is trusted.
+    /// so that no window holding a stale value is trusted. The joints also
+    /// count as back on the first fresh tick after a bridged gap (see the
+    /// module docs): a window holding at most `joints_max_held_ticks` ticks
+    /// of held joints, each in a gap no longer than that.
     pub fn refilled(&self, stream: StreamKind) -> bool {
-        self.fresh_ticks(stream) >= self.refill_ticks(stream)
+        match stream {
+            StreamKind::Joints => self.joints_usable(),
+            _ => self.fresh_ticks(stream) >= self.refill_ticks(stream),
+        }
     }
 
-    /// Update with one tick's freshness; returns the new ablation if it changed.
+    /// Update with one tick's freshness; returns the new ablation if it
+    /// changed. Joints that are not fresh count as missing (no gap of them
+    /// is bridged: [`ModelChoice::update_ticks`] tells held from missing).
     pub fn update(&mut self, fresh: Freshness) -> Option<Ablation> {
+        let joints = if fresh.joints {
+            JointsAt::Fresh
+        } else {
+            JointsAt::Missing
+        };
+        self.update_ticks(fresh, joints)
+    }
+
+    /// Update with one tick's freshness and its joints (`Fresh` exactly
+    /// when `fresh.joints`); returns the new ablation if it changed.
+    pub fn update_ticks(&mut self, fresh: Freshness, joints: JointsAt) -> Option<Ablation> {
+        let joints = match (fresh.joints, joints) {
+            (true, _) => JointsAt::Fresh,
+            (false, JointsAt::Fresh) => JointsAt::Missing,
+            (false, other) => other,
+        };
+        let gap_over = fresh.joints && self.runs.joints == 0 && self.joints_seen_fresh;
         self.runs = self
             .runs
             .map(|kind, run| if fresh[kind] { run + 1 } else { 0 });
+        if self.joints.len() == self.window_ticks + self.max_held {
+            self.joints.pop_front();
+        }
+        self.joints.push_back(joints);
+        if gap_over {
+            if self.joints_usable() {
+                self.gaps.bridged += 1;
+            } else {
+                self.gaps.refilled += 1;
+            }
+        }
+        self.joints_seen_fresh |= fresh.joints;
         // A stream the active network reads may stay as long as it is fresh;
         // one it does not read must be back for a whole window first.
         let usable = |uses: bool, active_uses: bool, fresh: bool, stream: StreamKind| {
@@ -994,6 +1152,88 @@ mod tests {
             choice.update(FRESH);
         }
         assert!(choice.refilled(StreamKind::Joints) && choice.refilled(StreamKind::Camera));
+    }
+
+    #[test]
+    fn a_gap_of_held_joints_is_bridged_only_when_brief_and_read() {
+        let stale = Freshness {
+            joints: false,
+            ..FRESH
+        };
+        // A window of 6 ticks bridging gaps of at most 2 held ticks.
+        let run = |ticks: &[JointsAt]| {
+            let mut choice = ModelChoice::new(all(), 6).bridging(2);
+            let usable: Vec<bool> = ticks
+                .iter()
+                .map(|&j| {
+                    let fresh = if j == JointsAt::Fresh { FRESH } else { stale };
+                    choice.update_ticks(fresh, j);
+                    choice.refilled(StreamKind::Joints)
+                })
+                .collect();
+            (usable, choice)
+        };
+        use JointsAt::{Fresh as F, Held as H, Missing as M};
+        // Two held ticks: not usable while held, usable on the first fresh
+        // tick; the joints count as stale ticks of the window until they
+        // have left it.
+        let (usable, choice) = run(&[F, F, F, F, F, F, H, H, F, F]);
+        assert_eq!(
+            usable,
+            [false, false, false, false, false, true, false, false, true, true]
+        );
+        assert_eq!(choice.stale_ticks(), 2);
+        assert_eq!(
+            choice.joint_gaps(),
+            JointGaps {
+                bridged: 1,
+                refilled: 0
+            }
+        );
+        // Three: waited out (usable once the window is fresh again).
+        let (usable, choice) = run(&[F, F, F, F, F, F, H, H, H, F, F, F, F, F, F, F]);
+        assert_eq!(
+            &usable[9..],
+            [false, false, false, false, false, true, true]
+        );
+        assert_eq!(
+            choice.joint_gaps(),
+            JointGaps {
+                bridged: 0,
+                refilled: 1
+            }
+        );
+        // One tick with a joint not read: nothing to bridge with.
+        let (usable, _) = run(&[F, F, F, F, F, F, M, F, F, F, F, F, F]);
+        assert_eq!(&usable[7..], [false, false, false, false, false, true]);
+        // A long gap (8 held ticks) whose last two are in the window of the
+        // first fresh ticks: it began before the window, so it is not
+        // brief, though only two of its ticks are left in the window.
+        let (usable, _) = run(&[F, H, H, H, H, H, H, H, H, F, F, F, F, F, F]);
+        assert_eq!(&usable[9..], [false, false, false, false, false, true]);
+        // Two gaps of one held tick each, then a third: at most 2 in the
+        // window.
+        let (usable, choice) = run(&[F, F, F, F, F, F, H, F, H, F, H, F, F, F]);
+        assert_eq!(
+            &usable[6..],
+            [false, true, false, true, false, false, true, true]
+        );
+        assert_eq!(
+            choice.joint_gaps(),
+            JointGaps {
+                bridged: 2,
+                refilled: 1
+            }
+        );
+        // Bridging nothing: the old rule, a whole window of fresh ticks.
+        let mut choice = ModelChoice::new(all(), 6);
+        for j in [F, F, F, F, F, F, H] {
+            choice.update_ticks(if j == F { FRESH } else { stale }, j);
+        }
+        for k in 1..=6 {
+            choice.update_ticks(FRESH, F);
+            assert_eq!(choice.refilled(StreamKind::Joints), k == 6, "{k}");
+        }
     }
 
     #[test]

@@ -23,7 +23,7 @@ use crate::outputs::{
     StreamDiagnostics, ERROR_WINDOW_S,
 };
 use crate::pipeline::forecast::{
-    ablation_name, best_configured, percentiles_ms, Freshness, Inference, InferenceJob,
+    ablation_name, best_configured, percentiles_ms, Freshness, Inference, InferenceJob, JointsAt,
     ModelChoice, ModelSet,
 };
 use crate::pipeline::window::{Resampler, Ring, TickInput, WindowError};
@@ -48,6 +48,9 @@ pub struct StreamSlot {
 #[derive(Debug, Clone)]
 pub struct TickSettings {
     pub streams: PerStream<StreamSlot>,
+    /// `[streams].joints_max_held_ticks`: the longest gap of held joints
+    /// bridged ([`ModelChoice::bridging`]).
+    pub joints_max_held_ticks: usize,
     pub diagnostics_period_ns: i64,
     pub hardware_id: String,
     pub latch_horizon_ms: u32,
@@ -128,6 +131,9 @@ pub struct TickLoop {
     joint_names: Vec<String>,
     last_valid: bool,
     last_reason: String,
+    /// The latest tick whose joints were stale, and why (`/diagnostics`
+    /// names it even when the gap was bridged between two snapshots).
+    last_joints_stale: Option<(i64, String)>,
 }
 
 /// Names of the joints a tick has no angle for: never read (a motor that
@@ -190,6 +196,18 @@ fn joints_complete(tick: &TickInput) -> bool {
         .is_some_and(|j| j.iter().all(|v| v.is_finite()))
 }
 
+/// A tick's joints for the refill rule: fresh, held (every joint read,
+/// some older than `stale_ns`) or missing.
+fn joints_at(tick: &TickInput, stale_ns: i64) -> JointsAt {
+    if joints_fresh(tick, stale_ns) {
+        JointsAt::Fresh
+    } else if joints_complete(tick) {
+        JointsAt::Held
+    } else {
+        JointsAt::Missing
+    }
+}
+
 /// Why a tick's forecast is not valid (`None`: valid). Valid means: the
 /// ring holds N ticks, and every input the active network reads is within
 /// its bound (`[streams].*_stale_ms`) over what the network reads of it:
@@ -197,7 +215,10 @@ fn joints_complete(tick: &TickInput) -> bool {
 /// of the newest tick only (the window's plan, past and future, is cut from
 /// the newest tick's plan message). So after a joints or camera value older
 /// than its bound the window must refill (N fresh ticks), while a fresh
-/// plan message is usable at once ([`ModelChoice::refilled`]).
+/// plan message is usable at once ([`ModelChoice::refilled`]). A brief gap
+/// of the joints (at most `[streams].joints_max_held_ticks` ticks, every
+/// joint read, some held past the bound) is bridged: its own ticks are not
+/// valid, the first fresh one after it is.
 ///
 /// The joints are judged per joint: a joint whose motor did not answer in a
 /// cycle keeps its last value while that is younger than
@@ -251,6 +272,13 @@ fn invalid_reason(
                 Some(age) if age > stale_ns => {
                     format!("{kind} stale ({} ms old)", age / 1_000_000)
                 }
+                Some(_) if kind == StreamKind::Joints && choice.max_held_ticks() > 0 => format!(
+                    "{kind} back, window refilling ({}/{} fresh ticks; {} stale in it, a gap of at most {} held bridged)",
+                    choice.fresh_ticks(kind),
+                    choice.refill_ticks(kind),
+                    choice.stale_ticks(),
+                    choice.max_held_ticks()
+                ),
                 Some(_) => format!(
                     "{kind} back, window refilling ({}/{} fresh ticks)",
                     choice.fresh_ticks(kind),
@@ -273,7 +301,8 @@ impl TickLoop {
         Ok(TickLoop {
             resampler: Resampler::new(&spec)?,
             ring: Ring::new(spec.n_ticks),
-            choice: ModelChoice::new(models.available(), spec.n_ticks),
+            choice: ModelChoice::new(models.available(), spec.n_ticks)
+                .bridging(settings.joints_max_held_ticks),
             models,
             inference,
             settings,
@@ -287,6 +316,7 @@ impl TickLoop {
             joint_names: spec.joint_names.clone(),
             last_valid: false,
             last_reason: String::new(),
+            last_joints_stale: None,
         })
     }
 
@@ -348,11 +378,12 @@ impl TickLoop {
         self.counters.ticks += 1;
         self.watchdog.tick();
         let slots = &self.settings.streams;
+        let joints = joints_at(&tick, slots.joints.stale_ns);
         let fresh: Freshness = PerStream::from_fn(|kind| match kind {
-            StreamKind::Joints => joints_fresh(&tick, slots[kind].stale_ns),
+            StreamKind::Joints => joints == JointsAt::Fresh,
             _ => tick.age_ns[kind].is_some_and(|age| age <= slots[kind].stale_ns),
         });
-        self.choice.update(fresh);
+        self.choice.update_ticks(fresh, joints);
         let (tick_index, stamp_ns) = (tick.tick, tick.stamp_ns);
         self.ring.push(tick);
         let active = self.choice.active();
@@ -362,6 +393,9 @@ impl TickLoop {
             .and_then(|t| invalid_reason(&self.ring, t, &self.choice, slots, &self.joint_names));
         self.last_valid = reason.is_none();
         self.last_reason = reason.clone().unwrap_or_default();
+        if let Some(r) = reason.as_ref().filter(|r| r.contains("joints stale")) {
+            self.last_joints_stale = Some((tick_index, r.clone()));
+        }
         if dispatch {
             if lockstep {
                 self.inference.wait_idle().await;
@@ -530,6 +564,30 @@ impl TickLoop {
                 details.push(("joints_not_read".to_string(), unread.join(",")));
                 let stale: Vec<&str> = stale.iter().map(|(n, _)| n.as_str()).collect();
                 details.push(("joints_stale".to_string(), stale.join(",")));
+                // Gaps: how many were bridged on held values, how many
+                // waited out, the ticks of the window that were not fresh
+                // (bridged ones while the forecast is valid), the last
+                // stale tick and its joints.
+                let gaps = self.choice.joint_gaps();
+                details.extend([
+                    (
+                        "stale_ticks_in_window".to_string(),
+                        self.choice.stale_ticks().to_string(),
+                    ),
+                    (
+                        "max_held_ticks".to_string(),
+                        self.choice.max_held_ticks().to_string(),
+                    ),
+                    ("gaps_bridged".to_string(), gaps.bridged.to_string()),
+                    ("gaps_refilled".to_string(), gaps.refilled.to_string()),
+                    (
+                        "last_stale".to_string(),
+                        self.last_joints_stale
+                            .as_ref()
+                            .map(|(tick, r)| format!("tick {tick}: {r}"))
+                            .unwrap_or_default(),
+                    ),
+                ]);
             }
             devices.extend(stats.devices.iter().cloned());
             streams.push(StreamDiagnostics {
@@ -765,17 +823,20 @@ mod tests {
         assert_eq!(take_new(&tap, &mut seen).map(|s| s.seq), Some(2));
     }
 
-    /// Ticks at 30 Hz of a 3-joint servo reading every 20 ms, `missed(k, j)`
-    /// saying whether joint `j` missed reading `k`.
-    fn servo_ticks(readings: i64, missed: impl Fn(i64, usize) -> bool) -> Vec<TickInput> {
-        let spec = crate::pipeline::window::WindowSpec {
-            n_ticks: 4,
+    fn spec(n_ticks: usize) -> crate::pipeline::window::WindowSpec {
+        crate::pipeline::window::WindowSpec {
+            n_ticks,
             max_horizon_ticks: 1,
             rate_hz: 30.0,
             joint_names: vec!["a".into(), "b".into(), "c".into()],
             frame_size: 4,
-        };
-        let mut resampler = Resampler::new(&spec).expect("spec");
+        }
+    }
+
+    /// Ticks at 30 Hz of a 3-joint servo reading every 20 ms, `missed(k, j)`
+    /// saying whether joint `j` missed reading `k`.
+    fn servo_ticks(readings: i64, missed: impl Fn(i64, usize) -> bool) -> Vec<TickInput> {
+        let mut resampler = Resampler::new(&spec(4)).expect("spec");
         let mut out = Vec::new();
         for k in 0..readings {
             let positions_rad = (0..3)
@@ -791,6 +852,7 @@ mod tests {
                 Sample::Joints {
                     stamp_ns: k * 20_000_000,
                     positions_rad,
+                    read_ns: None,
                 },
                 &mut out,
             );
@@ -799,29 +861,199 @@ mod tests {
     }
 
     /// The reason of each tick's forecast with the P network (joints only)
-    /// and `joints_stale_ms` = 100, as the tick loop judges them.
+    /// and `joints_stale_ms` = 100, bridging no gap, as the tick loop
+    /// judges them.
     fn reasons(ticks: Vec<TickInput>) -> Vec<Option<String>> {
+        judged(ticks, 4, 100, 0).0
+    }
+
+    /// The reason of each tick's forecast with the P network (joints only),
+    /// a window of `n` ticks, `joints_stale_ms` = `stale_ms` and
+    /// `joints_max_held_ticks` = `max_held`, as the tick loop judges them;
+    /// and the model choice after the last tick.
+    fn judged(
+        ticks: Vec<TickInput>,
+        n: usize,
+        stale_ms: i64,
+        max_held: usize,
+    ) -> (Vec<Option<String>>, ModelChoice) {
+        let stale_ns = stale_ms * 1_000_000;
         let names: Vec<String> = vec!["a".into(), "b".into(), "c".into()];
         let slots = PerStream::from_fn(|kind| StreamSlot {
             kind,
             source: "test".into(),
             configured: kind == StreamKind::Joints,
-            stale_ns: 100_000_000,
+            stale_ns,
             stats: Arc::default(),
         });
-        let mut ring = Ring::new(4);
-        let mut choice = ModelChoice::new(vec![Ablation::P], 4);
-        ticks
+        let mut ring = Ring::new(n);
+        let mut choice = ModelChoice::new(vec![Ablation::P], n).bridging(max_held);
+        let reasons = ticks
             .into_iter()
             .map(|tick| {
-                choice.update(PerStream::from_fn(|kind| {
-                    kind == StreamKind::Joints && joints_fresh(&tick, 100_000_000)
-                }));
+                let joints = joints_at(&tick, stale_ns);
+                choice.update_ticks(
+                    PerStream::from_fn(|kind| {
+                        kind == StreamKind::Joints && joints == JointsAt::Fresh
+                    }),
+                    joints,
+                );
                 ring.push(tick);
                 let latest = ring.latest().expect("a tick").clone();
                 invalid_reason(&ring, &latest, &choice, &slots, &names)
             })
+            .collect();
+        (reasons, choice)
+    }
+
+    /// One read cycle of a 3-joint robot on two buses as the servo source
+    /// makes it: joints a and b on the first bus, c on the second, each bus
+    /// stamped just before its sync read; `None` for a bus whose read
+    /// failed (its motors not read this cycle).
+    struct Cycle {
+        /// The cycle's start (its first request), ns.
+        start_ns: i64,
+        /// When the reading reaches the tick (the cycle's end plus the
+        /// hand-over), ns.
+        delivered_ns: i64,
+        /// Per bus, the stamp of its sync read (`None`: lost).
+        buses: [Option<i64>; 2],
+    }
+
+    /// The ticks the live tick loop makes of `cycles`: at each tick, the
+    /// readings delivered by then are pushed (each stamped per bus, or with
+    /// the cycle's start for every joint when `per_bus` is false, as before
+    /// the per-bus stamps), then the tick is made final.
+    fn live_ticks(cycles: &[Cycle], per_bus: bool, n_ticks: i64) -> Vec<TickInput> {
+        let mut resampler = Resampler::new(&spec(4)).expect("spec");
+        let grid = resampler.grid();
+        let mut out = Vec::new();
+        let mut next = 0;
+        for tick in 1..=n_ticks {
+            let now = grid.stamp_ns(tick);
+            while next < cycles.len() && cycles[next].delivered_ns <= now {
+                let c = &cycles[next];
+                next += 1;
+                let bus_of = |j: usize| usize::from(j == 2);
+                let read: Vec<Option<i64>> = (0..3)
+                    .map(|j| c.buses[bus_of(j)].map(|t| if per_bus { t } else { c.start_ns }))
+                    .collect();
+                let Some(stamp_ns) = read.iter().flatten().copied().max() else {
+                    continue;
+                };
+                resampler.push(
+                    Sample::Joints {
+                        stamp_ns,
+                        positions_rad: read
+                            .iter()
+                            .map(|r| if r.is_some() { 0.5 } else { f32::NAN })
+                            .collect(),
+                        read_ns: Some(read.iter().map(|r| r.unwrap_or(stamp_ns)).collect()),
+                    },
+                    &mut out,
+                );
+            }
+            resampler.advance_to(now, &mut out);
+        }
+        out
+    }
+
+    /// Read cycles from `t0`: the first bus's sync read takes 12 ms (a
+    /// retry included), the second's 11 ms, a lost one 20 ms (its timeout),
+    /// and a reading reaches the tick 5 ms after its cycle ends; `lost(k)`
+    /// says which buses cycle `k` lost.
+    fn cycles(n: usize, lost: impl Fn(usize) -> [bool; 2]) -> Vec<Cycle> {
+        let mut t = 0;
+        (0..n)
+            .map(|k| {
+                let lost = lost(k);
+                let first = t;
+                t += if lost[0] { 20_000_000 } else { 12_000_000 };
+                let second = t;
+                t += if lost[1] { 20_000_000 } else { 11_000_000 };
+                Cycle {
+                    start_ns: first,
+                    delivered_ns: t + 5_000_000,
+                    buses: [(!lost[0]).then_some(first), (!lost[1]).then_some(second)],
+                }
+            })
             .collect()
+    }
+
+    #[test]
+    fn each_joint_is_as_old_as_its_own_bus_read() {
+        // Cycles of 23 ms, nothing lost: at every tick, a and b are as old
+        // as the first bus's read, c as the second's (11 ms later).
+        let ticks = live_ticks(&cycles(80, |_| [false; 2]), true, 40);
+        for t in &ticks[5..] {
+            let (a, c) = (t.joint_age_ns(0).expect("a"), t.joint_age_ns(2).expect("c"));
+            assert_eq!(a - c, 12_000_000, "tick {}: a {a} ns, c {c} ns", t.tick);
+            assert_eq!(t.age_ns.joints, Some(a));
+        }
+        // Stamped with the cycle's start, c was 12 ms older than its value.
+        let before = live_ticks(&cycles(80, |_| [false; 2]), false, 40);
+        let age_at_20 = |ticks: &[TickInput]| {
+            let t = ticks.iter().find(|t| t.tick == 20).expect("tick 20");
+            t.joint_age_ns(2).expect("c")
+        };
+        assert_eq!(age_at_20(&before) - age_at_20(&ticks), 12_000_000);
+    }
+
+    #[test]
+    fn a_joint_read_late_in_its_cycle_and_within_the_bound_keeps_the_forecast_valid() {
+        // The second bus (c) loses cycles 20, 21 and 22, each a 20 ms
+        // timeout: c's value, read at 449 ms (12 ms into cycle 19), is
+        // 117.7 ms old at tick 17 (566.7 ms), the last before the next one
+        // arrives (584 ms). Under a 120 ms bound its own stamp keeps every
+        // forecast valid; stamped with its cycle's start (437 ms) it was
+        // 129.7 ms old, and stale.
+        let lost = |k: usize| [false, (20..23).contains(&k)];
+        let own_ticks = live_ticks(&cycles(100, lost), true, 60);
+        let at_17 = own_ticks.iter().find(|t| t.tick == 17).expect("tick 17");
+        assert_eq!(at_17.joint_age_ns(2), Some(117_666_667));
+        let (own, _) = judged(own_ticks, 4, 120, 0);
+        assert!(own[4..].iter().all(Option::is_none), "{own:?}");
+        let start_ticks = live_ticks(&cycles(100, lost), false, 60);
+        let at = start_ticks
+            .iter()
+            .position(|t| t.tick == 17)
+            .expect("tick 17");
+        let (start, _) = judged(start_ticks, 4, 120, 0);
+        assert_eq!(
+            start[at].as_deref(),
+            Some("joints stale (129 ms old): c 129 ms"),
+            "{start:?}"
+        );
+    }
+
+    #[test]
+    fn two_lost_cycles_in_a_row_on_a_bus_make_no_gap() {
+        // Each bus loses two cycles in a row, each a 20 ms timeout, at
+        // every phase against the ticks: at the shipped bound (150 ms) no
+        // tick is stale. The worst case is 113 ms (the first bus: 12 + 3
+        // cycles + 5 ms); under the former 100 ms bound it was a gap.
+        let mut gaps_under_100_ms = 0;
+        for phase in 0..23 {
+            let lost = |k: usize| {
+                [
+                    (20 + phase..22 + phase).contains(&k),
+                    (50 + phase..52 + phase).contains(&k),
+                ]
+            };
+            let ticks = live_ticks(&cycles(160, lost), true, 100);
+            let worst = ticks[5..]
+                .iter()
+                .filter_map(|t| t.age_ns.joints)
+                .max()
+                .expect("ages");
+            assert!(worst <= 113_000_000, "phase {phase}: {worst} ns");
+            let (r, _) = judged(ticks.clone(), 4, 150, 0);
+            assert!(r[3..].iter().all(Option::is_none), "phase {phase}: {r:?}");
+            let (r, _) = judged(ticks, 4, 100, 0);
+            gaps_under_100_ms +=
+                usize::from(r.iter().flatten().any(|r| r.starts_with("joints stale")));
+        }
+        assert!(gaps_under_100_ms > 0, "no phase made a gap under 100 ms");
     }
 
     #[test]
@@ -849,6 +1081,56 @@ mod tests {
         assert_eq!(at(13), "joints back, window refilling (3/4 fresh ticks)");
         // Valid once the window's four ticks are all fresh.
         assert_eq!(at(14), "valid");
+    }
+
+    #[test]
+    fn a_brief_gap_is_bridged_and_a_longer_one_waited_out() {
+        // A window of 10 ticks, joints_stale_ms = 100, gaps of at most 3
+        // held ticks bridged. Joint c not read in readings 20..=27 (its
+        // value of 380 ms stale at ticks 15 and 16), 60..=72 (ticks 39 to
+        // 43), 100..=109 (ticks 63 to 65) and 111..=119 (ticks 70, 71).
+        let missing = |k: i64| {
+            (20..=27).contains(&k)
+                || (60..=72).contains(&k)
+                || (100..=109).contains(&k)
+                || (111..=119).contains(&k)
+        };
+        let (r, choice) = judged(servo_ticks(140, |k, j| j == 2 && missing(k)), 10, 100, 3);
+        let at = |tick: usize| r[tick].as_deref().unwrap_or("valid");
+        let stale: Vec<usize> = (0..r.len())
+            .filter(|&t| at(t).starts_with("joints stale"))
+            .collect();
+        assert_eq!(stale, [15, 16, 39, 40, 41, 42, 43, 63, 64, 65, 70, 71]);
+        assert_eq!(at(15), "joints stale (120 ms old): c 120 ms");
+        // Two ticks held: bridged, valid on the first fresh tick, the
+        // stale ticks still in the window.
+        assert_eq!(at(14), "valid");
+        assert!((17..39).all(|t| at(t) == "valid"), "{r:?}");
+        // Five: waited out until they have left the window (tick 43 + 10).
+        assert_eq!(
+            at(44),
+            "joints back, window refilling (1/10 fresh ticks; 5 stale in it, a gap of at most 3 held bridged)"
+        );
+        assert!((44..53).all(|t| at(t).starts_with("joints back")), "{r:?}");
+        assert!((53..63).all(|t| at(t) == "valid"), "{r:?}");
+        // Three, bridged; then two more while the three are in the window:
+        // five held ticks in it, more than 3, so the forecast waits until
+        // no more than 3 are (tick 74: the window 65..=74).
+        assert!((66..70).all(|t| at(t) == "valid"), "{r:?}");
+        assert!(at(72).starts_with("joints back, window refilling (1/10 fresh ticks; 5 stale"));
+        assert!(at(73).starts_with("joints back, window refilling (2/10 fresh ticks; 4 stale"));
+        assert!((74..r.len()).all(|t| at(t) == "valid"), "{r:?}");
+        let gaps = choice.joint_gaps();
+        assert_eq!((gaps.bridged, gaps.refilled), (2, 2));
+        assert_eq!(choice.stale_ticks(), 0);
+        // Bridging nothing, every gap waits for a whole window.
+        let (r, choice) = judged(servo_ticks(140, |k, j| j == 2 && missing(k)), 10, 100, 0);
+        assert_eq!(
+            r[17].as_deref(),
+            Some("joints back, window refilling (1/10 fresh ticks)")
+        );
+        assert_eq!(r[26], None);
+        assert_eq!(choice.joint_gaps().bridged, 0);
     }
 
     #[test]

@@ -22,7 +22,11 @@
 //!   per joint: a joints sample with NaN for a joint (a motor that did not
 //!   answer that cycle) leaves that joint's earlier value and stamp, so a
 //!   tick's joints age is the age of its oldest joint
-//!   ([`TickInput::joint_age_ns`] per joint). Joints are not interpolated.
+//!   ([`TickInput::joint_age_ns`] per joint). A joint's stamp is the time
+//!   its value was read: the sample's `read_ns` entry when it has one (the
+//!   servo buses, read one after the other), else the sample's stamp. A
+//!   joints sample takes effect at its stamp, the newest of its reads.
+//!   Joints are not interpolated.
 //! - **Plan**: the latest plan message at tick `t` is evaluated at the stamps
 //!   of ticks `t-N+1 ..= t+hK` by linear interpolation between its points
 //!   (point time = `header.stamp + time_from_start`), holding the first and
@@ -259,8 +263,9 @@ impl PerStream<bool> {
 }
 
 /// The joints a [`Resampler`] holds: each joint's latest finite angle and
-/// the stamp it was read at. A joints sample with NaN for a joint (the servo
-/// source: that motor did not answer this cycle) updates the others only.
+/// the stamp it was read at (its own read stamp when the sample has them).
+/// A joints sample with NaN for a joint (the servo source: that motor did
+/// not answer this cycle) updates the others only.
 #[derive(Debug, Clone)]
 struct JointHold {
     /// Stamp of the latest joints sample.
@@ -274,7 +279,7 @@ struct JointHold {
 }
 
 impl JointHold {
-    fn new(stamp_ns: i64, positions_rad: Vec<f32>) -> JointHold {
+    fn new(stamp_ns: i64, positions_rad: &[f32], read_ns: Option<&[i64]>) -> JointHold {
         let stamps = vec![None; positions_rad.len()];
         let mut hold = JointHold {
             latest_ns: stamp_ns,
@@ -282,27 +287,32 @@ impl JointHold {
             stamps,
             shared: None,
         };
-        hold.update(stamp_ns, &positions_rad);
+        hold.update(stamp_ns, positions_rad, read_ns);
         hold
     }
 
-    /// Takes the finite values of a sample stamped `stamp_ns`.
-    fn update(&mut self, stamp_ns: i64, positions_rad: &[f32]) {
+    /// Takes the finite values of a sample stamped `stamp_ns`, each read at
+    /// its `read_ns` entry (all at `stamp_ns` without them). A value read
+    /// before the one held is not taken.
+    fn update(&mut self, stamp_ns: i64, positions_rad: &[f32], read_ns: Option<&[i64]>) {
         if positions_rad.len() != self.values.len() {
             // Another joint count: nothing earlier applies.
             self.values = vec![f32::NAN; positions_rad.len()];
             self.stamps = vec![None; positions_rad.len()];
         }
         self.latest_ns = stamp_ns;
-        for ((value, stamp), &v) in self
+        let read_ns = read_ns.filter(|r| r.len() == positions_rad.len());
+        for (i, ((value, stamp), &v)) in self
             .values
             .iter_mut()
             .zip(&mut self.stamps)
             .zip(positions_rad)
+            .enumerate()
         {
-            if v.is_finite() {
+            let read = read_ns.map_or(stamp_ns, |r| r[i].min(stamp_ns));
+            if v.is_finite() && stamp.is_none_or(|held| read >= held) {
                 *value = v;
-                *stamp = Some(stamp_ns);
+                *stamp = Some(read);
             }
         }
         self.shared = (!self.stamps.iter().all(|s| *s == Some(stamp_ns)))
@@ -375,13 +385,15 @@ impl Resampler {
             Sample::Joints {
                 stamp_ns,
                 positions_rad,
+                read_ns,
             } => {
                 if !newer(self.joints.as_ref().map(|x| x.latest_ns)) {
                     self.dropped += 1;
                 } else if let Some(hold) = self.joints.as_mut() {
-                    hold.update(stamp_ns, &positions_rad);
+                    hold.update(stamp_ns, &positions_rad, read_ns.as_deref());
                 } else {
-                    self.joints = Some(JointHold::new(stamp_ns, positions_rad));
+                    self.joints =
+                        Some(JointHold::new(stamp_ns, &positions_rad, read_ns.as_deref()));
                 }
             }
             Sample::Frame { stamp_ns, frame } => {
@@ -905,6 +917,7 @@ fn joint_sample(msg: &JointState, stamp_ns: i64, spec: &WindowSpec) -> Result<Sa
     joints_from_msg(msg, &spec.joint_names).map(|positions_rad| Sample::Joints {
         stamp_ns,
         positions_rad,
+        read_ns: None,
     })
 }
 

@@ -7,8 +7,10 @@
 //! cycle, or one rustypot READ_DATA per motor when sync read is off or the
 //! adapter never answers 0x84. It leaves as a [`JointReading`] per cycle
 //! (radians in pypot's convention, model order, `None` for a motor that gave
-//! nothing) on a `tokio::sync::watch` channel, and as counters in
-//! [`ServoStats`] for `/diagnostics`.
+//! nothing; each position stamped with the clock just before the request
+//! that gave it, so a bus read later in the cycle, or a motor read by the
+//! retry, carries its own time) on a `tokio::sync::watch` channel, and as
+//! counters in [`ServoStats`] for `/diagnostics`.
 //!
 //! Faults never stop the reader: a timeout, a bad checksum, garbage bytes
 //! (skipped up to the next `FF FF`), a servo error bit or a position out of
@@ -195,15 +197,25 @@ fn config_error(key: impl Into<String>, message: impl Into<String>) -> Dynamixel
 }
 
 /// One read cycle of all buses.
+///
+/// The buses are read one after the other, and a motor whose reply was
+/// lost is asked again later in the cycle, so the positions of one cycle
+/// are not all read at one time: each carries its own stamp (`read_ns`),
+/// and the reading's `stamp_ns` is the newest of them (no position in it
+/// was asked for later).
 #[derive(Debug, Clone, PartialEq)]
 pub struct JointReading {
-    /// Clock at the start of the cycle (before the first request), ns. The
-    /// clock is [`system_clock_ns`] unless given to
-    /// [`DynamixelSource::spawn_with_clock`].
+    /// The newest of `read_ns`, ns; the clock at the start of the cycle
+    /// when no motor answered. The clock is [`system_clock_ns`] unless
+    /// given to [`DynamixelSource::spawn_with_clock`].
     pub stamp_ns: i64,
     /// Joint angles in radians (pypot convention), model order
     /// ([`JointTable::names`]); `None`: not read this cycle.
     pub positions_rad: Vec<Option<f32>>,
+    /// Per joint, model order: the clock just before the request that gave
+    /// its position (its bus's sync read, the retry of the motors lost in
+    /// it, or its own READ_DATA), ns; `None` where `positions_rad` is.
+    pub read_ns: Vec<Option<i64>>,
 }
 
 impl JointReading {
@@ -360,21 +372,43 @@ impl ServoReader {
     }
 
     /// Read every bus once (sequentially, in config order) and return what
-    /// came back, stamped `stamp_ns`. Never fails: faults are counted.
+    /// came back, every position stamped `stamp_ns` (a clock that stands
+    /// still: tests and benchmarks). Never fails: faults are counted.
     pub fn read_cycle(&mut self, stamp_ns: i64) -> JointReading {
-        self.read_cycle_until(stamp_ns, &|| false)
+        self.read_cycle_with(&|| stamp_ns)
     }
 
-    fn read_cycle_until(&mut self, stamp_ns: i64, stop: &dyn Fn() -> bool) -> JointReading {
+    /// Read every bus once (sequentially, in config order) and return what
+    /// came back, each position stamped with `clock` read just before the
+    /// request that gave it. Never fails: faults are counted.
+    pub fn read_cycle_with(&mut self, clock: &dyn Fn() -> i64) -> JointReading {
+        self.read_cycle_until(clock, &|| false)
+    }
+
+    fn read_cycle_until(
+        &mut self,
+        clock: &dyn Fn() -> i64,
+        stop: &dyn Fn() -> bool,
+    ) -> JointReading {
+        let start_ns = clock();
         let mut positions_rad = vec![None; self.n_joints];
+        let mut read_ns = vec![None; self.n_joints];
         for (i, bus) in self.buses.iter_mut().enumerate() {
-            bus.read_cycle(self.stats.bus(i), &mut positions_rad, stamp_ns, stop);
+            bus.read_cycle(
+                self.stats.bus(i),
+                &mut positions_rad,
+                &mut read_ns,
+                clock,
+                stop,
+            );
         }
         let read = positions_rad.iter().filter(|p| p.is_some()).count();
+        let stamp_ns = read_ns.iter().flatten().copied().max().unwrap_or(start_ns);
         self.stats.end_cycle(read == self.n_configured, stamp_ns);
         JointReading {
             stamp_ns,
             positions_rad,
+            read_ns,
         }
     }
 
@@ -453,7 +487,7 @@ impl DynamixelSource {
                 };
                 let mut next = Instant::now();
                 while !stop() {
-                    let reading = reader.read_cycle_until(clock(), &stop);
+                    let reading = reader.read_cycle_until(&*clock, &stop);
                     if reading.positions_rad.iter().any(Option::is_some) {
                         tx.send_replace(Some(reading));
                     }

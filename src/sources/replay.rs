@@ -160,9 +160,13 @@ fn shifted_sample(sample: &Sample, offset_ns: i64) -> Sample {
         Sample::Joints {
             stamp_ns,
             positions_rad,
+            read_ns,
         } => Sample::Joints {
             stamp_ns: stamp_ns + offset_ns,
             positions_rad: positions_rad.clone(),
+            read_ns: read_ns
+                .as_ref()
+                .map(|r| r.iter().map(|t| t + offset_ns).collect()),
         },
         Sample::Frame { stamp_ns, frame } => Sample::Frame {
             stamp_ns: stamp_ns + offset_ns,

@@ -210,7 +210,9 @@ impl fmt::Display for Rejection {
 pub enum ValueRef<'a> {
     /// Radians, model order; NaN marks a joint the servo bus did not read
     /// this cycle (the tick names it; see `docs/ros.md`, "One absent servo").
-    Joints(&'a [f32]),
+    /// With each position's own read stamp when they were not all read at
+    /// the sample's stamp (`Sample::Joints::read_ns`).
+    Joints(&'a [f32], Option<&'a [i64]>),
     Frame(&'a Frame),
     /// A camera image as the camera compressed it (not decoded here).
     Encoded(&'a [u8]),
@@ -220,7 +222,7 @@ pub enum ValueRef<'a> {
 impl ValueRef<'_> {
     pub fn kind(&self) -> StreamKind {
         match self {
-            ValueRef::Joints(_) => StreamKind::Joints,
+            ValueRef::Joints(..) => StreamKind::Joints,
             ValueRef::Frame(_) | ValueRef::Encoded(_) => StreamKind::Camera,
             ValueRef::Plan(_) => StreamKind::Plan,
         }
@@ -234,7 +236,7 @@ pub trait StreamValue: Send + Sync + 'static {
 
 impl StreamValue for Vec<f32> {
     fn value_ref(&self) -> ValueRef<'_> {
-        ValueRef::Joints(self)
+        ValueRef::Joints(self, None)
     }
 }
 
@@ -268,7 +270,11 @@ impl Sample {
     /// The value of a model-form sample, for [`validate`].
     pub fn value_ref(&self) -> ValueRef<'_> {
         match self {
-            Sample::Joints { positions_rad, .. } => ValueRef::Joints(positions_rad),
+            Sample::Joints {
+                positions_rad,
+                read_ns,
+                ..
+            } => ValueRef::Joints(positions_rad, read_ns.as_deref()),
             Sample::Frame { frame, .. } => ValueRef::Frame(frame),
             Sample::Plan { plan, .. } => ValueRef::Plan(plan),
         }
@@ -306,7 +312,7 @@ pub fn validate(
         });
     }
     match value {
-        ValueRef::Joints(j) => {
+        ValueRef::Joints(j, read_ns) => {
             if j.len() != limits.n_joints {
                 return Err(Rejection::WrongJoints {
                     what: format!("{} joints, the model has {}", j.len(), limits.n_joints),
@@ -317,6 +323,31 @@ pub fn validate(
                 return Err(Rejection::NonFinite {
                     what: format!("joint {i} is {}", j[i]),
                 });
+            }
+            if let Some(read_ns) = read_ns {
+                if read_ns.len() != j.len() {
+                    return Err(Rejection::WrongJoints {
+                        what: format!("{} read stamps for {} joints", read_ns.len(), j.len()),
+                    });
+                }
+                // Each position read: at or before the sample's stamp, and
+                // within the past the boundary admits.
+                let read = read_ns.iter().zip(j).enumerate();
+                for (i, (&t, _)) in read.filter(|(_, (_, v))| !v.is_nan()) {
+                    if t > stamp_ns {
+                        return Err(Rejection::WrongJoints {
+                            what: format!(
+                                "joint {i} read {} ms after its sample's stamp",
+                                ms(t - stamp_ns)
+                            ),
+                        });
+                    }
+                    if now_ns.saturating_sub(t) > limits.max_past_ns {
+                        return Err(Rejection::PastStamp {
+                            age_ms: ms(now_ns.saturating_sub(t)),
+                        });
+                    }
+                }
             }
         }
         ValueRef::Encoded(bytes) => {
@@ -493,7 +524,20 @@ mod tests {
     #[test]
     fn a_good_sample_of_each_stream_is_admitted() {
         let frame = Frame::solid(4, 4, [0; 3]);
-        assert_eq!(check(NOW, None, ValueRef::Joints(&[0.1, f32::NAN])), Ok(()));
+        assert_eq!(
+            check(NOW, None, ValueRef::Joints(&[0.1, f32::NAN], None)),
+            Ok(())
+        );
+        // Each position with its own read stamp, at or before the sample's;
+        // a NaN (not read) joint's stamp means nothing.
+        assert_eq!(
+            check(
+                NOW,
+                None,
+                ValueRef::Joints(&[0.1, f32::NAN], Some(&[NOW - 12_000_000, NOW + 99]))
+            ),
+            Ok(())
+        );
         assert_eq!(
             check(NOW + 100_000_000, Some(NOW), ValueRef::Frame(&frame)),
             Ok(())
@@ -513,22 +557,43 @@ mod tests {
         let j = [0.1f32, 0.2];
         let cases: Vec<(Result<(), Rejection>, &str)> = vec![
             (
-                check(NOW + 100_000_001, None, ValueRef::Joints(&j)),
+                check(NOW + 100_000_001, None, ValueRef::Joints(&j, None)),
                 "future_stamp",
             ),
             (
-                check(NOW - 1_000_000_001, None, ValueRef::Joints(&j)),
+                check(NOW - 1_000_000_001, None, ValueRef::Joints(&j, None)),
                 "past_stamp",
             ),
             (
-                check(NOW - 5, Some(NOW), ValueRef::Joints(&j)),
+                check(NOW - 5, Some(NOW), ValueRef::Joints(&j, None)),
                 "out_of_order",
             ),
             (
-                check(NOW, None, ValueRef::Joints(&[0.1, f32::INFINITY])),
+                check(NOW, None, ValueRef::Joints(&[0.1, f32::INFINITY], None)),
                 "non_finite",
             ),
-            (check(NOW, None, ValueRef::Joints(&[0.1])), "wrong_joints"),
+            (
+                check(NOW, None, ValueRef::Joints(&[0.1], None)),
+                "wrong_joints",
+            ),
+            // Read stamps: one per joint, none after the sample's stamp or
+            // further back than the boundary admits.
+            (
+                check(NOW, None, ValueRef::Joints(&j, Some(&[NOW]))),
+                "wrong_joints",
+            ),
+            (
+                check(NOW, None, ValueRef::Joints(&j, Some(&[NOW, NOW + 1]))),
+                "wrong_joints",
+            ),
+            (
+                check(
+                    NOW,
+                    None,
+                    ValueRef::Joints(&j, Some(&[NOW - 1_000_000_001, NOW])),
+                ),
+                "past_stamp",
+            ),
             (
                 check(NOW, None, ValueRef::Frame(&Frame::solid(4, 3, [0; 3]))),
                 "frame_size",

@@ -193,8 +193,16 @@ fn joint_indices(
 pub enum Sample {
     /// Joint positions, radians, model order.
     Joints {
+        /// No position in the sample was read later than this.
         stamp_ns: i64,
         positions_rad: Vec<f32>,
+        /// Per joint (model order), when its position was read, ns, where
+        /// the positions were not all read at one time (the servo buses:
+        /// one bus after the other, and a retry for the motors whose reply
+        /// was lost); `None`: every position at `stamp_ns` (a `JointState`
+        /// message, a recording). The entry of a NaN (not read) joint means
+        /// nothing.
+        read_ns: Option<Vec<i64>>,
     },
     /// A frame, already S x S.
     Frame { stamp_ns: i64, frame: Arc<Frame> },

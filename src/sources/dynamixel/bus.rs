@@ -4,8 +4,10 @@
 //! counting and once-per-kind logging of every fault.
 //!
 //! Enters: the bus's [`BusConfig`] and joints. Leaves: raw positions
-//! converted to radians into the caller's model-order slice, and counters in
-//! the bus's [`BusStats`].
+//! converted to radians into the caller's model-order slice, each with its
+//! stamp (the clock just before the request that gave it: the bus's sync
+//! read, the retry of the motors lost in it, or the motor's READ_DATA), and
+//! counters in the bus's [`BusStats`].
 
 use std::collections::HashSet;
 use std::io;
@@ -127,24 +129,27 @@ impl BusReader {
         &self.motors
     }
 
-    /// Read every motor of the bus once; write radians into `out` (model
-    /// order) and leave `None` where a motor gave nothing. `stop` is polled
-    /// between per-motor reads.
+    /// Read every motor of the bus once; write radians into `out` and the
+    /// stamp of each position into `read_ns` (both model order: `clock`
+    /// read just before the request that gave it) and leave `None` where a
+    /// motor gave nothing. `stop` is polled between per-motor reads.
     pub(crate) fn read_cycle(
         &mut self,
         stats: &BusStats,
         out: &mut [Option<f32>],
-        stamp_ns: i64,
+        read_ns: &mut [Option<i64>],
+        clock: &dyn Fn() -> i64,
         stop: &dyn Fn() -> bool,
     ) {
-        let mut raw: Vec<Option<u16>> = vec![None; self.motors.len()];
+        // Per motor (bus order): (raw position, stamp of its request).
+        let mut raw: Vec<Option<(u16, i64)>> = vec![None; self.motors.len()];
         if self.port.is_none() {
             self.try_open(stats);
         }
         if self.port.is_some() {
             match self.mode {
-                ReadMode::Sync => self.cycle_sync(stats, &mut raw),
-                ReadMode::PerMotor => self.cycle_per_motor(stats, &mut raw, stop),
+                ReadMode::Sync => self.cycle_sync(stats, &mut raw, clock),
+                ReadMode::PerMotor => self.cycle_per_motor(stats, &mut raw, clock, stop),
             }
             // A pulled USB adapter does not always show as an I/O error:
             // writes to a hung-up tty can fail as timeouts and reads see
@@ -164,7 +169,10 @@ impl BusReader {
         let mut missing = Vec::new();
         for (motor, value) in self.motors.iter().zip(&raw) {
             match value {
-                Some(value) => out[motor.index] = Some(motor.joint.raw_to_rad(*value) as f32),
+                Some((value, stamp_ns)) => {
+                    out[motor.index] = Some(motor.joint.raw_to_rad(*value) as f32);
+                    read_ns[motor.index] = Some(*stamp_ns);
+                }
                 None => missing.push(motor.joint.id),
             }
         }
@@ -179,7 +187,8 @@ impl BusReader {
                 self.note(stats, FaultKind::Missing(id), &message);
             }
         }
-        stats.end_cycle(missing, stamp_ns);
+        let stamps: Vec<Option<i64>> = raw.iter().map(|r| r.map(|(_, t)| t)).collect();
+        stats.end_cycle(missing, &stamps);
     }
 
     fn try_open(&mut self, stats: &BusStats) {
@@ -312,7 +321,12 @@ impl BusReader {
         None
     }
 
-    fn cycle_sync(&mut self, stats: &BusStats, raw: &mut [Option<u16>]) {
+    fn cycle_sync(
+        &mut self,
+        stats: &BusStats,
+        raw: &mut [Option<(u16, i64)>],
+        clock: &dyn Fn() -> i64,
+    ) {
         let Some(port) = self.port.as_mut() else {
             return;
         };
@@ -324,10 +338,11 @@ impl BusReader {
             self.config.timeout(),
             &mut self.buf,
             &mut garbage,
+            clock,
         );
         self.garbage(stats, garbage);
         match result {
-            Ok(data) => {
+            Ok((stamp_ns, data)) => {
                 self.sync_ok_since_open = true;
                 self.silent_sync_reads = 0;
                 let mut lost = Vec::new();
@@ -338,12 +353,12 @@ impl BusReader {
                         lost.push(i);
                         None
                     } else {
-                        self.checked(stats, i, value)
+                        self.checked(stats, i, value).map(|v| (v, stamp_ns))
                     };
                 }
                 if !lost.is_empty() {
                     BusStats::add(&stats.lost_replies, lost.len() as u64);
-                    self.retry_sync(stats, raw, &lost);
+                    self.retry_sync(stats, raw, &lost, clock);
                 }
             }
             Err(failure) => {
@@ -367,8 +382,15 @@ impl BusReader {
     /// answer it did not get (`FF` bytes): one SYNC_READ of just those ids.
     /// On a noisy bus a lost reply is then a lost cycle only when it is lost
     /// twice. A failure here is counted as any other; the motors stay
-    /// without a position for this cycle.
-    fn retry_sync(&mut self, stats: &BusStats, raw: &mut [Option<u16>], lost: &[usize]) {
+    /// without a position for this cycle. A position it gets is stamped
+    /// with its own request's time, not the first sync read's.
+    fn retry_sync(
+        &mut self,
+        stats: &BusStats,
+        raw: &mut [Option<(u16, i64)>],
+        lost: &[usize],
+        clock: &dyn Fn() -> i64,
+    ) {
         let ids: Vec<u8> = lost.iter().map(|&i| self.motors[i].joint.id).collect();
         let Ok(request) =
             protocol::sync_read_request(PRESENT_POSITION.addr, PRESENT_POSITION.len, &ids)
@@ -386,16 +408,17 @@ impl BusReader {
             self.config.timeout(),
             &mut self.buf,
             &mut garbage,
+            clock,
         );
         self.garbage(stats, garbage);
         match result {
-            Ok(data) => {
+            Ok((stamp_ns, data)) => {
                 for (k, &i) in lost.iter().enumerate() {
                     let value = u16::from_le_bytes([data[2 * k], data[2 * k + 1]]);
                     if value == 0xFFFF {
                         BusStats::add(&stats.lost_replies, 1);
                     } else {
-                        raw[i] = self.checked(stats, i, value);
+                        raw[i] = self.checked(stats, i, value).map(|v| (v, stamp_ns));
                     }
                 }
             }
@@ -406,7 +429,8 @@ impl BusReader {
     fn cycle_per_motor(
         &mut self,
         stats: &BusStats,
-        raw: &mut [Option<u16>],
+        raw: &mut [Option<(u16, i64)>],
+        clock: &dyn Fn() -> i64,
         stop: &dyn Fn() -> bool,
     ) {
         for (i, slot) in raw.iter_mut().enumerate() {
@@ -425,6 +449,7 @@ impl BusReader {
                 }
             };
             let timeout = self.config.timeout();
+            let stamp_ns = clock();
             let answer = port
                 .set_timeout(timeout)
                 .map_err(|e| Failure::Lost(e.to_string()))
@@ -454,7 +479,7 @@ impl BusReader {
                     }
                     if params.len() == usize::from(PRESENT_POSITION.len) {
                         let value = u16::from_le_bytes([params[0], params[1]]);
-                        *slot = self.checked(stats, i, value);
+                        *slot = self.checked(stats, i, value).map(|v| (v, stamp_ns));
                     } else {
                         let reason = format!("{} data byte(s) instead of 2", params.len());
                         self.fail(stats, Failure::BadPacket(reason), &what);
@@ -514,6 +539,8 @@ fn drain(port: &mut dyn SerialPort) -> Result<usize, Failure> {
 }
 
 /// [`drain`], then [`sync_read`]: the stale bytes drained count as garbage.
+/// Returns the data with `clock` read just before the request was sent
+/// (the stamp of every position in it).
 fn drained_sync_read(
     port: &mut dyn SerialPort,
     request: &[u8],
@@ -521,9 +548,11 @@ fn drained_sync_read(
     timeout: Duration,
     buf: &mut Vec<u8>,
     garbage: &mut usize,
-) -> Result<Vec<u8>, Failure> {
+    clock: &dyn Fn() -> i64,
+) -> Result<(i64, Vec<u8>), Failure> {
     *garbage += drain(port)?;
-    sync_read(port, request, n_ids, timeout, buf, garbage)
+    let stamp_ns = clock();
+    sync_read(port, request, n_ids, timeout, buf, garbage).map(|data| (stamp_ns, data))
 }
 
 /// One USB2AX SYNC_READ of 2 bytes from `n_ids` motors: send `request`,

@@ -95,7 +95,7 @@ pub struct BusStats {
     motors: Vec<(u8, String)>,
     /// Per motor (read order): cycles in which it gave no position.
     motor_missed: Vec<AtomicU64>,
-    /// Per motor: stamp of the latest cycle in which it gave a position.
+    /// Per motor: stamp of its latest position (see the snapshot's field).
     motor_last_read_ns: Vec<AtomicI64>,
     sync_read_configured: bool,
     last_error: Mutex<Option<String>>,
@@ -165,19 +165,26 @@ impl BusStats {
         }
     }
 
-    pub(crate) fn end_cycle(&self, missing_ids: Vec<u8>, stamp_ns: i64) {
+    /// One cycle of the bus done: `read_ns` per motor (the order of
+    /// `motors`), the stamp of the request that gave its position (`None`:
+    /// it gave none, and is in `missing_ids`).
+    pub(crate) fn end_cycle(&self, missing_ids: Vec<u8>, read_ns: &[Option<i64>]) {
         Self::add(&self.cycles, 1);
         Self::add(&self.missing_motor_reads, missing_ids.len() as u64);
         for (i, (id, _)) in self.motors.iter().enumerate() {
-            if missing_ids.contains(id) {
-                Self::add(&self.motor_missed[i], 1);
-            } else {
-                self.motor_last_read_ns[i].store(stamp_ns, Ordering::Relaxed);
+            match read_ns.get(i).copied().flatten() {
+                Some(stamp_ns) if !missing_ids.contains(id) => {
+                    self.motor_last_read_ns[i].store(stamp_ns, Ordering::Relaxed);
+                }
+                _ => Self::add(&self.motor_missed[i], 1),
             }
         }
         if missing_ids.is_empty() {
             Self::add(&self.ok_cycles, 1);
-            self.last_ok_ns.store(stamp_ns, Ordering::Relaxed);
+            // The oldest read of the cycle: every position is at least this recent.
+            if let Some(oldest) = read_ns.iter().flatten().min() {
+                self.last_ok_ns.store(*oldest, Ordering::Relaxed);
+            }
         }
         if let Ok(mut ids) = self.missing_ids.lock() {
             *ids = missing_ids;
@@ -278,15 +285,17 @@ pub struct BusStatsSnapshot {
     /// Silent USB2AX sync reads on a freshly opened port (the probe that
     /// finds a plain adapter, also counted in `timeouts`).
     pub sync_probe_timeouts: u64,
-    /// Stamp of the latest cycle in which every motor answered.
+    /// Stamp of the latest cycle in which every motor answered (its
+    /// oldest read).
     pub last_ok_ns: Option<i64>,
     /// (id, joint name) of every motor of the bus.
     pub motors: Vec<(u8, String)>,
     /// Per motor (the order of `motors`): cycles in which it gave no
     /// position (missing, `0xFFFF` in a sync read, any failure).
     pub motor_missed: Vec<u64>,
-    /// Per motor: stamp of the latest cycle in which it gave a position
-    /// (`None`: never).
+    /// Per motor: stamp of its latest position, taken just before the
+    /// request that gave it (the bus's sync read, the retry of the motors
+    /// lost in it, or the motor's READ_DATA; `None`: never).
     pub motor_last_read_ns: Vec<Option<i64>>,
     /// Whether the config asked for the USB2AX sync read.
     pub sync_read_configured: bool,
@@ -393,7 +402,8 @@ pub struct ServoStatsSnapshot {
     pub cycles: u64,
     /// Cycles in which every configured motor gave a position.
     pub complete_cycles: u64,
-    /// Stamp of the latest complete cycle.
+    /// Stamp of the latest complete cycle (its reading's `stamp_ns`: the
+    /// newest read of it).
     pub last_complete_ns: Option<i64>,
     /// Per bus, in config order.
     pub buses: Vec<BusStatsSnapshot>,
