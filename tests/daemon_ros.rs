@@ -28,9 +28,9 @@
 //!   the bus, every level returns to OK;
 //! - both buses noisy (seeded faults of each motor's reply: 5% dropped, 2%
 //!   bad checksums, 5% garbage before it) with a ROS 2 planner: at least
-//!   95% of the forecasts valid on held joint values (at most one joint
-//!   gap, which only a loaded machine's late read cycles make, left out of
-//!   the share), every position on
+//!   95% of the forecasts valid on held joint values, no joint gap waited
+//!   out (a brief one, of a loaded machine's late thread, is bridged and
+//!   counted in the share), every position on
 //!   `/joint_states` one a motor held, each motor's age and missed-read
 //!   share on its bus status and the failing ones named at WARN; a bus
 //!   unplugged makes every forecast from 0.5 s on NaN.
@@ -1244,50 +1244,47 @@ async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
         "{} ticks on the noisy buses (at least 19 s)",
         noisy.len()
     );
-    // A joint older than joints_stale_ms costs the window (the stale tick,
-    // then 2 s of refill). Measured on an idle 2-core machine: none in most
-    // 20 s runs, two in one of seven (118 and 132 ms: read cycles that
-    // lose the same motor several times in a row). Up to two such gaps are
-    // allowed and left out of the share; a third fails, and so does the
-    // share outside them.
+    // A joint older than joints_stale_ms makes its ticks NaN. Each
+    // position is stamped when its bus was asked for it and the bound is
+    // 150 ms (three lost read cycles in a row plus the hand-over), so the
+    // noise alone makes none; under the former 100 ms bound and cycle-start
+    // stamps, two lost cycles in a row made 118 and 132 ms in one of seven
+    // idle runs, each a 2 s refill. A brief gap (a late thread) is bridged:
+    // its own ticks NaN, counted in the share. A gap that has to be waited
+    // out (the window refilling) fails.
+    let stale = |i: usize| noisy[i].reason.starts_with("joints stale");
     let gaps: Vec<usize> = (0..noisy.len())
-        .filter(|&i| {
-            noisy[i].reason.starts_with("joints stale")
-                && (i == 0 || !noisy[i - 1].reason.starts_with("joints stale"))
-        })
+        .filter(|&i| stale(i) && (i == 0 || !stale(i - 1)))
         .collect();
-    let stale: Vec<&str> = gaps.iter().map(|&i| noisy[i].reason.as_str()).collect();
-    assert!(
-        gaps.len() <= 2,
-        "{} joint gaps on the noisy buses: {stale:?}",
-        gaps.len()
+    let stale_ticks = (0..noisy.len()).filter(|&i| stale(i)).count();
+    let refilling: Vec<&str> = noisy
+        .iter()
+        .filter(|l| l.reason.contains("joints back, window refilling"))
+        .map(|l| l.reason.as_str())
+        .collect();
+    let valid = noisy.iter().filter(|l| l.valid).count();
+    eprintln!(
+        "noisy buses: {valid} of {} forecasts valid after the ring filled ({:.1}%), {} joint gaps ({stale_ticks} stale ticks: {:?}), {} ticks refilling",
+        noisy.len(),
+        100.0 * valid as f64 / noisy.len() as f64,
+        gaps.len(),
+        gaps.iter().map(|&i| noisy[i].reason.as_str()).collect::<Vec<_>>(),
+        refilling.len()
     );
-    let mut counted: Vec<&Line> = Vec::with_capacity(noisy.len());
-    let mut from = 0;
-    for &g in &gaps {
-        let g = g.max(from);
-        let back = (g..noisy.len())
-            .find(|&i| noisy[i].valid)
-            .unwrap_or(noisy.len());
-        eprintln!(
-            "a joint gap on the noisy buses ({}), {} ticks until valid again",
-            noisy[g].reason,
-            back - g
-        );
-        counted.extend(&noisy[from..g]);
-        from = back;
-    }
-    counted.extend(&noisy[from.min(noisy.len())..]);
-    let valid = counted.iter().filter(|l| l.valid).count();
-    let invalid: Vec<&str> = counted
+    assert!(
+        refilling.is_empty(),
+        "a joint gap on the noisy buses was waited out: {:?}",
+        &refilling[..refilling.len().min(3)]
+    );
+    let invalid: Vec<&str> = noisy
         .iter()
         .filter(|l| !l.valid)
         .map(|l| l.reason.as_str())
         .collect();
     assert!(
-        valid as f64 >= 0.95 * counted.len() as f64,
-        "{valid} of {} forecasts valid on the noisy buses (outside a joint gap); not valid: {:?}",
-        counted.len(),
+        valid as f64 >= 0.95 * noisy.len() as f64,
+        "{valid} of {} forecasts valid on the noisy buses; not valid: {:?}",
+        noisy.len(),
         &invalid[..invalid.len().min(20)]
     );
     assert!(
@@ -1369,6 +1366,14 @@ async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
     let model = status_named(&noisy_diag, ": model").expect("model status");
     let lower = status_named(&noisy_diag, ": servo bus lower").expect("lower bus status");
     assert_eq!(kv(model, "valid").as_deref(), Some("true"), "{model}");
+    // The joints stream counts the gaps: none waited out.
+    let joints_status = status_named(&noisy_diag, ": joints").expect("joints status");
+    assert_eq!(kv(joints_status, "max_held_ticks").as_deref(), Some("3"));
+    assert_eq!(
+        kv(joints_status, "gaps_refilled").as_deref(),
+        Some("0"),
+        "{joints_status}"
+    );
     assert_eq!(level(lower), 1, "{lower}");
     assert!(
         lower["message"]
