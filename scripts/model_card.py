@@ -130,7 +130,7 @@ def keep_results(reports: Path, keep: Path) -> None:
         label = d.name[len("eval-"):].rsplit("-", 1)[0]
         for run, record in split_report(r).items():
             write_json(keep / "runs" / f"{label}--{run}.json", record)
-    for pattern in ("warnings-*.json", "*-thresholds.json", "*-stats.json", "selected.txt"):
+    for pattern in ("warnings-*.json", "warn2s-*.json", "*-thresholds.json", "*-stats.json", "selected.txt"):
         for f in reports.glob(pattern):
             if f.name.endswith(".partial"):
                 continue
@@ -335,6 +335,33 @@ def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     return rows
 
 
+def latch_2s_rows(reports: Path) -> list[str]:
+    """The latch on the 2 s output of the paper-trained networks (warn2s-RUN-*.json)."""
+    rows = []
+    for choose in sorted(reports.glob("warn2s-*-choose.json")):
+        name = choose.name[len("warn2s-"):-len("-choose.json")]
+        test = load(reports / f"warn2s-{name}-set-test.json")
+        walks = [load(reports / f"warn2s-{name}-walk-{s}.json") for s in ("train", "test")]
+        if not test:
+            continue
+        t = test["grid"][0]
+        alarms = sum(w["grid"][0]["false_alarms"] for w in walks if w)
+        minutes = sum(w["grid"][0]["non_falling_minutes"] for w in walks if w)
+        lead = "-" if t["lead_median_s"] is None else f"{t['lead_median_s']:.2f} s"
+        p10 = "-" if t.get("lead_p10_s") is None else f"{t['lead_p10_s']:.2f} s"
+        early = t.get("warned_by_0_5s")
+        rows.append(f"| {name} | {t['trigger']:.2f} / {t['release']:.2f} | {t['warned']}/{t['falling_episodes']} | "
+                    f"{early if early is not None else '-'} | {lead} | {p10} | "
+                    f"{t['false_alarms']} in {t['non_falling_minutes']:.1f} min | "
+                    f"{alarms} in {minutes:.1f} min |")
+    if not rows:
+        return []
+    return ["### The latch on the 2 s output (paper-trained networks; thresholds chosen at 2 s on validation)", "",
+            "| run | trigger / release | test falls warned | warned >= 0.5 s ahead | lead median | lead p10 | "
+            "alarms on non-falling test episodes | alarms on the walking set |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |", *rows, ""]
+
+
 def cause_lead_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     rows = []
     for cause in ("collision", "perturbation"):
@@ -468,7 +495,8 @@ def main() -> int:
                          f"{fmt_ms(full['accuracy']) if full else '-'} |")
         lines.append("")
     lines += ["### The daemon's warnings (`fall-guard warnings`, streaming, thresholds chosen on validation)", "",
-              *warnings_rows(kept, selected), "", *warning_checks(kept, selected), ""]
+              *warnings_rows(kept, selected), "", *warning_checks(kept, selected), "",
+              *latch_2s_rows(kept)]
     a.out.write_text("\n".join(lines) + "\n")
     return 0
 

@@ -318,6 +318,21 @@ step_evaluate() {
       warnings_one "$abl" "$name" "$target"
     done <"$REPORTS/selected.txt"
   done
+  # The latch on the 2 s output of the paper-trained networks (the lowest
+  # validation loss of each): thresholds chosen at 2 s on the validation falls
+  # and walks, then the test split and the walking set.
+  local g best bestloss loss
+  for g in emp-pp mp-pp p-pp; do
+    best=""; bestloss=""
+    for name in $(plan | awk '{print $1}' | grep -E "^$g-s[0-9]+$"); do
+      [ -e "$RUNS/$name.cal.bpk" ] || continue
+      loss=$(val_loss "$RUNS/$name.cal.bpk")
+      if [ -z "$best" ] || awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; then
+        best=$name; bestloss=$loss
+      fi
+    done
+    [ -n "$best" ] && warnings_2s "$best"
+  done
   # By fall cause: EMP and MP on the test falls of one cause with the test walks.
   local cause
   for cause in collision perturbation; do
@@ -364,6 +379,33 @@ step_evaluate() {
     for tag in gen1 gen4; do
       [ -e "$REPORTS/$tag-$abl.bpk" ] && eval_group "$tag-$abl" paper "$REPORTS/$tag-$abl.bpk"
     done
+  done
+}
+
+# warnings_2s RUN: reports/warn2s-RUN-{choose,set-test,walk-train,walk-test}.json.
+warnings_2s() {
+  local name=$1 model="$RUNS/$1.cal.bpk" trig rel out target
+  out="$REPORTS/warn2s-$name-choose.json"
+  if ! newer "$out" "$model"; then
+    log "warnings $name at 2 s: thresholds on validation falls and walks"
+    "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose --horizon-ms 2000 \
+      --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
+    mv "$out.partial" "$out"
+  fi
+  read -r trig rel < <("$PY" -c "
+import json, sys
+r = json.load(open(sys.argv[1]))
+c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
+print(c['trigger'], c['release'])" "$out")
+  for target in set:test walk:train walk:test; do
+    local set=${target%%:*} split=${target##*:} data=$SET
+    [ "$set" = walk ] && data=$WALK
+    local o="$REPORTS/warn2s-$name-$set-$split.json"
+    newer "$o" "$model" "$out" && continue
+    log "warnings $name at 2 s on $set $split (trigger $trig, release $rel)"
+    "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms 2000 --trigger "$trig" \
+      --release "$rel" --out "$o.partial" >>"$LOG" 2>&1
+    mv "$o.partial" "$o"
   done
 }
 
