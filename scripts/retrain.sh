@@ -87,7 +87,7 @@ plan() {
     echo "mp-pp-s$s --ablation MP --seed $s --protocol paper"
     echo "p-pp-s$s --ablation P --seed $s --protocol paper"
   done
-  echo "emp-pp-s1 --ablation EMP --seed 1 --protocol paper"
+  for s in 1 2; do echo "emp-pp-s$s --ablation EMP --seed $s --protocol paper"; done
   echo "ep-s1 --ablation EP --seed 1"
   for s in 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
   for s in 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
