@@ -314,17 +314,26 @@ def checks(evals: dict) -> list[str]:
     return out or ["(no paper-protocol reports yet)"]
 
 
+def test_and_walking(reports: Path, stem: str) -> tuple[dict, int, float] | None:
+    """The test split's latch figures of STEM-set-test.json, with the false alarms and minutes of
+    the walking set's train and test splits (STEM-walk-*.json); None without the test report."""
+    test = load(reports / f"{stem}-set-test.json")
+    if not test:
+        return None
+    walks = [load(reports / f"{stem}-walk-{s}.json") for s in ("train", "test")]
+    alarms = sum(w["grid"][0]["false_alarms"] for w in walks if w)
+    minutes = sum(w["grid"][0]["non_falling_minutes"] for w in walks if w)
+    return test["grid"][0], alarms, minutes
+
+
 def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     rows = ["| network | trigger / release | test falls warned | warned >= 0.5 s ahead | lead median | "
             "false alarms / min (walking set) | walking minutes |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for abl, name in selected:
-        test = load(reports / f"warnings-{abl}-set-test.json")
-        walks = [load(reports / f"warnings-{abl}-walk-{s}.json") for s in ("train", "test")]
-        if not test:
+        figures = test_and_walking(reports, f"warnings-{abl}")
+        if not figures:
             continue
-        t = test["grid"][0]
-        alarms = sum(w["grid"][0]["false_alarms"] for w in walks if w)
-        minutes = sum(w["grid"][0]["non_falling_minutes"] for w in walks if w)
+        t, alarms, minutes = figures
         early = t.get("warned_by_0_5s_share")
         early_txt = "-" if early is None else f"{100 * early:.0f}%"
         lead_txt = "-" if t["lead_median_s"] is None else f"{t['lead_median_s']:.2f} s"
@@ -340,13 +349,10 @@ def latch_2s_rows(reports: Path) -> list[str]:
     rows = []
     for choose in sorted(reports.glob("warn2s-*-choose.json")):
         name = choose.name[len("warn2s-"):-len("-choose.json")]
-        test = load(reports / f"warn2s-{name}-set-test.json")
-        walks = [load(reports / f"warn2s-{name}-walk-{s}.json") for s in ("train", "test")]
-        if not test:
+        figures = test_and_walking(reports, f"warn2s-{name}")
+        if not figures:
             continue
-        t = test["grid"][0]
-        alarms = sum(w["grid"][0]["false_alarms"] for w in walks if w)
-        minutes = sum(w["grid"][0]["non_falling_minutes"] for w in walks if w)
+        t, alarms, minutes = figures
         lead = "-" if t["lead_median_s"] is None else f"{t['lead_median_s']:.2f} s"
         p10 = "-" if t.get("lead_p10_s") is None else f"{t['lead_p10_s']:.2f} s"
         early = t.get("warned_by_0_5s")
