@@ -230,21 +230,28 @@ step_calibrate() {
   done
 }
 
+# best_run GROUP: "RUN LOSS" of the calibrated seed of GROUP (GROUP-sN in the
+# plan) with the lowest validation loss; nothing when none is calibrated.
+best_run() {
+  local best="" bestloss="" name loss
+  for name in $(plan | awk '{print $1}' | grep -E "^$1-s[0-9]+$"); do
+    [ -e "$RUNS/$name.cal.bpk" ] || continue
+    loss=$(val_loss "$RUNS/$name.cal.bpk")
+    if [ -z "$best" ] || awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; then
+      best=$name; bestloss=$loss
+    fi
+  done
+  [ -n "$best" ] && echo "$best $bestloss"
+  return 0
+}
+
 step_select() {
-  local abl best bestloss name loss cal
+  local abl best
   restore_shipped
   : >"$REPORTS/selected.txt.partial"
   for abl in emp mp ep p; do
-    best=""; bestloss=""
-    for name in $(plan | awk '{print $1}' | grep -E "^$abl-s[0-9]+$"); do
-      cal="$RUNS/$name.cal.bpk"
-      [ -e "$cal" ] || continue
-      loss=$(val_loss "$cal")
-      if [ -z "$best" ] || awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; then
-        best=$name; bestloss=$loss
-      fi
-    done
-    [ -n "$best" ] && echo "$abl $best $bestloss" >>"$REPORTS/selected.txt.partial"
+    best=$(best_run "$abl")
+    [ -n "$best" ] && echo "$abl $best" >>"$REPORTS/selected.txt.partial"
   done
   mv "$REPORTS/selected.txt.partial" "$REPORTS/selected.txt"
   log "select: $(tr '\n' ';' <"$REPORTS/selected.txt")"
@@ -321,17 +328,10 @@ step_evaluate() {
   # The latch on the 2 s output of the paper-trained networks (the lowest
   # validation loss of each): thresholds chosen at 2 s on the validation falls
   # and walks, then the test split and the walking set.
-  local g best bestloss loss
+  local g best
   for g in emp-pp mp-pp p-pp; do
-    best=""; bestloss=""
-    for name in $(plan | awk '{print $1}' | grep -E "^$g-s[0-9]+$"); do
-      [ -e "$RUNS/$name.cal.bpk" ] || continue
-      loss=$(val_loss "$RUNS/$name.cal.bpk")
-      if [ -z "$best" ] || awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; then
-        best=$name; bestloss=$loss
-      fi
-    done
-    [ -n "$best" ] && warnings_2s "$best"
+    best=$(best_run "$g")
+    [ -n "$best" ] && warnings_2s "${best%% *}"
   done
   # By fall cause: EMP and MP on the test falls of one cause with the test walks.
   local cause
@@ -382,9 +382,39 @@ step_evaluate() {
   done
 }
 
-# warnings_2s RUN: reports/warn2s-RUN-{choose,set-test,walk-train,walk-test}.json.
+# chosen_pair THRESHOLDS.json: "TRIGGER RELEASE", the chosen pair or, when none
+# keeps within the budget, the grid's highest trigger.
+chosen_pair() {
+  "$PY" -c "
+import json, sys
+r = json.load(open(sys.argv[1]))
+c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
+print(c['trigger'], c['release'])" "$1"
+}
+
+# latch_warnings MODEL THRESHOLDS.json HORIZON_MS SET:SPLIT OUT: the daemon's
+# path (`fall-guard warnings`) with the pair chosen in THRESHOLDS.json, on the
+# data set, the walking set (no choice is made on it) or the test falls of one
+# cause with the test walks; skipped while OUT is newer than both inputs.
+latch_warnings() {
+  local model=$1 pairs=$2 horizon=$3 target=$4 out=$5 trig rel
+  local set=${target%%:*} split=${target##*:} data=$SET
+  case $set in
+    walk) data=$WALK ;;
+    collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
+  esac
+  newer "$out" "$model" "$pairs" && return 0
+  read -r trig rel < <(chosen_pair "$pairs")
+  log "warnings $(basename "$model" .cal.bpk) at $horizon ms on $set $split (trigger $trig, release $rel)"
+  "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms "$horizon" --trigger "$trig" \
+    --release "$rel" --out "$out.partial" >>"$LOG" 2>&1
+  mv "$out.partial" "$out"
+}
+
+# warnings_2s RUN: the latch on RUN's 2 s output, its pair chosen at 2 s on the
+# validation falls and walks: reports/warn2s-RUN-{choose,set-test,walk-*}.json.
 warnings_2s() {
-  local name=$1 model="$RUNS/$1.cal.bpk" trig rel out target
+  local name=$1 model="$RUNS/$1.cal.bpk" out target
   out="$REPORTS/warn2s-$name-choose.json"
   if ! newer "$out" "$model"; then
     log "warnings $name at 2 s: thresholds on validation falls and walks"
@@ -392,46 +422,16 @@ warnings_2s() {
       --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
     mv "$out.partial" "$out"
   fi
-  read -r trig rel < <("$PY" -c "
-import json, sys
-r = json.load(open(sys.argv[1]))
-c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
-print(c['trigger'], c['release'])" "$out")
   for target in set:test walk:train walk:test; do
-    local set=${target%%:*} split=${target##*:} data=$SET
-    [ "$set" = walk ] && data=$WALK
-    local o="$REPORTS/warn2s-$name-$set-$split.json"
-    newer "$o" "$model" "$out" && continue
-    log "warnings $name at 2 s on $set $split (trigger $trig, release $rel)"
-    "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms 2000 --trigger "$trig" \
-      --release "$rel" --out "$o.partial" >>"$LOG" 2>&1
-    mv "$o.partial" "$o"
+    latch_warnings "$model" "$out" 2000 "$target" "$REPORTS/warn2s-$name-${target/:/-}.json"
   done
 }
 
-# warnings_one ABL RUN SET:SPLIT: the daemon's path (`fall-guard warnings`)
-# with the network's chosen pair (or the grid's highest trigger when none
-# keeps within the budget). SET: the data set, the walking set (no choice is
-# made on it) or the test falls of one cause with the test walks.
+# warnings_one ABL RUN SET:SPLIT: the latch on RUN's 1 s output with its
+# ablation's thresholds (step_thresholds).
 warnings_one() {
-  local abl=$1 name=$2 target=$3
-  local model="$RUNS/$name.cal.bpk" trig rel
-  local set=${target%%:*} split=${target##*:} data=$SET
-  case $set in
-    walk) data=$WALK ;;
-    collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
-  esac
-  local out="$REPORTS/warnings-$abl-$set-$split.json"
-  newer "$out" "$model" "$REPORTS/$abl-thresholds.json" && return 0
-  read -r trig rel < <("$PY" -c "
-import json, sys
-r = json.load(open(sys.argv[1]))
-c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
-print(c['trigger'], c['release'])" "$REPORTS/$abl-thresholds.json")
-  log "warnings $abl on $set $split (trigger $trig, release $rel)"
-  "$FG" warnings --model "$model" --data "$data" --split "$split" --trigger "$trig" --release "$rel" \
-    --out "$out.partial" >>"$LOG" 2>&1
-  mv "$out.partial" "$out"
+  latch_warnings "$RUNS/$2.cal.bpk" "$REPORTS/$1-thresholds.json" 1000 "$3" \
+    "$REPORTS/warnings-$1-${3/:/-}.json"
 }
 
 step_card() {
