@@ -21,6 +21,7 @@
 //! ([`PerStream`] of [`StreamTap`]s). `record` keeps one more stream, the
 //! camera as compressed (`Arc<msgs::CompressedImage>`).
 
+use std::collections::VecDeque;
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -93,6 +94,54 @@ pub struct DeviceDiagnostics {
     /// One line for a human that names the fault.
     pub message: String,
     pub values: Vec<(String, String)>,
+}
+
+/// Seconds over which error counts are judged (levels, `errors_in_window`).
+pub const ERROR_WINDOW_S: u64 = 10;
+
+/// Counters sampled at each diagnostics report, for figures over the last
+/// window (`ERROR_WINDOW_S` in the caller's time unit `S`): the reports
+/// kept are the newest one at or before the window's start and those
+/// after it.
+#[derive(Debug, Clone)]
+pub struct CounterWindow<S, T> {
+    history: VecDeque<(S, T)>,
+}
+
+impl<S, T> Default for CounterWindow<S, T> {
+    fn default() -> Self {
+        CounterWindow {
+            history: VecDeque::new(),
+        }
+    }
+}
+
+impl<S, T> CounterWindow<S, T>
+where
+    S: Copy + PartialOrd + std::ops::Sub<Output = S>,
+{
+    /// Adds the counters `now` at time `t` (non-decreasing), forgetting the
+    /// reports older than the newest one at or before `t - window`.
+    pub fn push(&mut self, t: S, window: S, now: T) {
+        self.history.push_back((t, now));
+        while self.history.len() > 1 && self.history[1].0 <= t - window {
+            self.history.pop_front();
+        }
+    }
+
+    /// The report at the start of the window that ends at `t`, `(its time,
+    /// its counters)`: the figures to subtract. `None` while the run is
+    /// younger than `window` (count from the start, all zeros).
+    pub fn window_start(&self, t: S, window: S) -> Option<&(S, T)> {
+        self.history
+            .front()
+            .filter(|(start, _)| *start <= t - window)
+    }
+
+    /// The counters of the latest report.
+    pub fn latest(&self) -> Option<&T> {
+        self.history.back().map(|(_, c)| c)
+    }
 }
 
 /// The three input streams of the model.
@@ -476,6 +525,24 @@ impl<T> StreamTap<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The window starts at the newest report at or before `t - window`;
+    /// before one exists (a run younger than the window), there is none.
+    #[test]
+    fn counter_window_subtracts_the_report_at_its_start() {
+        let mut w: CounterWindow<i64, u64> = CounterWindow::default();
+        for (t, total) in [(0, 1), (4, 3), (9, 3)] {
+            w.push(t, 10, total);
+            assert_eq!(w.window_start(t, 10), None, "t {t}");
+        }
+        w.push(10, 10, 6);
+        assert_eq!(w.window_start(10, 10), Some(&(0, 1)));
+        w.push(15, 10, 8);
+        assert_eq!(w.window_start(15, 10), Some(&(4, 3)));
+        w.push(30, 10, 9);
+        assert_eq!(w.window_start(30, 10), Some(&(15, 8)));
+        assert_eq!(w.latest(), Some(&9));
+    }
 
     #[test]
     fn tap_sees_only_the_latest_admitted_sample_and_counts_all() {

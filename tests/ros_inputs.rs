@@ -1,7 +1,8 @@
-//! A real rclpy publisher -> fall-guard's ROS 2 sources: `JointState`,
+//! A real rclpy publisher -> fall-guard's ROS 2 source: `JointState`,
 //! `JointTrajectory` (published once before fall-guard starts, so only the
 //! transient-local subscription can get it) and `CompressedImage` arrive in
-//! the latest-value watch channels with the values rclpy sent.
+//! their streams' feeds, converted at the source's edge (joints and plan in
+//! model order, the image as received), with the values rclpy sent.
 //!
 //! Needs the rclpy venv (`bash tests/ros/setup_venv.sh`); skipped loudly
 //! without it unless FALL_GUARD_REQUIRE_ROS is set.
@@ -9,14 +10,17 @@
 #[path = "ros/support.rs"]
 mod support;
 
-use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use fall_guard::msgs::{CompressedImage, Header, JointState};
+use fall_guard::msgs::CompressedImage;
+use fall_guard::pipeline::window::WindowSpec;
 use fall_guard::ros::RosNode;
-use fall_guard::sources::ros::{default_topics, InputMessage, Latest, RosInputs};
-use fall_guard::streams::Stamped;
+use fall_guard::shutdown::ShutdownTrigger;
+use fall_guard::sources::ros::{subscribe, CameraFeed, RosFeeds};
+use fall_guard::streams::input::InputLimits;
+use fall_guard::streams::sample::Sample;
+use fall_guard::streams::{stream, Stamped, StreamKind, StreamTap};
 use support::{domain_id, localhost_settings, rclpy_python, Peer};
 
 // The scenario of `ros_peer.py publish` (same numbers there).
@@ -29,40 +33,33 @@ fn joint_positions(i: i64) -> [f64; 3] {
     [0.01 * i as f64, -0.5 + 0.001 * i as f64, 1.25]
 }
 
-fn stamp_ns(header: &Header) -> i64 {
-    i64::from(header.stamp.sec) * 1_000_000_000 + i64::from(header.stamp.nanosec)
-}
-
-/// Waits until the channel holds a message with `seq >= n`.
-async fn wait_count(
-    rx: &mut Latest,
+/// Waits until the stream's latest sample has `seq >= n`.
+async fn wait_count<T>(
+    tap: &mut StreamTap<T>,
     n: u64,
     timeout: Duration,
-) -> Option<Arc<Stamped<InputMessage>>> {
-    let wait = rx.wait_for(|v| v.as_ref().is_some_and(|r| r.seq >= n));
-    match tokio::time::timeout(timeout, wait).await {
-        Ok(Ok(v)) => v.clone(),
-        _ => None,
-    }
+) -> Option<Arc<Stamped<T>>> {
+    let wait = async {
+        loop {
+            if let Some(s) = tap.latest().filter(|s| s.seq >= n) {
+                return Some(s);
+            }
+            tap.changed().await?;
+        }
+    };
+    tokio::time::timeout(timeout, wait).await.ok().flatten()
 }
 
-fn joint_state(m: &Stamped<InputMessage>) -> &JointState {
+fn joints(m: &Stamped<Sample>) -> &[f32] {
     match &m.value {
-        InputMessage::Joints(msg) => msg,
-        other => panic!("not a JointState: {other:?}"),
-    }
-}
-
-fn image(m: &Stamped<InputMessage>) -> &CompressedImage {
-    match &m.value {
-        InputMessage::Camera(msg) => msg,
-        other => panic!("not a CompressedImage: {other:?}"),
+        Sample::Joints { positions_rad, .. } => positions_rad,
+        other => panic!("not joints: {other:?}"),
     }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn rclpy_inputs_arrive_in_the_watch_channels() {
-    let Some(python) = rclpy_python("rclpy_inputs_arrive_in_the_watch_channels") else {
+async fn rclpy_inputs_arrive_in_their_feeds() {
+    let Some(python) = rclpy_python("rclpy_inputs_arrive_in_their_feeds") else {
         return;
     };
     let domain = domain_id(2);
@@ -80,14 +77,42 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
 
     let started = Instant::now();
     let mut node = RosNode::start(&localhost_settings(domain, "/", "fall_guard")).expect("node");
-    let inputs = RosInputs::start(&mut node, &default_topics()).expect("subscriptions");
-    let mut joints = inputs.latest.joints.clone().expect("subscribed");
-    let mut plans = inputs.latest.plan.clone().expect("subscribed");
-    let mut camera = inputs.latest.camera.clone().expect("subscribed");
+    let spec = WindowSpec {
+        n_ticks: 1,
+        max_horizon_ticks: 0,
+        rate_hz: 30.0,
+        joint_names: JOINTS.map(str::to_owned).to_vec(),
+        frame_size: 0,
+    };
+    // The scenario's sensor stamps are near the epoch: the boundary takes
+    // any past stamp here.
+    let limits = InputLimits {
+        max_past_ns: i64::MAX / 2,
+        ..InputLimits::shapes(JOINTS.len(), 0)
+    };
+    let (joints_feed, mut joints_tap) = stream::<Sample>(StreamKind::Joints, limits.clone());
+    let (plan_feed, mut plans) = stream::<Sample>(StreamKind::Plan, limits.clone());
+    let (camera_feed, mut camera) = stream::<Arc<CompressedImage>>(StreamKind::Camera, limits);
+    let topics = fall_guard::ros::TopicsConfig::default();
+    let feeds = RosFeeds {
+        joints: Some((topics.input(StreamKind::Joints).to_owned(), joints_feed)),
+        camera: Some((
+            topics.input(StreamKind::Camera).to_owned(),
+            CameraFeed::Images(camera_feed),
+        )),
+        plan: Some((topics.input(StreamKind::Plan).to_owned(), plan_feed)),
+    };
+    let (trigger, shutdown) = ShutdownTrigger::new();
+    let tasks = subscribe(&mut node, feeds, &spec, &shutdown).expect("subscriptions");
 
     let timeout = Duration::from_secs(30);
     let ((js_first, js_after), (plan, plan_after), (image_first, image_after)) = tokio::join!(
-        async { (wait_count(&mut joints, 1, timeout).await, started.elapsed()) },
+        async {
+            (
+                wait_count(&mut joints_tap, 1, timeout).await,
+                started.elapsed(),
+            )
+        },
         async { (wait_count(&mut plans, 1, timeout).await, started.elapsed()) },
         async { (wait_count(&mut camera, 1, timeout).await, started.elapsed()) },
     );
@@ -98,47 +123,53 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
     let image_first =
         image_first.unwrap_or_else(|| panic!("no CompressedImage in 30 s; publisher: {stderr}"));
 
-    // The plan, field by field.
-    let InputMessage::Plan(p) = &plan.value else {
-        panic!("not a JointTrajectory: {plan:?}");
+    // The plan, field by field, in model order (the spec's order is the
+    // message's), stamped at its reception.
+    let Sample::Plan { plan: p, stamp_ns } = &plan.value else {
+        panic!("not a plan: {plan:?}");
     };
-    assert_eq!(stamp_ns(&p.header), PLAN_STAMP_NS);
-    assert_eq!(p.header.frame_id, "base_link");
-    assert_eq!(p.joint_names, JOINTS);
-    assert_eq!(p.points.len(), 4);
-    for (k, point) in p.points.iter().enumerate() {
+    assert_eq!(p.stamp_ns, PLAN_STAMP_NS);
+    assert_eq!(p.n_joints, JOINTS.len());
+    assert_eq!(p.times_ns.len(), 4);
+    for k in 0..4 {
         let k_f = k as f64;
-        assert_eq!(point.positions, vec![0.1 * k_f, 0.2 * k_f, -0.3 * k_f]);
-        assert!(point.velocities.is_empty());
-        let t_ns = i64::from(point.time_from_start.sec) * 1_000_000_000
-            + i64::from(point.time_from_start.nanosec);
-        assert_eq!(t_ns, k as i64 * PLAN_STEP_NS);
+        assert_eq!(p.times_ns[k], PLAN_STAMP_NS + k as i64 * PLAN_STEP_NS);
+        assert_eq!(
+            p.positions_rad[3 * k..3 * k + 3],
+            [0.1 * k_f, 0.2 * k_f, -0.3 * k_f]
+        );
     }
+    assert_eq!(plan.stamp_ns, *stamp_ns);
+    assert!(
+        *stamp_ns > PLAN_STAMP_NS,
+        "a plan is stamped at its reception"
+    );
     assert_eq!(plan.seq, 1, "the plan was published once");
 
     // Joint states keep streaming: wait for a few more, check first and latest.
-    let js_later = wait_count(&mut joints, js_first.seq + 5, timeout)
+    let js_later = wait_count(&mut joints_tap, js_first.seq + 5, timeout)
         .await
         .expect("joint states keep coming");
     for js in [&js_first, &js_later] {
-        let m = joint_state(js);
-        let i = (stamp_ns(&m.header) - 1_000_000_000) / 33_000_000;
-        assert_eq!(stamp_ns(&m.header), 1_000_000_000 + i * 33_000_000);
-        assert_eq!(m.name, JOINTS);
-        assert_eq!(m.position, joint_positions(i).to_vec());
-        assert_eq!(m.velocity, vec![0.5, 0.0, -0.5]);
-        assert!(m.effort.is_empty());
+        let i = (js.stamp_ns - 1_000_000_000) / 33_000_000;
+        assert_eq!(
+            js.stamp_ns,
+            1_000_000_000 + i * 33_000_000,
+            "the header stamp"
+        );
+        let expected = joint_positions(i).map(|v| v as f32);
+        assert_eq!(joints(js), expected);
     }
-    assert!(stamp_ns(&joint_state(&js_later).header) > stamp_ns(&joint_state(&js_first).header));
-    assert!(js_later.stamp_ns >= js_first.stamp_ns);
+    assert!(js_later.stamp_ns > js_first.stamp_ns);
 
-    // The image: format and bytes exactly as sent.
+    // The image: format and bytes exactly as sent, at its header stamp.
     let image_later = wait_count(&mut camera, image_first.seq + 3, timeout)
         .await
         .expect("images keep coming");
     for img in [&image_first, &image_later] {
-        let m = image(img);
-        let i = (stamp_ns(&m.header) - 1_000_000_000) / 33_000_000;
+        let m = &img.value;
+        let i = (img.stamp_ns - 1_000_000_000) / 33_000_000;
+        assert_eq!(m.header.stamp.to_ns(), img.stamp_ns);
         assert_eq!(m.format, "jpeg");
         assert_eq!(m.header.frame_id, "head_camera");
         let mut expected = JPEG_BYTES.to_vec();
@@ -146,13 +177,22 @@ async fn rclpy_inputs_arrive_in_the_watch_channels() {
         assert_eq!(m.data, expected);
     }
 
-    for (kind, undecodable) in inputs.errors.iter() {
-        assert_eq!(undecodable.load(Ordering::Relaxed), 0, "{kind}");
+    for tap_stats in [joints_tap.stats(), plans.stats(), camera.stats()] {
+        let s = tap_stats.snapshot();
+        assert_eq!((s.errors, s.rejected), (0, 0), "{s:?}");
     }
     let counts = (
-        joints.borrow().as_ref().map_or(0, |r| r.seq),
-        camera.borrow().as_ref().map_or(0, |r| r.seq),
+        joints_tap.latest().map_or(0, |r| r.seq),
+        camera.latest().map_or(0, |r| r.seq),
     );
+    // The subscriptions end on shutdown.
+    trigger.fire();
+    for task in tasks {
+        tokio::time::timeout(Duration::from_secs(5), task)
+            .await
+            .expect("a subscription ends on shutdown")
+            .expect("no panic");
+    }
     eprintln!(
         "ros_inputs: domain {domain}: first JointState {js_after:?}, latched JointTrajectory \
          {plan_after:?}, first CompressedImage {image_after:?} after the Rust node started; \

@@ -1,5 +1,5 @@
-//! The servo source as the daemon runs it: a thread publishing on a watch
-//! channel, stopped by the shutdown signal; and its config as the daemon
+//! The servo source as the daemon runs it: a thread offering into the
+//! joints stream's feed, stopped by the shutdown signal; and its config as the daemon
 //! parses it (TOML, unknown keys rejected, errors naming the key).
 
 use std::time::Duration;
@@ -9,10 +9,33 @@ use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
 use fall_guard::sources::dynamixel::{
     DynamixelConfig, DynamixelError, DynamixelSource, ServoReader,
 };
+use fall_guard::streams::input::InputLimits;
+use fall_guard::streams::sample::Sample;
+use fall_guard::streams::{stream, StreamKind, StreamTap};
 use tokio::sync::watch;
 
+/// The joints of the stream's next sample that `pick` accepts.
+async fn next_joints(
+    tap: &mut StreamTap<Sample>,
+    pick: impl Fn(&[f32]) -> bool,
+) -> Option<(i64, Vec<f32>)> {
+    let wait = async {
+        loop {
+            let s = tap.changed().await.expect("reader alive");
+            if let Sample::Joints { positions_rad, .. } = &s.value {
+                if pick(positions_rad) {
+                    return (s.stamp_ns, positions_rad.clone());
+                }
+            }
+        }
+    };
+    tokio::time::timeout(Duration::from_secs(5), wait)
+        .await
+        .ok()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn source_publishes_readings_survives_a_fault_and_stops_on_shutdown() {
+async fn source_offers_readings_survives_a_fault_and_stops_on_shutdown() {
     let dir = tempfile::tempdir().unwrap();
     let table = JointTable::poppy_humanoid();
     let buses = PoppyBuses::start(&table, dir.path()).unwrap();
@@ -23,41 +46,43 @@ async fn source_publishes_readings_survives_a_fault_and_stops_on_shutdown() {
 
     let (shutdown_tx, shutdown_rx) = watch::channel(false);
     let clock = std::sync::Arc::new(fall_guard::sources::dynamixel::system_clock_ns);
-    let source = DynamixelSource::spawn_with_clock(&config, &table, shutdown_rx, clock).unwrap();
-    let mut readings = source.readings.clone();
+    let (feed, mut tap) = stream::<Sample>(
+        StreamKind::Joints,
+        InputLimits::shapes(table.joints().len(), 0),
+    );
+    let source =
+        DynamixelSource::spawn_with_clock(&config, &table, feed, shutdown_rx, clock).unwrap();
 
-    let complete = tokio::time::timeout(Duration::from_secs(5), async {
-        loop {
-            readings.changed().await.expect("reader alive");
-            let reading = readings.borrow_and_update().clone();
-            if let Some(reading) = reading.filter(|r| r.is_complete()) {
-                return reading;
-            }
-        }
-    })
-    .await
-    .expect("a complete reading within 5 s");
+    let (complete_ns, complete) = next_joints(&mut tap, |p| p.iter().all(|v| v.is_finite()))
+        .await
+        .expect("a complete reading within 5 s");
     let expected = table.joints()[head_y].raw_to_rad(400) as f32;
-    assert!((complete.positions_rad[head_y].unwrap() - expected).abs() < 1e-6);
-    assert!(complete.stamp_ns > 0);
+    assert!((complete[head_y] - expected).abs() < 1e-6);
+    assert!(complete_ns > 0);
 
-    // The upper bus goes silent: readings keep coming with the lower bus only.
+    // The upper bus goes silent: readings keep coming with the lower bus
+    // only (NaN for the upper bus's joints), each counted incomplete.
     buses.upper.set_fault(Some(Fault::NoReply));
-    let partial = tokio::time::timeout(Duration::from_secs(5), async {
-        loop {
-            readings.changed().await.expect("reader alive");
-            let reading = readings.borrow_and_update().clone();
-            if let Some(reading) = reading.filter(|r| r.positions_rad[head_y].is_none()) {
-                return reading;
-            }
-        }
-    })
-    .await
-    .expect("a reading without the upper bus");
-    assert!(partial.positions_rad[..10].iter().all(Option::is_some));
-    assert!(partial.stamp_ns > complete.stamp_ns);
+    let (partial_ns, partial) = next_joints(&mut tap, |p| p[head_y].is_nan())
+        .await
+        .expect("a reading without the upper bus");
+    assert!(partial[..10].iter().all(|v| v.is_finite()));
+    assert!(partial_ns > complete_ns);
     assert!(source.stats.snapshot().buses[1].timeouts > 0);
+    let errors = tap.stats().snapshot().error_kinds;
+    assert!(
+        errors
+            .iter()
+            .any(|(kind, n)| kind == "incomplete read" && *n > 0),
+        "{errors:?}"
+    );
     buses.upper.set_fault(None);
+
+    // The bus counters and one status per bus reach the stream's diagnostics.
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    let snapshot = tap.stats().snapshot();
+    assert!(snapshot.errors > 0, "{snapshot:?}");
+    assert_eq!(snapshot.devices.len(), 2, "{snapshot:?}");
 
     shutdown_tx.send(true).unwrap();
     let stats = source.stats.clone();

@@ -39,16 +39,16 @@ use crate::outputs::OutputBus;
 use crate::pipeline::forecast::{Inference, ModelSet};
 use crate::pipeline::tick::{TickCounters, TickLoop};
 use crate::pipeline::window::WindowSpec;
+use crate::robot::JointTable;
 use crate::shutdown::{Shutdown, ShutdownTrigger};
+use crate::sources::dynamixel::DynamixelSource;
 use crate::sources::replay::ReplayRecording;
 use crate::streams::input::Gate;
 use crate::streams::sample::Sample;
 use crate::streams::{stream, PerStream, StreamFeed, StreamKind, StreamStats, StreamTap};
 
 use super::ros_bridge::RosBridge;
-use super::{
-    input_limits, latch_for, robot_joints, servo_bridge, tick_settings, LiveStreams, ServiceError,
-};
+use super::{input_limits, latch_for, robot_joints, tick_settings, LiveStreams, ServiceError};
 
 /// What the daemon runs on: the one difference between the commands.
 #[derive(Debug, Clone, PartialEq)]
@@ -400,7 +400,7 @@ fn start_sources(
 ) -> Result<Vec<SourceHandle>, ServiceError> {
     let mut handles = Vec::new();
     if config.streams.joints == JointsSource::Dynamixel {
-        handles.push(servo_bridge::start(
+        handles.push(start_servo(
             config,
             streams.feeds.joints.clone(),
             shutdown.subscribe(),
@@ -443,6 +443,27 @@ fn start_sources(
         handles.extend(tasks.into_iter().map(SourceHandle::Task));
     }
     Ok(handles)
+}
+
+/// Start the servo reader (`[dynamixel]`) offering into the joints `feed`
+/// until `shutdown`.
+fn start_servo(
+    config: &Config,
+    feed: StreamFeed<Sample>,
+    shutdown: Shutdown,
+) -> Result<SourceHandle, ServiceError> {
+    let section = config
+        .dynamixel
+        .as_ref()
+        .ok_or_else(|| ServiceError::Usage(format!("{}: [dynamixel] missing", config.origin)))?;
+    DynamixelSource::spawn(
+        section,
+        &JointTable::poppy_humanoid(),
+        feed,
+        shutdown.watch(),
+    )
+    .map(|source| SourceHandle::Thread(source.into_thread()))
+    .map_err(|e| ServiceError::Usage(format!("{}: [dynamixel].{e}", config.origin)))
 }
 
 /// A running source.

@@ -391,7 +391,6 @@ pub mod bench;
 pub mod lifecycle;
 pub mod replay;
 pub mod ros_bridge;
-pub mod servo_bridge;
 
 pub use lifecycle::{
     shutdown_on_signals, Forecasting, Inputs, Running, SourceHandle, Stopped, What,

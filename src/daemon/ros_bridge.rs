@@ -1,17 +1,13 @@
 //! The daemon's side of the ROS 2 seam: one node ([`RosBridge`]) whose
-//! publishers (`outputs::ros`) are fed from the [`OutputBus`], and whose
-//! subscriptions (`sources::ros`) are turned into model-form samples and
-//! offered to the live [`StreamFeed`]s (the input boundary,
-//! `sources/input.rs`), converted once per message with the same functions
-//! a replay uses (`window::joints_from_msg`, `frame_from_msg`,
-//! `Plan::from_msg`); a conversion error is a typed rejection there.
+//! publishers (`outputs::ros`) are fed from the [`OutputBus`], and on
+//! which the ROS 2 source (`sources::ros`) subscribes, offering each
+//! message, converted at its edge, into the live [`StreamFeed`]s.
 //!
 //! The node honours `ROS_DOMAIN_ID` and `ROS_AUTOMATIC_DISCOVERY_RANGE`
 //! (`ROS_LOCALHOST_ONLY`), unless `[ros].domain_id` / `[ros].localhost_only`
 //! set them in the config, and the DDS Security variables
 //! (`ROS_SECURITY_*`, `ros::security`) with the enclave `[ros].enclave`.
 
-use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use tokio::sync::broadcast::error::RecvError;
@@ -27,10 +23,9 @@ use crate::pipeline::forecast::ModelSet;
 use crate::pipeline::window::WindowSpec;
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
 use crate::shutdown::Shutdown;
-use crate::sources::ros::{InputErrors, InputMessage, InputTopics, Latest, RosInputs};
-use crate::streams::input::{InputLimits, Rejection, StreamValue};
-use crate::streams::sample::{frame_from_msg, joints_from_msg, Plan, Sample};
-use crate::streams::{PerStream, Stamped, StreamFeed, StreamKind, StreamTap};
+use crate::sources::ros::{CameraFeed, RosFeeds};
+use crate::streams::sample::Sample;
+use crate::streams::{PerStream, StreamFeed, StreamKind, StreamTap};
 
 impl From<RosError> for ServiceError {
     fn from(e: RosError) -> Self {
@@ -58,10 +53,10 @@ pub fn settings(config: &Config) -> Result<RosSettings, RosError> {
     })
 }
 
-/// The daemon's ROS 2 node; drop it after the tasks it started have ended.
+/// The daemon's ROS 2 node; shut it down after the tasks it started
+/// (publisher, subscriptions) have ended.
 pub struct RosBridge {
     node: RosNode,
-    inputs: Option<RosInputs>,
 }
 
 impl RosBridge {
@@ -70,16 +65,13 @@ impl RosBridge {
         let settings = settings(config)?;
         Ok(RosBridge {
             node: RosNode::start(&settings)?,
-            inputs: None,
         })
     }
 
-    /// Leave the DDS domain: subscriptions first, then the node (see
-    /// [`RosNode::shutdown`]). Call after the tasks it started have ended.
+    /// Leave the DDS domain (see [`RosNode::shutdown`]). Call after the
+    /// tasks it started have ended: the subscriptions end with theirs.
     pub async fn shutdown(self) {
-        let RosBridge { node, inputs } = self;
-        drop(inputs);
-        node.shutdown().await;
+        self.node.shutdown().await;
     }
 
     /// Publish what the bus carries until `shutdown`; with `joints_out`
@@ -148,10 +140,11 @@ impl RosBridge {
         }))
     }
 
-    /// Subscribe to the topics of the streams `from_ros` selects and feed
-    /// those of `streams` until `shutdown`. `camera_raw` (`record`): the
-    /// camera's messages as received, not decoded, offered to that feed
-    /// (their stamps checked at the same boundary).
+    /// Subscribe to the topics of the streams `from_ros` selects, each
+    /// offering into its feed of `streams` (`sources::ros`), until
+    /// `shutdown`. `camera_raw` (`record`): the camera's images as
+    /// received, not decoded, go to that feed (their stamps checked at the
+    /// same boundary).
     pub fn start_inputs(
         &mut self,
         config: &Config,
@@ -162,37 +155,24 @@ impl RosBridge {
         shutdown: Shutdown,
     ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
         let t = &config.ros.topics;
-        // `record` reads the camera topic for its raw feed.
-        let topics: InputTopics = PerStream::from_fn(|kind| {
-            let raw = kind == StreamKind::Camera && camera_raw.is_some();
-            (from_ros[kind] || raw).then(|| t.input(kind).to_owned())
-        });
-        let inputs = RosInputs::start(&mut self.node, &topics)?;
-        let mut tasks = Vec::new();
-        for (kind, latest) in inputs.latest.iter() {
-            let Some(rx) = latest.clone().filter(|_| from_ros[kind]) else {
-                continue;
-            };
-            let spec = spec.clone();
-            let feed = streams.feeds[kind].clone();
-            let limits = feed.limits().clone();
-            let errors = Arc::clone(&inputs.errors);
-            tasks.push(forward(rx, feed, errors, shutdown.clone(), move |m| {
-                model_sample(m, &spec, &limits)
-            }));
-        }
-        if let (Some(rx), Some(feed)) = (inputs.latest.camera.clone(), camera_raw) {
-            let errors = Arc::clone(&inputs.errors);
-            tasks.push(forward(rx, feed, errors, shutdown, |m| match &m.value {
-                InputMessage::Camera(image) => (
-                    header_stamp(&image.header, m.stamp_ns),
-                    Ok(Arc::new(image.clone())),
-                ),
-                other => (m.stamp_ns, Err(wrong_stream(other, StreamKind::Camera))),
-            }));
-        }
-        self.inputs = Some(inputs);
-        Ok(tasks)
+        let topic = |kind: StreamKind| t.input(kind).to_owned();
+        let sample_feed =
+            |kind: StreamKind| from_ros[kind].then(|| (topic(kind), streams.feeds[kind].clone()));
+        let camera = match camera_raw {
+            Some(raw) => Some((topic(StreamKind::Camera), CameraFeed::Images(raw))),
+            None => sample_feed(StreamKind::Camera).map(|(t, f)| (t, CameraFeed::Frames(f))),
+        };
+        let feeds = RosFeeds {
+            joints: sample_feed(StreamKind::Joints),
+            camera,
+            plan: sample_feed(StreamKind::Plan),
+        };
+        Ok(crate::sources::ros::subscribe(
+            &mut self.node,
+            feeds,
+            spec,
+            &shutdown,
+        )?)
     }
 }
 
@@ -226,112 +206,6 @@ pub fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> Option
 fn publish_tick(outputs: &RosOutputs, imminent: &mut Option<bool>, f: &ForecastOutput) {
     let _ = outputs.publish_forecast(&published_probabilities(f));
     let _ = publish_imminent_change(imminent, f.imminent, |v| outputs.publish_fall_imminent(v));
-}
-
-/// A ROS 2 message in model form (the conversions a replay uses), with
-/// its stamp on the tick clock: a sensor reading's header stamp (its
-/// reception when the header has none); a plan's reception, since a plan
-/// is known from the moment it arrives. An image too large for `limits`
-/// is rejected before it is decoded.
-fn model_sample(
-    m: &Stamped<InputMessage>,
-    spec: &WindowSpec,
-    limits: &InputLimits,
-) -> (i64, Result<Sample, Rejection>) {
-    let (stamp_ns, sample) = match &m.value {
-        InputMessage::Joints(msg) => {
-            let stamp_ns = header_stamp(&msg.header, m.stamp_ns);
-            let sample =
-                joints_from_msg(msg, &spec.joint_names).map(|positions_rad| Sample::Joints {
-                    stamp_ns,
-                    positions_rad,
-                    read_ns: None,
-                });
-            (stamp_ns, sample)
-        }
-        InputMessage::Camera(msg) => {
-            let stamp_ns = header_stamp(&msg.header, m.stamp_ns);
-            if let Err(too_large) = limits.image_size(msg.data.len()) {
-                return (stamp_ns, Err(too_large));
-            }
-            let sample = frame_from_msg(msg, spec.frame_size).map(|frame| Sample::Frame {
-                stamp_ns,
-                frame: Arc::new(frame),
-            });
-            (stamp_ns, sample)
-        }
-        InputMessage::Plan(msg) => {
-            let stamp_ns = m.stamp_ns;
-            let sample = Plan::from_msg(msg, &spec.joint_names).map(|plan| Sample::Plan {
-                stamp_ns,
-                plan: Arc::new(plan),
-            });
-            (stamp_ns, sample)
-        }
-    };
-    (stamp_ns, sample.map_err(|e| Rejection::from_sample(&e)))
-}
-
-/// A header's stamp, or `received_ns` when the sender left it zero.
-fn header_stamp(header: &Header, received_ns: i64) -> i64 {
-    let stamp = header.stamp.to_ns();
-    if stamp > 0 {
-        stamp
-    } else {
-        received_ns
-    }
-}
-
-/// A message that arrived on another stream's subscription (never, by
-/// construction of [`RosInputs`]).
-fn wrong_stream(m: &InputMessage, expected: StreamKind) -> Rejection {
-    Rejection::BadMessage {
-        what: format!("a {} message on the {expected} stream", m.kind()),
-    }
-}
-
-/// Convert each new message of `rx` once and offer it to `feed`; the
-/// samples DDS could not deserialize (counted per stream by the
-/// subscription, `errors`) go to the stream's errors (`dds_undecodable`),
-/// polled twice a second.
-fn forward<T, F>(
-    mut rx: Latest,
-    feed: StreamFeed<T>,
-    errors: Arc<InputErrors>,
-    mut shutdown: Shutdown,
-    convert: F,
-) -> JoinHandle<()>
-where
-    T: StreamValue,
-    F: Fn(&Stamped<InputMessage>) -> (i64, Result<T, Rejection>) + Send + 'static,
-{
-    tokio::spawn(async move {
-        let mut poll = tokio::time::interval(std::time::Duration::from_millis(500));
-        let mut undecodable = 0;
-        loop {
-            tokio::select! {
-                changed = rx.changed() => {
-                    if changed.is_err() {
-                        feed.stats().set_state("subscription ended");
-                        return;
-                    }
-                }
-                _ = poll.tick() => {
-                    let n = errors[feed.kind()].load(Ordering::Relaxed);
-                    if n != undecodable {
-                        undecodable = n;
-                        feed.stats().set_external(n, vec![("dds_undecodable".into(), n.to_string())]);
-                    }
-                    continue;
-                }
-                () = shutdown.recv() => return,
-            }
-            let latest = rx.borrow_and_update().clone();
-            let Some(received) = latest else { continue };
-            let (stamp_ns, value) = convert(&received);
-            let _ = feed.offer(stamp_ns, value);
-        }
-    })
 }
 
 #[cfg(test)]

@@ -9,8 +9,10 @@
 //! (radians in pypot's convention, model order, `None` for a motor that gave
 //! nothing; each position stamped with the clock just before the request
 //! that gave it, so a bus read later in the cycle, or a motor read by the
-//! retry, carries its own time) on a `tokio::sync::watch` channel, and as
-//! counters in [`ServoStats`] for `/diagnostics`.
+//! retry, carries its own time), offered straight into the joints stream's
+//! feed as a `Sample::Joints` (`health.rs`, [`joints_sample`]), and as
+//! counters in [`ServoStats`], which become the stream's bus statuses on
+//! `/diagnostics` ([`ServoHealth`]).
 //!
 //! Faults never stop the reader: a timeout, a bad checksum, garbage bytes
 //! (skipped up to the next `FF FF`), a servo error bit or a position out of
@@ -46,6 +48,7 @@
 mod bus;
 #[cfg(any(test, feature = "test-kits"))]
 pub mod emulator;
+mod health;
 pub mod protocol;
 mod stats;
 
@@ -60,7 +63,10 @@ use tokio::sync::watch;
 use tracing::{info, warn};
 
 use crate::robot::JointTable;
+use crate::streams::sample::Sample;
+use crate::streams::StreamFeed;
 use bus::{BusMotor, BusReader};
+pub use health::{bus_status, joints_sample, servo_details, BusJudgement, ServoHealth};
 pub use stats::{BusStats, BusStatsSnapshot, ServoErrorKind, ServoStats, ServoStatsSnapshot};
 
 fn default_rate_hz() -> f64 {
@@ -424,56 +430,64 @@ impl ServoReader {
     }
 }
 
+/// How often the bus counters become the joint stream's diagnostics.
+const HEALTH_PERIOD: Duration = Duration::from_millis(500);
+
 /// The running servo source: a blocking thread that reads all buses at
-/// `rate_hz` and publishes each cycle that read at least one motor.
+/// `rate_hz` and offers each cycle that read at least one motor into the
+/// joints [`StreamFeed`] (as [`joints_sample`]: NaN for a motor that did
+/// not answer, counted as the stream's `incomplete read` error), and every
+/// 500 ms sets the stream's bus counters and one [`DeviceDiagnostics`](crate::streams::DeviceDiagnostics) per
+/// bus ([`ServoHealth`]).
 ///
 /// ```no_run
 /// # use fall_guard::robot::JointTable;
 /// # use fall_guard::sources::dynamixel::{DynamixelConfig, DynamixelSource};
+/// # use fall_guard::streams::{stream, StreamKind, input::InputLimits};
+/// # use fall_guard::streams::sample::Sample;
 /// let (shutdown_tx, shutdown_rx) = tokio::sync::watch::channel(false);
 /// let config = DynamixelConfig::poppy("/dev/ttyACM0", "/dev/ttyACM1");
-/// let source = DynamixelSource::spawn(&config, &JointTable::poppy_humanoid(), shutdown_rx)?;
-/// let mut readings = source.readings.clone();   // await readings.changed() in a task
-/// let stats = source.stats.snapshot();          // for /diagnostics
+/// let (feed, tap) = stream::<Sample>(StreamKind::Joints, InputLimits::shapes(25, 0));
+/// let source = DynamixelSource::spawn(&config, &JointTable::poppy_humanoid(), feed, shutdown_rx)?;
+/// let latest = tap.latest();                    // or await tap.changed() in a task
+/// let stats = source.stats.snapshot();          // the raw bus counters
 /// shutdown_tx.send(true).ok();
 /// source.join();
 /// # Ok::<(), fall_guard::sources::dynamixel::DynamixelError>(())
 /// ```
 pub struct DynamixelSource {
-    /// Latest reading; `None` until a cycle has read at least one motor.
-    /// Cycles that read nothing (all ports gone) are not published, so the
-    /// value's `stamp_ns` ages and staleness shows.
-    pub readings: watch::Receiver<Option<JointReading>>,
-    /// Counters for `/diagnostics`.
+    /// Counters of the buses (the stream's diagnostics are made from them).
     pub stats: Arc<ServoStats>,
     thread: JoinHandle<()>,
 }
 
 impl DynamixelSource {
-    /// Validate `config` against `table` and start the reader thread, stamping
-    /// readings with [`system_clock_ns`]. The thread stops when `shutdown`
-    /// becomes true, when its sender is dropped, or when every receiver of
-    /// `readings` is dropped.
+    /// Validate `config` against `table` and start the reader thread,
+    /// stamping readings with [`system_clock_ns`]. The thread stops when
+    /// `shutdown` becomes true or its sender is dropped.
     pub fn spawn(
         config: &DynamixelConfig,
         table: &JointTable,
+        feed: StreamFeed<Sample>,
         shutdown: watch::Receiver<bool>,
     ) -> Result<DynamixelSource, DynamixelError> {
-        Self::spawn_with_clock(config, table, shutdown, Arc::new(system_clock_ns))
+        Self::spawn_with_clock(config, table, feed, shutdown, Arc::new(system_clock_ns))
     }
 
-    /// [`DynamixelSource::spawn`] with the daemon's own clock.
+    /// [`DynamixelSource::spawn`] with the daemon's own clock (the
+    /// readings' stamps and the input boundary's time).
     pub fn spawn_with_clock(
         config: &DynamixelConfig,
         table: &JointTable,
+        feed: StreamFeed<Sample>,
         shutdown: watch::Receiver<bool>,
         clock: Clock,
     ) -> Result<DynamixelSource, DynamixelError> {
         let mut reader = ServoReader::new(config, table)?;
         let stats = reader.stats();
-        let (tx, rx) = watch::channel(None);
         let period = Duration::from_secs_f64(1.0 / config.rate_hz);
         let thread_stats = Arc::clone(&stats);
+        let mut health = ServoHealth::new(config.warn_missed_share);
         let thread = std::thread::Builder::new()
             .name("servo-reader".into())
             .spawn(move || {
@@ -481,15 +495,36 @@ impl DynamixelSource {
                     period_ms = period.as_secs_f64() * 1e3,
                     "servo reader started"
                 );
-                let stop = || {
-                    // Err: the shutdown sender is gone, which means stop too.
-                    shutdown.has_changed().is_err() || *shutdown.borrow() || tx.is_closed()
+                let started = Instant::now();
+                let mut reported: Option<Instant> = None;
+                let mut report_health = || {
+                    if reported.is_some_and(|t| t.elapsed() < HEALTH_PERIOD) {
+                        return;
+                    }
+                    reported = Some(Instant::now());
+                    let snapshot = thread_stats.snapshot();
+                    let (errors, details) = servo_details(&snapshot);
+                    feed.stats().set_external(errors, details);
+                    let buses = health.update(started.elapsed().as_secs_f64(), clock(), snapshot);
+                    feed.stats().set_devices(buses);
                 };
+                // Err: the shutdown sender is gone, which means stop too.
+                let stop = || shutdown.has_changed().is_err() || *shutdown.borrow();
                 let mut next = Instant::now();
                 while !stop() {
+                    report_health();
                     let reading = reader.read_cycle_until(&*clock, &stop);
                     if reading.positions_rad.iter().any(Option::is_some) {
-                        tx.send_replace(Some(reading));
+                        if !reading.is_complete() {
+                            let missing =
+                                reading.positions_rad.iter().filter(|p| p.is_none()).count();
+                            feed.error(
+                                "incomplete read",
+                                &format_args!("{missing} joints not read this cycle"),
+                            );
+                        }
+                        let _ =
+                            feed.offer_at(clock(), reading.stamp_ns, Ok(joints_sample(&reading)));
                     }
                     next += period;
                     let now = Instant::now();
@@ -510,11 +545,7 @@ impl DynamixelSource {
                 thread_stats.set_stopped();
                 info!("servo reader stopped");
             })?;
-        Ok(DynamixelSource {
-            readings: rx,
-            stats,
-            thread,
-        })
+        Ok(DynamixelSource { stats, thread })
     }
 
     /// Wait for the reader thread to end (after shutdown). Ports are closed
@@ -528,5 +559,10 @@ impl DynamixelSource {
     /// Whether the reader thread has ended.
     pub fn is_finished(&self) -> bool {
         self.thread.is_finished()
+    }
+
+    /// The reader thread, to be joined by the caller after shutdown.
+    pub fn into_thread(self) -> JoinHandle<()> {
+        self.thread
     }
 }

@@ -1,132 +1,185 @@
 //! Input streams from ROS 2: `/joint_states`, `/planned_trajectory` and
 //! `/head_camera/image_raw/compressed`, each subscribed with the QoS of
-//! `docs/ros.md` and handed on as the latest value in a
-//! `tokio::sync::watch` channel, never queued.
+//! `docs/ros.md`, converted at this edge and offered straight into its
+//! stream's feed (the input boundary numbers and stamps it; nothing is
+//! queued here).
 //!
-//! Messages enter from DDS on one tokio task per topic; they leave unchanged
-//! (the same `msgs.rs` structs a replay reads from MCAP, so one conversion
-//! serves live and replay: the service's bridge converts them into the
-//! tick's streams) as an [`InputMessage`] in a [`Stamped`], with the
-//! reception time as its stamp and a running count as its `seq`.
-//! Undecodable samples are counted per stream and logged once.
+//! One tokio task per topic takes each message as DDS hands it over and
+//! converts it with the functions a replay uses (`streams::sample`:
+//! [`joints_from_msg`], [`frame_from_msg`], [`Plan::from_msg`]); a
+//! conversion error is offered as its typed [`Rejection`], counted at the
+//! boundary. The stamp is a sensor message's header stamp (its reception
+//! when the header has none) and a plan's reception, since a plan is known
+//! from the moment it arrives. Samples DDS could not deserialize are the
+//! stream's `dds_undecodable` count, logged once.
 //!
-//! Per stream ([`StreamKind`]): its topic ([`InputTopics`]), its type and
-//! QoS ([`subscribe`]), its undecodable count ([`InputErrors`]).
+//! `record` takes the camera's images as they came, not decoded
+//! ([`CameraFeed::Images`]), with their stamps checked at the same
+//! boundary.
 
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
 
 use futures::{pin_mut, StreamExt};
 use ros2_client::Subscription;
-use tokio::sync::watch;
+use tokio::task::JoinHandle;
 
-use crate::msgs::{CompressedImage, JointState, JointTrajectory};
+use crate::msgs::{CompressedImage, Header, JointState, JointTrajectory};
+use crate::pipeline::window::WindowSpec;
 use crate::ros::{qos, RosError, RosNode};
-use crate::streams::{PerStream, Stamped, StreamKind};
+use crate::shutdown::Shutdown;
+use crate::streams::input::{InputLimits, Rejection, StreamValue};
+use crate::streams::sample::{frame_from_msg, joints_from_msg, Plan, Sample};
+use crate::streams::StreamFeed;
 
 pub const JOINT_STATE: &str = "sensor_msgs/msg/JointState";
 pub const JOINT_TRAJECTORY: &str = "trajectory_msgs/msg/JointTrajectory";
 pub const COMPRESSED_IMAGE: &str = "sensor_msgs/msg/CompressedImage";
 
-/// One message of an input stream as it arrived; the variant is the stream.
-#[derive(Debug, Clone, PartialEq)]
-pub enum InputMessage {
-    Joints(JointState),
-    Camera(CompressedImage),
-    Plan(JointTrajectory),
+/// Where the camera's images go.
+#[derive(Debug, Clone)]
+pub enum CameraFeed {
+    /// Decoded to the networks' frames (`run`).
+    Frames(StreamFeed<Sample>),
+    /// As received, not decoded (`record`).
+    Images(StreamFeed<Arc<CompressedImage>>),
 }
 
-impl InputMessage {
-    pub fn kind(&self) -> StreamKind {
-        match self {
-            InputMessage::Joints(_) => StreamKind::Joints,
-            InputMessage::Camera(_) => StreamKind::Camera,
-            InputMessage::Plan(_) => StreamKind::Plan,
-        }
-    }
+/// The streams read from ROS 2, each with its topic (ROS names: relative
+/// ones resolve under the node namespace) and the feed its messages go
+/// into; `None` leaves that stream to another source (the servo bus, the
+/// V4L2 camera) or to none.
+#[derive(Debug, Clone, Default)]
+pub struct RosFeeds {
+    pub joints: Option<(String, StreamFeed<Sample>)>,
+    pub camera: Option<(String, CameraFeed)>,
+    pub plan: Option<(String, StreamFeed<Sample>)>,
 }
 
-/// The latest message of a stream, stamped at reception (system clock, ns
-/// since the Unix epoch: the clock of ROS header stamps) and numbered from
-/// 1 (`seq`); `None` until the first one arrives.
-pub type Latest = watch::Receiver<Option<Arc<Stamped<InputMessage>>>>;
-
-/// Which topic each stream subscribes to (ROS names: relative ones resolve
-/// under the node namespace); `None` leaves that stream to another source
-/// (the servo bus, the V4L2 camera).
-pub type InputTopics = PerStream<Option<String>>;
-
-/// Every stream on its default topic (`[ros.topics]`, see `docs/ros.md`).
-pub fn default_topics() -> InputTopics {
-    let topics = crate::ros::TopicsConfig::default();
-    PerStream::from_fn(|kind| Some(topics.input(kind).to_owned()))
-}
-
-/// Samples per stream that arrived but could not be decoded.
-pub type InputErrors = PerStream<AtomicU64>;
-
-/// The running subscriptions. Dropping it stops them.
-pub struct RosInputs {
-    /// The latest message of each subscribed stream.
-    pub latest: PerStream<Option<Latest>>,
-    pub errors: Arc<InputErrors>,
-    tasks: Vec<tokio::task::JoinHandle<()>>,
-}
-
-impl RosInputs {
-    /// Subscribes to the configured topics and spawns one forwarding task per
-    /// topic on the current tokio runtime.
-    pub fn start(node: &mut RosNode, topics: &InputTopics) -> Result<RosInputs, RosError> {
-        let runtime = tokio::runtime::Handle::try_current().map_err(|_| RosError::NoRuntime)?;
-        let errors = Arc::new(InputErrors::default());
-        let mut tasks = Vec::new();
-        let mut latest = PerStream::default();
-        for (kind, topic) in topics.iter() {
-            let Some(topic) = topic else { continue };
-            let (rx, task) = subscribe(node, &runtime, kind, topic, Arc::clone(&errors))?;
-            tasks.push(task);
-            latest[kind] = Some(rx);
-        }
-        Ok(RosInputs {
-            latest,
-            errors,
-            tasks,
-        })
-    }
-}
-
-/// Subscribe stream `kind` on `topic` with its message type and QoS, and
-/// forward what arrives.
-fn subscribe(
+/// Subscribe to the topics of `feeds` on `node` and offer what arrives,
+/// converted for windows of `spec` (joint names, frame size), until
+/// `shutdown`. The tasks hold the subscriptions: join them before the
+/// node shuts down.
+pub fn subscribe(
     node: &mut RosNode,
-    runtime: &tokio::runtime::Handle,
-    kind: StreamKind,
-    topic: &str,
-    errors: Arc<InputErrors>,
-) -> Result<(Latest, tokio::task::JoinHandle<()>), RosError> {
-    let resolved = node.resolve(topic);
-    Ok(match kind {
-        StreamKind::Joints => {
-            let sub = subscription(node, topic, JOINT_STATE, qos::sensor_data())?;
-            forward(runtime, sub, resolved, kind, errors, InputMessage::Joints)
-        }
-        StreamKind::Camera => {
-            let sub = subscription(node, topic, COMPRESSED_IMAGE, qos::sensor_data())?;
-            forward(runtime, sub, resolved, kind, errors, InputMessage::Camera)
-        }
-        StreamKind::Plan => {
-            let sub = subscription(node, topic, JOINT_TRAJECTORY, qos::planned_trajectory())?;
-            forward(runtime, sub, resolved, kind, errors, InputMessage::Plan)
-        }
-    })
+    feeds: RosFeeds,
+    spec: &WindowSpec,
+    shutdown: &Shutdown,
+) -> Result<Vec<JoinHandle<()>>, RosError> {
+    let runtime = tokio::runtime::Handle::try_current().map_err(|_| RosError::NoRuntime)?;
+    let mut tasks = Vec::new();
+    if let Some((topic, feed)) = feeds.joints {
+        let sub = subscription::<JointState>(node, &topic, JOINT_STATE, qos::sensor_data())?;
+        let names = spec.joint_names.clone();
+        tasks.push(forward(
+            &runtime,
+            sub,
+            node.resolve(&topic),
+            feed,
+            shutdown.clone(),
+            move |msg, received_ns| joints_sample(&msg, &names, received_ns),
+        ));
+    }
+    if let Some((topic, camera)) = feeds.camera {
+        let sub =
+            subscription::<CompressedImage>(node, &topic, COMPRESSED_IMAGE, qos::sensor_data())?;
+        let resolved = node.resolve(&topic);
+        tasks.push(match camera {
+            CameraFeed::Frames(feed) => {
+                let frame_size = spec.frame_size;
+                let limits = feed.limits().clone();
+                forward(
+                    &runtime,
+                    sub,
+                    resolved,
+                    feed,
+                    shutdown.clone(),
+                    move |msg, received_ns| frame_sample(&msg, frame_size, &limits, received_ns),
+                )
+            }
+            CameraFeed::Images(feed) => forward(
+                &runtime,
+                sub,
+                resolved,
+                feed,
+                shutdown.clone(),
+                |msg, received_ns| (header_stamp(&msg.header, received_ns), Ok(Arc::new(msg))),
+            ),
+        });
+    }
+    if let Some((topic, feed)) = feeds.plan {
+        let sub = subscription::<JointTrajectory>(
+            node,
+            &topic,
+            JOINT_TRAJECTORY,
+            qos::planned_trajectory(),
+        )?;
+        let names = spec.joint_names.clone();
+        tasks.push(forward(
+            &runtime,
+            sub,
+            node.resolve(&topic),
+            feed,
+            shutdown.clone(),
+            move |msg, received_ns| plan_sample(&msg, &names, received_ns),
+        ));
+    }
+    Ok(tasks)
 }
 
-impl Drop for RosInputs {
-    fn drop(&mut self) {
-        for task in &self.tasks {
-            task.abort();
-        }
+/// A `JointState` in model order, at its header stamp.
+pub fn joints_sample(
+    msg: &JointState,
+    joint_names: &[String],
+    received_ns: i64,
+) -> (i64, Result<Sample, Rejection>) {
+    let stamp_ns = header_stamp(&msg.header, received_ns);
+    let sample = joints_from_msg(msg, joint_names).map(|positions_rad| Sample::Joints {
+        stamp_ns,
+        positions_rad,
+        read_ns: None,
+    });
+    (stamp_ns, sample.map_err(|e| Rejection::from_sample(&e)))
+}
+
+/// A camera image decoded to a `frame_size` frame, at its header stamp;
+/// an image too large for `limits` is rejected before it is decoded.
+pub fn frame_sample(
+    msg: &CompressedImage,
+    frame_size: u32,
+    limits: &InputLimits,
+    received_ns: i64,
+) -> (i64, Result<Sample, Rejection>) {
+    let stamp_ns = header_stamp(&msg.header, received_ns);
+    if let Err(too_large) = limits.image_size(msg.data.len()) {
+        return (stamp_ns, Err(too_large));
+    }
+    let sample = frame_from_msg(msg, frame_size).map(|frame| Sample::Frame {
+        stamp_ns,
+        frame: Arc::new(frame),
+    });
+    (stamp_ns, sample.map_err(|e| Rejection::from_sample(&e)))
+}
+
+/// A plan in model order, at its reception.
+pub fn plan_sample(
+    msg: &JointTrajectory,
+    joint_names: &[String],
+    received_ns: i64,
+) -> (i64, Result<Sample, Rejection>) {
+    let sample = Plan::from_msg(msg, joint_names).map(|plan| Sample::Plan {
+        stamp_ns: received_ns,
+        plan: Arc::new(plan),
+    });
+    (received_ns, sample.map_err(|e| Rejection::from_sample(&e)))
+}
+
+/// A header's stamp, or `received_ns` when the sender left it zero.
+fn header_stamp(header: &Header, received_ns: i64) -> i64 {
+    let stamp = header.stamp.to_ns();
+    if stamp > 0 {
+        stamp
+    } else {
+        received_ns
     }
 }
 
@@ -150,44 +203,54 @@ fn subscription<T: 'static>(
     Ok(sub)
 }
 
-fn forward<T>(
+/// Convert each message of `sub` as it arrives (with the system clock at
+/// its reception) and offer it into `feed`, until `shutdown`.
+fn forward<M, T, F>(
     runtime: &tokio::runtime::Handle,
-    sub: Subscription<T>,
+    sub: Subscription<M>,
     topic: String,
-    kind: StreamKind,
-    errors: Arc<InputErrors>,
-    message: fn(T) -> InputMessage,
-) -> (Latest, tokio::task::JoinHandle<()>)
+    feed: StreamFeed<T>,
+    mut shutdown: Shutdown,
+    convert: F,
+) -> JoinHandle<()>
 where
-    T: serde::de::DeserializeOwned + Send + Sync + 'static,
+    M: serde::de::DeserializeOwned + Send + Sync + 'static,
+    T: StreamValue,
+    F: Fn(M, i64) -> (i64, Result<T, Rejection>) + Send + 'static,
 {
-    let (tx, rx) = watch::channel(None);
-    let task = runtime.spawn(async move {
+    runtime.spawn(async move {
         let stream = sub.async_stream();
         pin_mut!(stream);
-        let mut seq = 0u64;
-        while let Some(sample) = stream.next().await {
+        let mut received = 0u64;
+        let mut undecodable = 0u64;
+        loop {
+            let next = tokio::select! {
+                next = stream.next() => next,
+                () = shutdown.recv() => return,
+            };
+            let Some(sample) = next else { break };
             match sample {
                 Ok((msg, _info)) => {
-                    seq += 1;
-                    if seq == 1 {
+                    received += 1;
+                    if received == 1 {
                         tracing::info!(topic = %topic, "first ROS 2 message received");
                     }
-                    tx.send_replace(Some(Arc::new(Stamped {
-                        seq,
-                        stamp_ns: crate::clock::unix_now_ns(),
-                        received: Instant::now(),
-                        value: message(msg),
-                    })));
+                    let (stamp_ns, value) = convert(msg, crate::clock::unix_now_ns());
+                    let _ = feed.offer(stamp_ns, value);
                 }
                 Err(e) => {
-                    if errors[kind].fetch_add(1, Ordering::Relaxed) == 0 {
+                    undecodable += 1;
+                    if undecodable == 1 {
                         tracing::warn!(topic = %topic, error = %e, "undecodable ROS 2 message (further ones are only counted)");
                     }
+                    feed.stats().set_external(
+                        undecodable,
+                        vec![("dds_undecodable".into(), undecodable.to_string())],
+                    );
                 }
             }
         }
         tracing::warn!(topic = %topic, "ROS 2 subscription stream ended");
-    });
-    (rx, task)
+        feed.stats().set_state("subscription ended");
+    })
 }

@@ -1,38 +1,25 @@
-//! The servo buses as the daemon's joint stream: starts the servo
-//! engineer's [`DynamixelSource`] (its blocking reader thread) with the
-//! `[dynamixel]` section, and forwards each reading to the joints
-//! [`StreamFeed`], one status per bus to `/diagnostics`.
+//! The servo buses' health and readings as the joint stream has them:
+//! each reading becomes one `Sample::Joints` ([`joints_sample`]), and
+//! every 500 ms the bus counters become a [`DeviceDiagnostics`] per bus
+//! ([`ServoHealth`]) and the stream's key-values ([`servo_details`]).
 //!
-//! A reading in which some motors did not answer is forwarded too, with NaN
-//! for those joints: `/joint_states` then carries the joints that were read,
-//! and the tick keeps each missing joint's last value while it is younger
-//! than `[streams].joints_stale_ms`; older, the forecast is not valid,
-//! naming the joint, until a whole window of fresh ticks has come back, or
-//! from the first fresh tick after a gap of at most
-//! `[streams].joints_max_held_ticks` (see `tick.rs`). Each position goes
-//! with its own read stamp ([`joints_sample`]), so its age is its bus's.
+//! A reading in which some motors did not answer becomes a sample too,
+//! with NaN for those joints: `/joint_states` then carries the joints that
+//! were read, and the tick keeps each missing joint's last value while it
+//! is younger than `[streams].joints_stale_ms` (`pipeline/tick.rs`). Each
+//! position goes with its own read stamp, so its age is its bus's.
 //!
-//! Every 500 ms the bus counters become a [`DeviceDiagnostics`] per bus
-//! ([`ServoHealth`]): port, adapter mode, read rate, missing ids and joints,
-//! per motor the age of its last position and its share of missed reads,
-//! error rates over the last [`ERROR_WINDOW_S`] seconds, reopens, the last
-//! error. A motor missing in more than `[dynamixel].warn_missed_share` of
-//! the window's cycles is named at WARN. The level is judged on the window,
-//! so it returns to OK once the fault is gone; a plain (non-USB2AX) adapter
-//! is a mode, not a fault.
+//! A bus status names: port, adapter mode, read rate, missing ids and
+//! joints, per motor the age of its last position and its share of missed
+//! reads, error rates over the last [`ERROR_WINDOW_S`] seconds, reopens,
+//! the last error. A motor missing in more than
+//! `[dynamixel].warn_missed_share` of the window's cycles is named at WARN.
+//! The level is judged on the window, so it returns to OK once the fault is
+//! gone; a plain (non-USB2AX) adapter is a mode, not a fault.
 
-use std::time::{Duration, Instant};
-
-use crate::config::Config;
-use crate::daemon::{ServiceError, SourceHandle};
-use crate::outputs::{CounterWindow, DeviceDiagnostics, DiagnosticLevel, ERROR_WINDOW_S};
-use crate::robot::JointTable;
-use crate::shutdown::Shutdown;
-use crate::sources::dynamixel::{
-    BusStatsSnapshot, DynamixelSource, JointReading, ServoStatsSnapshot,
-};
+use super::{BusStatsSnapshot, JointReading, ServoStatsSnapshot};
 use crate::streams::sample::Sample;
-use crate::streams::StreamFeed;
+use crate::streams::{CounterWindow, DeviceDiagnostics, DiagnosticLevel, ERROR_WINDOW_S};
 
 /// Bus counters as the joints stream's key-values, and their error total
 /// (faults only: the probe that finds a plain adapter is not one).
@@ -372,52 +359,6 @@ pub fn joints_sample(reading: &JointReading) -> Sample {
         positions_rad,
         read_ns: Some(read_ns),
     }
-}
-
-/// Start the servo reader; its readings feed `feed` until `shutdown`.
-pub fn start(
-    config: &Config,
-    feed: StreamFeed<Sample>,
-    mut shutdown: Shutdown,
-) -> Result<SourceHandle, ServiceError> {
-    let section = config
-        .dynamixel
-        .as_ref()
-        .ok_or_else(|| ServiceError::Usage(format!("{}: [dynamixel] missing", config.origin)))?;
-    let source = DynamixelSource::spawn(section, &JointTable::poppy_humanoid(), shutdown.watch())
-        .map_err(|e| ServiceError::Usage(format!("{}: [dynamixel].{e}", config.origin)))?;
-    let started = Instant::now();
-    let warn_missed_share = section.warn_missed_share;
-    let task = tokio::spawn(async move {
-        let mut readings = source.readings.clone();
-        let mut refresh = tokio::time::interval(Duration::from_millis(500));
-        let mut health = ServoHealth::new(warn_missed_share);
-        loop {
-            tokio::select! {
-                changed = readings.changed() => {
-                    if changed.is_err() { break; }
-                    let reading = readings.borrow_and_update().clone();
-                    let Some(reading) = reading else { continue };
-                    if !reading.is_complete() {
-                        let missing = reading.positions_rad.iter().filter(|p| p.is_none()).count();
-                        feed.error("incomplete read", &format_args!("{missing} joints not read this cycle"));
-                    }
-                    let sample = joints_sample(&reading);
-                    let _ = feed.offer(reading.stamp_ns, Ok(sample));
-                }
-                _ = refresh.tick() => {
-                    let snapshot = source.stats.snapshot();
-                    let (errors, details) = servo_details(&snapshot);
-                    feed.stats().set_external(errors, details);
-                    let buses = health.update(started.elapsed().as_secs_f64(), crate::clock::unix_now_ns(), snapshot);
-                    feed.stats().set_devices(buses);
-                }
-                () = shutdown.recv() => break,
-            }
-        }
-        let _ = tokio::task::spawn_blocking(move || source.join()).await;
-    });
-    Ok(SourceHandle::Task(task))
 }
 
 #[cfg(test)]
