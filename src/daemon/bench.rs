@@ -17,7 +17,7 @@ use serde::Serialize;
 
 use crate::clock::ReplayClock;
 use crate::daemon::replay::replay_samples_on;
-use crate::daemon::{load_config, Inputs, Running, ServiceError, What};
+use crate::daemon::{load_config, Replay, Running, ServiceError};
 use crate::sources::replay::shifted;
 
 /// `fall-guard bench-daemon`.
@@ -82,12 +82,9 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
     // Maximum speed unless `--speed` says otherwise.
     let pacing = config.replay_pacing(args.speed, args.speed.is_none())?;
     let ros = config.ros.enabled;
-    let mut daemon = Running::start(config, What::Replay(recording.clone()))?;
+    let mut daemon = Running::<Replay>::start(config, &recording)?;
     let mut shutdown = daemon.shutdown();
-    let bus = match &daemon.forecasting {
-        Some(f) => f.bus.clone(),
-        None => unreachable!("a replay forecasts"),
-    };
+    let bus = daemon.command.forecasting.bus.clone();
     // Without ROS, a subscriber stands in for the publisher.
     let mut stand_in = (!ros).then(|| bus.subscribe());
     let mut stop = daemon.shutdown();
@@ -125,16 +122,10 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
         }
     });
     daemon.join_at_stop(rss_task);
-    let (
-        Some(forecasting),
-        Inputs::Replay {
-            recording: replayed,
-            gates,
-        },
-    ) = (daemon.forecasting.as_mut(), &daemon.inputs)
-    else {
-        unreachable!("a replay forecasts from a recording")
-    };
+    let Replay {
+        forecasting,
+        recording: replayed,
+    } = &mut daemon.command;
     let span =
         replayed.end_ns - replayed.start_ns + (1e9 / forecasting.models.spec().rate_hz) as i64;
     let mut passes = 0u64;
@@ -153,7 +144,7 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
             samples,
             replayed.end_ns + offset,
             pacing,
-            gates,
+            &daemon.streams,
             &mut shutdown,
             &mut clock,
         )

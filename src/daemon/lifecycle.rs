@@ -1,11 +1,14 @@
 //! The daemon's one lifecycle: the start and stop order shared by `run`,
 //! `replay`, `record` and `bench-daemon`.
 //!
-//! A command says what the daemon runs on ([`What`]: the live sources, a
-//! recording, or the live sources into a recorder), gets a [`Running`]
-//! daemon from [`Running::start`], drives its inputs (the live tick, a
-//! replay, the recorder) until they end or the shutdown fires, then calls
-//! [`Running::stop`].
+//! Each command has its type ([`Live`] for `run`, [`Replay`] for `replay`
+//! and `bench-daemon`, [`Record`] for `record`) and gets a [`Running`]
+//! daemon of that type from its `start` (`Running::<Live>::start`, ...),
+//! which holds exactly what the command drives: the forecasting side for
+//! `run` and `replay`, the recording for `replay`, the camera's images as
+//! received for `record`. It drives them (the live tick, a replay, the
+//! recorder) until they end or the shutdown fires, then calls
+//! [`Running::stop`], the same for every command.
 //!
 //! Start, in this order:
 //! 1. the config checks of the command (`Config::check_live_sources` for
@@ -18,17 +21,18 @@
 //! 6. the ROS 2 node (`[ros].enabled`), then its publisher of the output
 //!    bus (not for `record`: it has no bus);
 //! 7. the live sources (`run`, `record`): servo reader, camera, ROS 2
-//!    subscriptions;
+//!    subscriptions, each offering into its stream's feed (a replay offers
+//!    the recording's samples into the same feeds as it runs);
 //! 8. the tick loop (not for `record`).
 //!
 //! Stop, in this order: the tick loop (the last inference, the thread
 //! joined); sd-notify STOPPING; the shutdown fires; the sources, the
 //! command's own tasks ([`Running::join_at_stop`]) and the publisher are
-//! joined; then the ROS 2 node leaves the domain ([`RosBridge::shutdown`]:
-//! subscriptions, then the node), after every task that used it; last the
-//! signal listener ends.
+//! joined (the ROS 2 subscriptions end with their tasks); then the ROS 2
+//! node leaves the domain ([`RosBridge::shutdown`]), after every task that
+//! used it; last the signal listener ends.
 
-use std::path::PathBuf;
+use std::path::Path;
 use std::sync::Arc;
 
 use tokio::task::JoinHandle;
@@ -43,27 +47,14 @@ use crate::robot::JointTable;
 use crate::shutdown::{Shutdown, ShutdownTrigger};
 use crate::sources::dynamixel::DynamixelSource;
 use crate::sources::replay::ReplayRecording;
-use crate::streams::input::Gate;
 use crate::streams::sample::Sample;
-use crate::streams::{stream, PerStream, StreamFeed, StreamKind, StreamStats, StreamTap};
+use crate::streams::{stream, PerStream, StreamFeed, StreamKind, StreamTap};
 
 use super::ros_bridge::RosBridge;
 use super::{input_limits, latch_for, robot_joints, tick_settings, LiveStreams, ServiceError};
 
-/// What the daemon runs on: the one difference between the commands.
-#[derive(Debug, Clone, PartialEq)]
-pub enum What {
-    /// `run`: the configured live sources, forecasts out.
-    Live,
-    /// `replay`, `bench-daemon`: the samples of this recording, forecasts
-    /// out.
-    Replay(PathBuf),
-    /// `record`: the configured live sources, the camera as it comes (not
-    /// decoded); no network is loaded.
-    Record,
-}
-
-/// The forecasting side of a running daemon (not for `record`).
+/// The forecasting side of a running daemon (`run`, `replay`,
+/// `bench-daemon`).
 pub struct Forecasting {
     pub models: Arc<ModelSet>,
     /// Forecasts and diagnostics, to the publisher and any subscriber.
@@ -72,29 +63,63 @@ pub struct Forecasting {
     pub tick_loop: TickLoop,
 }
 
-/// The inputs as the command drives them.
-pub enum Inputs {
-    /// `run`: the live streams (the tick reads `streams.taps`).
-    Live(LiveStreams),
-    /// `replay`, `bench-daemon`: the recording, and the input boundary of
-    /// each of its streams.
-    Replay {
-        recording: ReplayRecording,
-        gates: PerStream<Gate>,
-    },
-    /// `record`: joints and plan as `run` has them, the camera as received.
-    Record {
-        streams: LiveStreams,
-        camera: StreamTap<Arc<CompressedImage>>,
-    },
+/// `run`: the configured live sources, forecasts out (the tick reads the
+/// streams' taps).
+pub struct Live {
+    pub forecasting: Forecasting,
 }
 
-/// A started daemon.
-pub struct Running {
+/// `replay`, `bench-daemon`: the recording's samples, offered into the
+/// streams' feeds at recorded time, forecasts out.
+pub struct Replay {
+    pub forecasting: Forecasting,
+    pub recording: ReplayRecording,
+}
+
+/// `record`: joints and plan as `run` has them, the camera as received (not
+/// decoded); no network is loaded.
+pub struct Record {
+    pub camera: StreamTap<Arc<CompressedImage>>,
+}
+
+/// What a command drives, and how it ends: the one difference between the
+/// commands on the one lifecycle.
+pub trait Command {
+    /// The forecasting side, to finish at stop (`None` for `record`).
+    fn into_forecasting(self) -> Option<Forecasting>;
+}
+
+impl Command for Live {
+    fn into_forecasting(self) -> Option<Forecasting> {
+        Some(self.forecasting)
+    }
+}
+
+impl Command for Replay {
+    fn into_forecasting(self) -> Option<Forecasting> {
+        Some(self.forecasting)
+    }
+}
+
+impl Command for Record {
+    fn into_forecasting(self) -> Option<Forecasting> {
+        None
+    }
+}
+
+/// A started daemon running command `C`.
+pub struct Running<C: Command> {
     pub config: Config,
-    /// `None` for `record`.
-    pub forecasting: Option<Forecasting>,
-    pub inputs: Inputs,
+    /// The streams, each behind its input boundary: the sources (or the
+    /// replay) offer into their feeds, the tick (or the recorder) reads
+    /// their taps.
+    pub streams: LiveStreams,
+    pub command: C,
+    lifetime: Lifetime,
+}
+
+/// What every command starts and stops the same way.
+struct Lifetime {
     trigger: Arc<ShutdownTrigger>,
     signals: JoinHandle<()>,
     ros: Option<RosBridge>,
@@ -111,196 +136,149 @@ pub struct Stopped {
     pub inference_died: bool,
 }
 
-/// The networks, loaded, with their bus and inference thread.
+/// The networks, loaded, with their bus and inference thread (start step 2).
 struct Networks {
     models: Arc<ModelSet>,
     bus: OutputBus,
     inference: Inference,
 }
 
-impl Inputs {
-    /// The live streams (`run`, `record`).
-    pub fn live_streams(&self) -> Option<&LiveStreams> {
-        match self {
-            Inputs::Live(streams) | Inputs::Record { streams, .. } => Some(streams),
-            Inputs::Replay { .. } => None,
-        }
-    }
-
-    /// Each stream's counters (for the tick's diagnostics).
-    pub fn stats(&self) -> PerStream<Arc<StreamStats>> {
-        match self {
-            Inputs::Live(streams) | Inputs::Record { streams, .. } => streams.stats(),
-            Inputs::Replay { gates, .. } => {
-                PerStream::from_fn(|kind| Arc::clone(gates[kind].stats()))
-            }
-        }
-    }
-}
-
-impl Running {
-    /// Start the daemon on `what`, in the order of the module doc.
-    pub fn start(config: Config, what: What) -> Result<Running, ServiceError> {
-        // 1. The config checks of the command.
-        if !matches!(what, What::Replay(_)) {
-            config.check_live_sources()?;
-        }
-        // 2. The networks and the inference thread. `record` loads none: its
-        // window spec carries only what its inputs need (the joint names,
-        // the tick rate; frame size 0: the camera is not decoded, only its
-        // stamps are checked).
-        let joints = robot_joints(&config);
-        let (spec, networks) = if what == What::Record {
-            let spec = WindowSpec {
-                n_ticks: 1,
-                max_horizon_ticks: 0,
-                rate_hz: config.robot.tick_rate_hz,
-                joint_names: joints,
-                frame_size: 0,
-            };
-            (spec, None)
-        } else {
-            let models = Arc::new(ModelSet::load(&config, &joints)?);
-            let bus = OutputBus::new();
-            let latch = latch_for(&config, &models)?;
-            let inference = Inference::spawn(
-                Arc::clone(&models),
-                latch,
-                bus.clone(),
-                config.output.print_forecasts,
-            )?;
-            let spec = models.spec().clone();
-            (
-                spec,
-                Some(Networks {
-                    models,
-                    bus,
-                    inference,
-                }),
-            )
-        };
-        // 3. The recording.
-        let recording = match &what {
-            What::Replay(path) => Some(ReplayRecording::open(path, &spec)?),
-            What::Live | What::Record => None,
-        };
-        // 4. The shutdown, fired by SIGINT / SIGTERM.
-        let trigger = Arc::new(ShutdownTrigger::new().0);
-        let signals = shutdown_on_signals(Arc::clone(&trigger));
-        // 5. The streams, each behind its input boundary.
-        let limits = input_limits(&config, &spec);
-        let mut camera_raw = None;
-        let inputs = match recording {
-            Some(recording) => {
-                let stats = PerStream::from_fn(|_| Arc::new(StreamStats::default()));
-                let gates = PerStream::from_fn(|kind| {
-                    Gate::new(kind, limits.clone(), Arc::clone(&stats[kind]))
-                });
-                Inputs::Replay { recording, gates }
-            }
-            None if what == What::Record => {
-                let (feed, camera) =
-                    stream::<Arc<CompressedImage>>(StreamKind::Camera, limits.clone());
-                camera_raw = Some(feed);
-                Inputs::Record {
-                    streams: LiveStreams::new(limits),
-                    camera,
-                }
-            }
-            None => Inputs::Live(LiveStreams::new(limits)),
-        };
-        // 6. The ROS 2 node and its publisher of the bus.
-        let mut ros = if config.ros.enabled {
-            Some(RosBridge::start(&config)?)
-        } else {
-            None
-        };
-        let publisher = match (ros.as_mut(), &networks) {
-            (Some(bridge), Some(n)) => {
-                // `run` owns the servo bus when it reads it: what it reads
-                // goes out on /joint_states.
-                let joints_out = match &inputs {
-                    Inputs::Live(streams) if config.streams.joints == JointsSource::Dynamixel => {
-                        Some(streams.taps.joints.clone())
-                    }
-                    _ => None,
-                };
-                Some(bridge.start_outputs(
-                    &config,
-                    &n.models,
-                    &n.bus,
-                    trigger.subscribe(),
-                    joints_out,
-                )?)
-            }
-            _ => None,
-        };
-        // 7. The live sources.
-        let sources = match inputs.live_streams() {
-            Some(streams) => {
-                start_sources(&config, &spec, streams, camera_raw, ros.as_mut(), &trigger)?
-            }
-            None => Vec::new(),
-        };
-        // 8. The tick loop.
-        let forecasting = match networks {
-            Some(n) => {
-                let names = match &inputs {
-                    Inputs::Replay { recording, .. } => {
-                        let source = format!("replay {}", recording.path.display());
-                        PerStream::from_fn(|_| (source.clone(), true))
-                    }
-                    Inputs::Live(_) | Inputs::Record { .. } => source_names(&config),
-                };
-                let settings = tick_settings(&config, names, &inputs.stats());
-                let tick_loop =
-                    TickLoop::new(Arc::clone(&n.models), n.inference, settings, n.bus.clone())?;
-                Some(Forecasting {
-                    models: n.models,
-                    bus: n.bus,
-                    tick_loop,
-                })
-            }
-            None => None,
-        };
-        Ok(Running {
-            config,
-            forecasting,
-            inputs,
-            trigger,
-            signals,
-            ros,
-            publisher,
-            sources,
-            tasks: Vec::new(),
+impl Networks {
+    fn load(config: &Config) -> Result<Networks, ServiceError> {
+        let models = Arc::new(ModelSet::load(config, &robot_joints(config))?);
+        let bus = OutputBus::new();
+        let latch = latch_for(config, &models)?;
+        let inference = Inference::spawn(
+            Arc::clone(&models),
+            latch,
+            bus.clone(),
+            config.output.print_forecasts,
+        )?;
+        Ok(Networks {
+            models,
+            bus,
+            inference,
         })
     }
 
+    /// Start step 8: the tick loop on `streams`, whose sources are `names`.
+    fn into_forecasting(
+        self,
+        config: &Config,
+        names: PerStream<(String, bool)>,
+        streams: &LiveStreams,
+    ) -> Result<Forecasting, ServiceError> {
+        let settings = tick_settings(config, names, &streams.stats());
+        let tick_loop = TickLoop::new(
+            Arc::clone(&self.models),
+            self.inference,
+            settings,
+            self.bus.clone(),
+        )?;
+        Ok(Forecasting {
+            models: self.models,
+            bus: self.bus,
+            tick_loop,
+        })
+    }
+}
+
+impl Running<Live> {
+    /// `run`: start the daemon on the live sources, in the order of the
+    /// module doc.
+    pub fn start(config: Config) -> Result<Running<Live>, ServiceError> {
+        config.check_live_sources()?;
+        let networks = Networks::load(&config)?;
+        let spec = networks.models.spec().clone();
+        // `run` owns the servo bus when it reads it: what it reads goes out
+        // on /joint_states.
+        let servo_out = config.streams.joints == JointsSource::Dynamixel;
+        let (streams, mut lifetime) = Lifetime::begin(&config, &spec, Some(&networks), servo_out)?;
+        lifetime.start_sources(&config, &spec, &streams, None)?;
+        let forecasting = networks.into_forecasting(&config, source_names(&config), &streams)?;
+        Ok(Running {
+            config,
+            streams,
+            command: Live { forecasting },
+            lifetime,
+        })
+    }
+}
+
+impl Running<Replay> {
+    /// `replay`, `bench-daemon`: start the daemon on the recording at
+    /// `path`, in the order of the module doc.
+    pub fn start(config: Config, path: &Path) -> Result<Running<Replay>, ServiceError> {
+        let networks = Networks::load(&config)?;
+        let spec = networks.models.spec().clone();
+        let recording = ReplayRecording::open(path, &spec)?;
+        let (streams, lifetime) = Lifetime::begin(&config, &spec, Some(&networks), false)?;
+        let source = format!("replay {}", recording.path.display());
+        let names = PerStream::from_fn(|_| (source.clone(), true));
+        let forecasting = networks.into_forecasting(&config, names, &streams)?;
+        Ok(Running {
+            config,
+            streams,
+            command: Replay {
+                forecasting,
+                recording,
+            },
+            lifetime,
+        })
+    }
+}
+
+impl Running<Record> {
+    /// `record`: start the live sources into a recorder, loading no
+    /// network, in the order of the module doc. The window spec carries
+    /// only what the inputs need (the joint names, the tick rate; frame
+    /// size 0: the camera is not decoded, only its stamps are checked).
+    pub fn start(config: Config) -> Result<Running<Record>, ServiceError> {
+        config.check_live_sources()?;
+        let spec = WindowSpec {
+            n_ticks: 1,
+            max_horizon_ticks: 0,
+            rate_hz: config.robot.tick_rate_hz,
+            joint_names: robot_joints(&config),
+            frame_size: 0,
+        };
+        let (streams, mut lifetime) = Lifetime::begin(&config, &spec, None, false)?;
+        let (raw, camera) =
+            stream::<Arc<CompressedImage>>(StreamKind::Camera, input_limits(&config, &spec));
+        lifetime.start_sources(&config, &spec, &streams, Some(raw))?;
+        Ok(Running {
+            config,
+            streams,
+            command: Record { camera },
+            lifetime,
+        })
+    }
+}
+
+impl<C: Command> Running<C> {
     /// A listener of the daemon's shutdown (SIGINT / SIGTERM, or [`Running::stop`]).
     pub fn shutdown(&self) -> Shutdown {
-        self.trigger.subscribe()
+        self.lifetime.trigger.subscribe()
     }
 
     /// A task of the command that ends on [`Running::shutdown`] (a bus
     /// subscriber, a sampler): joined at stop, before the ROS 2 node goes.
     pub fn join_at_stop(&mut self, task: JoinHandle<()>) {
-        self.tasks.push(task);
+        self.lifetime.tasks.push(task);
     }
 
     /// Stop the daemon, in the order of the module doc.
     pub async fn stop(self) -> Stopped {
-        let Running {
-            forecasting,
+        let Lifetime {
             trigger,
             signals,
             ros,
             publisher,
             sources,
             tasks,
-            ..
-        } = self;
+        } = self.lifetime;
         let mut stopped = Stopped::default();
-        if let Some(f) = forecasting {
+        if let Some(f) = self.command.into_forecasting() {
             stopped.inference_died = f.tick_loop.inference().is_dead();
             stopped.counters = f.tick_loop.finish().await;
         }
@@ -321,6 +299,108 @@ impl Running {
         }
         signals.abort();
         stopped
+    }
+}
+
+impl Lifetime {
+    /// Start steps 4-6: the shutdown trigger, the streams for windows of
+    /// `spec`, the ROS 2 node and, with `networks`, its publisher of their
+    /// bus (with `servo_out`, the joints stream goes out on /joint_states).
+    fn begin(
+        config: &Config,
+        spec: &WindowSpec,
+        networks: Option<&Networks>,
+        servo_out: bool,
+    ) -> Result<(LiveStreams, Lifetime), ServiceError> {
+        // 4. The shutdown, fired by SIGINT / SIGTERM.
+        let trigger = Arc::new(ShutdownTrigger::new().0);
+        let signals = shutdown_on_signals(Arc::clone(&trigger));
+        // 5. The streams, each behind its input boundary.
+        let streams = LiveStreams::new(input_limits(config, spec));
+        // 6. The ROS 2 node and its publisher of the bus.
+        let mut ros = if config.ros.enabled {
+            Some(RosBridge::start(config)?)
+        } else {
+            None
+        };
+        let publisher = match (ros.as_mut(), networks) {
+            (Some(bridge), Some(n)) => Some(bridge.start_outputs(
+                config,
+                &n.models,
+                &n.bus,
+                trigger.subscribe(),
+                servo_out.then(|| streams.taps.joints.clone()),
+            )?),
+            _ => None,
+        };
+        let lifetime = Lifetime {
+            trigger,
+            signals,
+            ros,
+            publisher,
+            sources: Vec::new(),
+            tasks: Vec::new(),
+        };
+        Ok((streams, lifetime))
+    }
+
+    /// Start step 7: the configured live sources feeding `streams` (the ROS
+    /// 2 ones on the node; `spec`: the joint names and frame size they
+    /// convert to). `camera_raw` (`record`): the camera's frames as they
+    /// come, not decoded, go to that feed instead of `streams.feeds.camera`.
+    fn start_sources(
+        &mut self,
+        config: &Config,
+        spec: &WindowSpec,
+        streams: &LiveStreams,
+        camera_raw: Option<StreamFeed<Arc<CompressedImage>>>,
+    ) -> Result<(), ServiceError> {
+        let shutdown = &self.trigger;
+        let handles = &mut self.sources;
+        if config.streams.joints == JointsSource::Dynamixel {
+            handles.push(start_servo(
+                config,
+                streams.feeds.joints.clone(),
+                shutdown.subscribe(),
+            )?);
+        }
+        if config.streams.camera == CameraSource::V4l2 {
+            handles.push(match &camera_raw {
+                Some(raw) => start_camera_compressed(config, raw.clone(), shutdown.subscribe())?,
+                None => start_camera(
+                    config,
+                    spec.frame_size,
+                    streams.feeds.camera.clone(),
+                    shutdown.subscribe(),
+                )?,
+            });
+        }
+        let camera_from_ros = config.streams.camera == CameraSource::Ros;
+        let from_ros = PerStream {
+            joints: config.streams.joints == JointsSource::Ros,
+            camera: camera_from_ros && camera_raw.is_none(),
+            plan: config.streams.plan == PlanSource::Ros,
+        };
+        let camera_raw = camera_raw.filter(|_| camera_from_ros);
+        if from_ros.iter().any(|(_, &ros)| ros) || camera_raw.is_some() {
+            // `Config::check_live_sources` makes sure of the node.
+            let bridge = self.ros.as_mut().ok_or_else(|| {
+                ServiceError::Usage(format!(
+                    "{}: [streams] reads from ROS 2 but [ros].enabled = false",
+                    config.origin
+                ))
+            })?;
+            let tasks = bridge.start_inputs(
+                config,
+                spec,
+                streams,
+                from_ros,
+                camera_raw,
+                shutdown.subscribe(),
+            )?;
+            handles.extend(tasks.into_iter().map(SourceHandle::Task));
+        }
+        Ok(())
     }
 }
 
@@ -384,65 +464,6 @@ fn source_names(config: &Config) -> PerStream<(String, bool)> {
         camera,
         plan,
     }
-}
-
-/// Start the configured live sources feeding `streams` (the ROS 2 ones on
-/// `ros`; `spec`: the joint names and frame size they convert to).
-/// `camera_raw` (`record`): the camera's frames as they come, not decoded,
-/// go to that feed instead of `streams.feeds.camera`.
-fn start_sources(
-    config: &Config,
-    spec: &WindowSpec,
-    streams: &LiveStreams,
-    camera_raw: Option<StreamFeed<Arc<CompressedImage>>>,
-    ros: Option<&mut RosBridge>,
-    shutdown: &ShutdownTrigger,
-) -> Result<Vec<SourceHandle>, ServiceError> {
-    let mut handles = Vec::new();
-    if config.streams.joints == JointsSource::Dynamixel {
-        handles.push(start_servo(
-            config,
-            streams.feeds.joints.clone(),
-            shutdown.subscribe(),
-        )?);
-    }
-    if config.streams.camera == CameraSource::V4l2 {
-        handles.push(match &camera_raw {
-            Some(raw) => start_camera_compressed(config, raw.clone(), shutdown.subscribe())?,
-            None => start_camera(
-                config,
-                spec.frame_size,
-                streams.feeds.camera.clone(),
-                shutdown.subscribe(),
-            )?,
-        });
-    }
-    let camera_from_ros = config.streams.camera == CameraSource::Ros;
-    let from_ros = PerStream {
-        joints: config.streams.joints == JointsSource::Ros,
-        camera: camera_from_ros && camera_raw.is_none(),
-        plan: config.streams.plan == PlanSource::Ros,
-    };
-    let camera_raw = camera_raw.filter(|_| camera_from_ros);
-    if from_ros.iter().any(|(_, &ros)| ros) || camera_raw.is_some() {
-        // `Config::check_live_sources` makes sure of the node.
-        let bridge = ros.ok_or_else(|| {
-            ServiceError::Usage(format!(
-                "{}: [streams] reads from ROS 2 but [ros].enabled = false",
-                config.origin
-            ))
-        })?;
-        let tasks = bridge.start_inputs(
-            config,
-            spec,
-            streams,
-            from_ros,
-            camera_raw,
-            shutdown.subscribe(),
-        )?;
-        handles.extend(tasks.into_iter().map(SourceHandle::Task));
-    }
-    Ok(handles)
 }
 
 /// Start the servo reader (`[dynamixel]`) offering into the joints `feed`

@@ -194,19 +194,13 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
         }
     }
     config.output.print_forecasts &= !args.quiet;
-    let mut daemon = Running::start(config, What::Replay(recording.clone()))?;
+    let mut daemon = Running::<Replay>::start(config, &recording)?;
     let mut shutdown = daemon.shutdown();
     let collector_shutdown = daemon.shutdown();
-    let (
-        Some(forecasting),
-        Inputs::Replay {
-            recording: replayed,
-            gates,
-        },
-    ) = (daemon.forecasting.as_mut(), &daemon.inputs)
-    else {
-        unreachable!("a replay forecasts from a recording")
-    };
+    let Replay {
+        forecasting,
+        recording: replayed,
+    } = &mut daemon.command;
     let annotate = args.out.as_ref().map(|_| {
         crate::outputs::annotate::collect(
             &forecasting.bus,
@@ -220,7 +214,7 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
         replayed.samples.clone(),
         replayed.end_ns,
         pacing,
-        gates,
+        &daemon.streams,
         &mut shutdown,
     )
     .await;
@@ -295,17 +289,18 @@ pub async fn run(args: RunOptions) -> Result<TickCounters, ServiceError> {
     if let Some(ns) = &args.namespace {
         config.set_namespace(ns, "--namespace")?;
     }
-    let mut daemon = Running::start(config, What::Live)?;
+    let mut daemon = Running::<Live>::start(config)?;
     let shutdown = daemon.shutdown();
-    let (Some(forecasting), Inputs::Live(streams)) = (daemon.forecasting.as_mut(), &daemon.inputs)
-    else {
-        unreachable!("run forecasts from the live streams")
-    };
+    let forecasting = &mut daemon.command.forecasting;
     let spec = forecasting.models.spec();
     tracing::info!(config = %args.config.display(), rate_hz = spec.rate_hz,
         n_ticks = spec.n_ticks, "fall-guard running");
-    crate::pipeline::tick::run_live(&mut forecasting.tick_loop, streams.taps.clone(), shutdown)
-        .await;
+    crate::pipeline::tick::run_live(
+        &mut forecasting.tick_loop,
+        daemon.streams.taps.clone(),
+        shutdown,
+    )
+    .await;
     let stopped = daemon.stop().await;
     if stopped.inference_died {
         return Err(ServiceError::Source(
@@ -324,7 +319,7 @@ pub async fn record(
 ) -> Result<crate::outputs::recorder::RecordSummary, ServiceError> {
     let config = Config::load(&args.config)?;
     let joints = robot_joints(&config);
-    let daemon = Running::start(config, What::Record)?;
+    let daemon = Running::<Record>::start(config)?;
     let created = Recorder::create(
         &args.out,
         joints,
@@ -342,11 +337,8 @@ pub async fn record(
     let deadline = args
         .duration_s
         .map(|s| tokio::time::Instant::now() + std::time::Duration::from_secs_f64(s.max(0.0)));
-    let Inputs::Record { streams, camera } = &daemon.inputs else {
-        unreachable!("record reads the live streams")
-    };
-    let mut taps = streams.taps.clone();
-    let mut camera = camera.clone();
+    let mut taps = daemon.streams.taps.clone();
+    let mut camera = daemon.command.camera.clone();
     let result: Result<(), ServiceError> = loop {
         let written = tokio::select! {
             () = shutdown.recv() => break Ok(()),
@@ -393,5 +385,5 @@ pub mod replay;
 pub mod ros_bridge;
 
 pub use lifecycle::{
-    shutdown_on_signals, Forecasting, Inputs, Running, SourceHandle, Stopped, What,
+    shutdown_on_signals, Command, Forecasting, Live, Record, Replay, Running, SourceHandle, Stopped,
 };

@@ -1,15 +1,16 @@
-//! The replay's drive of the tick loop: recorded samples pushed through
-//! their streams' gates into the [`TickLoop`] at recorded time, paced on a
-//! [`ReplayClock`] or lock-step as fast as inference allows.
+//! The replay's drive of the tick loop: each recorded sample offered into
+//! its stream's feed (the input boundary, with the recorded time as the
+//! tick clock) as a live source offers, and taken from the stream's tap
+//! into the [`TickLoop`] at recorded time, paced on a [`ReplayClock`] or
+//! lock-step as fast as inference allows.
 
 use std::time::Instant;
 
 use crate::clock::ReplayClock;
+use crate::daemon::LiveStreams;
 use crate::pipeline::tick::TickLoop;
 use crate::shutdown::Shutdown;
 use crate::sources::replay::{Pacing, Recorded};
-use crate::streams::input::Gate;
-use crate::streams::PerStream;
 
 /// What one replay did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -29,16 +30,17 @@ async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> b
 }
 
 /// Push `samples` (sorted by stamp) through `tick_loop` with recorded time,
-/// then advance to `end_ns`. Each sample passes its stream's `gates` (the
-/// input boundary, with the recorded time as the tick clock) as a live one
-/// does: a rejected one (or a message that was not a sample) is counted
-/// there and not pushed.
+/// then advance to `end_ns`. Each sample is offered into its stream's feed
+/// of `streams` (the input boundary, with the recorded time as the tick
+/// clock) as a live one is: a rejected one (or a message that was not a
+/// sample) is counted there and not pushed; an admitted one is taken from
+/// the stream's tap, so that the tick sees what a live source gives it.
 pub async fn replay_samples<I>(
     tick_loop: &mut TickLoop,
     samples: I,
     end_ns: i64,
     pacing: Pacing,
-    gates: &PerStream<Gate>,
+    streams: &LiveStreams,
     shutdown: &mut Shutdown,
 ) -> ReplaySummary
 where
@@ -46,7 +48,7 @@ where
 {
     let mut clock = ReplayClock::new();
     replay_samples_on(
-        tick_loop, samples, end_ns, pacing, gates, shutdown, &mut clock,
+        tick_loop, samples, end_ns, pacing, streams, shutdown, &mut clock,
     )
     .await
 }
@@ -58,7 +60,7 @@ pub async fn replay_samples_on<I>(
     samples: I,
     end_ns: i64,
     pacing: Pacing,
-    gates: &PerStream<Gate>,
+    streams: &LiveStreams,
     shutdown: &mut Shutdown,
     clock: &mut ReplayClock,
 ) -> ReplaySummary
@@ -98,14 +100,14 @@ where
             }
         }
         let sensed_at = Instant::now();
-        let mut admitted = None;
-        let _ = gates[sample.kind].pass(stamp_ns, stamp_ns, sample.sample, |_, s| {
-            admitted = Some(s);
-        });
-        if let Some(sample) = admitted {
+        let offered = streams.feeds[sample.kind].offer_at(stamp_ns, stamp_ns, sample.sample);
+        let admitted = offered
+            .ok()
+            .and_then(|seq| streams.taps[sample.kind].latest().filter(|s| s.seq == seq));
+        if let Some(admitted) = admitted {
             summary.samples += 1;
             last_sensed = sensed_at;
-            tick_loop.push_sample(sample);
+            tick_loop.push_sample(admitted.value.clone());
         }
         // Every sample at this stamp is in: the tick at this stamp is final.
         if samples.peek().is_none_or(|next| next.stamp_ns > stamp_ns) {
