@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 use crate::clock::ReplayClock;
-use crate::daemon::replay::replay_samples_on;
+use crate::daemon::replay::replay_samples;
 use crate::daemon::{load_config, Replay, Running, ServiceError};
 use crate::sources::replay::shifted;
 
@@ -139,7 +139,7 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
     while started.elapsed().as_secs_f64() < args.duration_s && !shutdown.is_shutdown() {
         let offset = passes as i64 * span;
         let samples = replayed.samples.iter().map(|s| shifted(s, offset));
-        replay_samples_on(
+        replay_samples(
             &mut forecasting.tick_loop,
             samples,
             replayed.end_ns + offset,

@@ -15,6 +15,7 @@ use std::sync::Arc;
 
 use thiserror::Error;
 
+use crate::clock::ReplayClock;
 use crate::config::{Config, ConfigError};
 use crate::daemon::replay::replay_samples;
 use crate::outputs::latch::{LatchError, SafetyLatch};
@@ -216,6 +217,7 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
         pacing,
         &daemon.streams,
         &mut shutdown,
+        &mut ReplayClock::new(),
     )
     .await;
     let final_ablation = ablation_name(forecasting.tick_loop.active());

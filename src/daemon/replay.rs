@@ -35,27 +35,9 @@ async fn sleep_until_unless_shutdown(due: Instant, shutdown: &mut Shutdown) -> b
 /// clock) as a live one is: a rejected one (or a message that was not a
 /// sample) is counted there and not pushed; an admitted one is taken from
 /// the stream's tap, so that the tick sees what a live source gives it.
+/// Paced by `clock`, which may already run (a recording replayed in passes
+/// that continue each other in time).
 pub async fn replay_samples<I>(
-    tick_loop: &mut TickLoop,
-    samples: I,
-    end_ns: i64,
-    pacing: Pacing,
-    streams: &LiveStreams,
-    shutdown: &mut Shutdown,
-) -> ReplaySummary
-where
-    I: IntoIterator<Item = Recorded>,
-{
-    let mut clock = ReplayClock::new();
-    replay_samples_on(
-        tick_loop, samples, end_ns, pacing, streams, shutdown, &mut clock,
-    )
-    .await
-}
-
-/// [`replay_samples`] paced by `clock`, which may already run (a
-/// recording replayed in passes that continue each other in time).
-pub async fn replay_samples_on<I>(
     tick_loop: &mut TickLoop,
     samples: I,
     end_ns: i64,

@@ -416,14 +416,7 @@ mod tests {
     #[cfg(not(feature = "security"))]
     use std::path::Path;
 
-    fn env<'a>(pairs: &'a [(&'a str, &'a str)]) -> impl Fn(&str) -> Option<String> + 'a {
-        move |k| {
-            pairs
-                .iter()
-                .find(|(n, _)| *n == k)
-                .map(|(_, v)| (*v).to_owned())
-        }
-    }
+    use crate::ros::tests::env;
 
     #[test]
     fn off_unless_enabled() {

@@ -66,62 +66,58 @@ pub fn subscribe(
     shutdown: &Shutdown,
 ) -> Result<Vec<JoinHandle<()>>, RosError> {
     let runtime = tokio::runtime::Handle::try_current().map_err(|_| RosError::NoRuntime)?;
+    let mut on = Subscriber {
+        node,
+        runtime: &runtime,
+        shutdown,
+    };
     let mut tasks = Vec::new();
     if let Some((topic, feed)) = feeds.joints {
-        let sub = subscription::<JointState>(node, &topic, JOINT_STATE, qos::sensor_data())?;
         let names = spec.joint_names.clone();
-        tasks.push(forward(
-            &runtime,
-            sub,
-            node.resolve(&topic),
+        tasks.push(on.spawn(
+            &topic,
+            JOINT_STATE,
+            qos::sensor_data(),
             feed,
-            shutdown.clone(),
-            move |msg, received_ns| joints_sample(&msg, &names, received_ns),
-        ));
+            move |msg: JointState, received_ns| joints_sample(&msg, &names, received_ns),
+        )?);
     }
     if let Some((topic, camera)) = feeds.camera {
-        let sub =
-            subscription::<CompressedImage>(node, &topic, COMPRESSED_IMAGE, qos::sensor_data())?;
-        let resolved = node.resolve(&topic);
+        let qos = qos::sensor_data();
         tasks.push(match camera {
             CameraFeed::Frames(feed) => {
                 let frame_size = spec.frame_size;
                 let limits = feed.limits().clone();
-                forward(
-                    &runtime,
-                    sub,
-                    resolved,
+                on.spawn(
+                    &topic,
+                    COMPRESSED_IMAGE,
+                    qos,
                     feed,
-                    shutdown.clone(),
-                    move |msg, received_ns| frame_sample(&msg, frame_size, &limits, received_ns),
-                )
+                    move |msg: CompressedImage, received_ns| {
+                        frame_sample(&msg, frame_size, &limits, received_ns)
+                    },
+                )?
             }
-            CameraFeed::Images(feed) => forward(
-                &runtime,
-                sub,
-                resolved,
+            CameraFeed::Images(feed) => on.spawn(
+                &topic,
+                COMPRESSED_IMAGE,
+                qos,
                 feed,
-                shutdown.clone(),
-                |msg, received_ns| (header_stamp(&msg.header, received_ns), Ok(Arc::new(msg))),
-            ),
+                |msg: CompressedImage, received_ns| {
+                    (header_stamp(&msg.header, received_ns), Ok(Arc::new(msg)))
+                },
+            )?,
         });
     }
     if let Some((topic, feed)) = feeds.plan {
-        let sub = subscription::<JointTrajectory>(
-            node,
+        let names = spec.joint_names.clone();
+        tasks.push(on.spawn(
             &topic,
             JOINT_TRAJECTORY,
             qos::planned_trajectory(),
-        )?;
-        let names = spec.joint_names.clone();
-        tasks.push(forward(
-            &runtime,
-            sub,
-            node.resolve(&topic),
             feed,
-            shutdown.clone(),
-            move |msg, received_ns| plan_sample(&msg, &names, received_ns),
-        ));
+            move |msg: JointTrajectory, received_ns| plan_sample(&msg, &names, received_ns),
+        )?);
     }
     Ok(tasks)
 }
@@ -183,74 +179,77 @@ fn header_stamp(header: &Header, received_ns: i64) -> i64 {
     }
 }
 
-fn subscription<T: 'static>(
-    node: &mut RosNode,
-    topic: &str,
-    type_name: &str,
-    qos: ros2_client::QosProfile,
-) -> Result<Subscription<T>, RosError> {
-    let resolved = node.resolve(topic);
-    let t = node.topic(topic, type_name, &qos)?;
-    let sub = node
-        .node_mut()
-        .create_subscription(&t, Some(qos))
-        .map_err(|e| RosError::Endpoint {
-            kind: "subscription",
-            topic: resolved.clone(),
-            reason: e.to_string(),
-        })?;
-    tracing::info!(topic = %resolved, type_name, "ROS 2 subscription ready");
-    Ok(sub)
+/// Where [`subscribe`] creates its subscriptions and runs their tasks.
+struct Subscriber<'a> {
+    node: &'a mut RosNode,
+    runtime: &'a tokio::runtime::Handle,
+    shutdown: &'a Shutdown,
 }
 
-/// Convert each message of `sub` as it arrives (with the system clock at
-/// its reception) and offer it into `feed`, until `shutdown`.
-fn forward<M, T, F>(
-    runtime: &tokio::runtime::Handle,
-    sub: Subscription<M>,
-    topic: String,
-    feed: StreamFeed<T>,
-    mut shutdown: Shutdown,
-    convert: F,
-) -> JoinHandle<()>
-where
-    M: serde::de::DeserializeOwned + Send + Sync + 'static,
-    T: StreamValue,
-    F: Fn(M, i64) -> (i64, Result<T, Rejection>) + Send + 'static,
-{
-    runtime.spawn(async move {
-        let stream = sub.async_stream();
-        pin_mut!(stream);
-        let mut received = 0u64;
-        let mut undecodable = 0u64;
-        loop {
-            let next = tokio::select! {
-                next = stream.next() => next,
-                () = shutdown.recv() => return,
-            };
-            let Some(sample) = next else { break };
-            match sample {
-                Ok((msg, _info)) => {
-                    received += 1;
-                    if received == 1 {
-                        tracing::info!(topic = %topic, "first ROS 2 message received");
+impl Subscriber<'_> {
+    /// Subscribe to `topic` (`type_name`, `qos`) and spawn the task that
+    /// converts each message as it arrives (with the system clock at its
+    /// reception) and offers it into `feed`, until the shutdown.
+    fn spawn<M, T, F>(
+        &mut self,
+        topic: &str,
+        type_name: &str,
+        qos: ros2_client::QosProfile,
+        feed: StreamFeed<T>,
+        convert: F,
+    ) -> Result<JoinHandle<()>, RosError>
+    where
+        M: serde::de::DeserializeOwned + Send + Sync + 'static,
+        T: StreamValue,
+        F: Fn(M, i64) -> (i64, Result<T, Rejection>) + Send + 'static,
+    {
+        let topic = self.node.resolve(topic);
+        let t = self.node.topic(&topic, type_name, &qos)?;
+        let sub: Subscription<M> = self
+            .node
+            .node_mut()
+            .create_subscription(&t, Some(qos))
+            .map_err(|e| RosError::Endpoint {
+                kind: "subscription",
+                topic: topic.clone(),
+                reason: e.to_string(),
+            })?;
+        tracing::info!(topic = %topic, type_name, "ROS 2 subscription ready");
+        let mut shutdown = self.shutdown.clone();
+        Ok(self.runtime.spawn(async move {
+            let stream = sub.async_stream();
+            pin_mut!(stream);
+            let mut received = 0u64;
+            let mut undecodable = 0u64;
+            loop {
+                let next = tokio::select! {
+                    next = stream.next() => next,
+                    () = shutdown.recv() => return,
+                };
+                let Some(sample) = next else { break };
+                match sample {
+                    Ok((msg, _info)) => {
+                        received += 1;
+                        if received == 1 {
+                            tracing::info!(topic = %topic, "first ROS 2 message received");
+                        }
+                        let (stamp_ns, value) = convert(msg, crate::clock::unix_now_ns());
+                        let _ = feed.offer(stamp_ns, value);
                     }
-                    let (stamp_ns, value) = convert(msg, crate::clock::unix_now_ns());
-                    let _ = feed.offer(stamp_ns, value);
-                }
-                Err(e) => {
-                    undecodable += 1;
-                    if undecodable == 1 {
-                        tracing::warn!(topic = %topic, error = %e, "undecodable ROS 2 message (further ones are only counted)");
+                    Err(e) => {
+                        undecodable += 1;
+                        if undecodable == 1 {
+                            tracing::warn!(topic = %topic, error = %e, "undecodable ROS 2 message (further ones are only counted)");
+                        }
+                        feed.stats().set_external(
+                            undecodable,
+                            vec![("dds_undecodable".into(), undecodable.to_string())],
+                        );
                     }
-                    feed.stats().set_external(
-                        undecodable,
-                        vec![("dds_undecodable".into(), undecodable.to_string())],
-                    );
                 }
             }
-        }
-        tracing::warn!(topic = %topic, "ROS 2 subscription stream ended");
-        feed.stats().set_state("subscription ended");
-    })
+            tracing::warn!(topic = %topic, "ROS 2 subscription stream ended");
+            feed.stats().set_state("subscription ended");
+        }))
+    }
 }

@@ -63,19 +63,10 @@ pub fn metrics(p: &[f32], y: &[bool]) -> Metrics {
 /// Expected calibration error: bins of equal width on the predicted
 /// probability of the positive class; `Σ |bin| / n · |mean(y) − mean(p)|`.
 pub fn ece(p: &[f32], y: &[bool], bins: usize) -> f64 {
-    let mut count = vec![0usize; bins];
-    let mut conf = vec![0.0f64; bins];
-    let mut pos = vec![0.0f64; bins];
-    for (&pi, &yi) in p.iter().zip(y) {
-        let b = ((pi as f64 * bins as f64) as usize).min(bins - 1);
-        count[b] += 1;
-        conf[b] += pi as f64;
-        pos[b] += f64::from(u8::from(yi));
-    }
     let n = p.len().max(1) as f64;
-    (0..bins)
-        .filter(|&b| count[b] > 0)
-        .map(|b| count[b] as f64 / n * (pos[b] / count[b] as f64 - conf[b] / count[b] as f64).abs())
+    reliability(p, y, bins)
+        .into_iter()
+        .map(|(conf, pos, count)| count as f64 / n * (pos - conf).abs())
         .sum()
 }
 
