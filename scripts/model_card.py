@@ -327,8 +327,8 @@ def test_and_walking(reports: Path, stem: str) -> tuple[dict, int, float] | None
 
 
 def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
-    rows = ["| network | trigger / release | test falls warned | warned >= 0.5 s ahead | lead median | "
-            "false alarms / min (walking set) | walking minutes |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    rows = ["| network | latch horizon | trigger / release | test falls warned | warned >= 0.5 s ahead | lead median | "
+            "false alarms / min (walking set) | walking minutes |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for abl, name in selected:
         figures = test_and_walking(reports, f"warnings-{abl}")
         if not figures:
@@ -338,7 +338,8 @@ def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
         early_txt = "-" if early is None else f"{100 * early:.0f}%"
         lead_txt = "-" if t["lead_median_s"] is None else f"{t['lead_median_s']:.2f} s"
         rate = alarms / minutes if minutes else float("nan")
-        rows.append(f"| {abl.upper()} ({name}) | {t['trigger']:.2f} / {t['release']:.2f} | "
+        horizon = load(reports / f"warnings-{abl}-set-test.json").get("horizon_ms", 1000) / 1000
+        rows.append(f"| {abl.upper()} ({name}) | {horizon:g} s | {t['trigger']:.2f} / {t['release']:.2f} | "
                     f"{t['warned']}/{t['falling_episodes']} ({100 * t['warned_share']:.0f}%) | {early_txt} | "
                     f"{lead_txt} | {rate:.3f} ({alarms} in {minutes:.1f} min) | {minutes:.1f} |")
     return rows

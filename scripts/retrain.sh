@@ -54,6 +54,19 @@ mkdir -p "$DATA_ROOT" "$RUNS" "$REPORTS"
 
 log() { printf '%s %s\n' "$(date -u +%Y-%m-%dT%H:%M:%SZ)" "$*" | tee -a "$LOG" >&2; }
 
+# current OUT MODEL HORIZON_MS IN...: the warnings report OUT is newer than
+# MODEL and every IN, and is of MODEL at HORIZON_MS (a report of another run
+# or horizon, from an earlier selection, is made again).
+current() {
+  local out=$1 model=$2 horizon=$3; shift 3
+  newer "$out" "$model" "$@" || return 1
+  "$PY" -c "
+import json, sys
+r = json.load(open(sys.argv[1]))
+sys.exit(0 if r.get('model') == sys.argv[2] and r.get('horizon_ms') == int(sys.argv[3]) else 1)" \
+    "$out" "$model" "$horizon"
+}
+
 # newer OUT IN...: OUT exists and is newer than every IN.
 newer() {
   local out=$1; shift
@@ -108,6 +121,12 @@ train_plan() {
 }
 
 KEEP=$REPO/models/card/$SET_NAME   # the results kept per run (scripts/model_card.py)
+# The networks that ship are trained under the paper protocol (each horizon on
+# its own stop-line windows, so that the 1.5 s and 2 s outputs learn their own
+# lead), and the latch watches their LATCH_MS output (`[model].horizon_ms`),
+# its thresholds chosen there on validation.
+SHIP_PROTOCOL=-pp
+LATCH_MS=${RETRAIN_LATCH_MS:-2000}
 TRAINED_ON="$SET_NAME (sim generator 5, 2,000 episodes, seed 1; simulated data)"
 
 # The shipped networks are calibrated runs of this plan: in a data directory
@@ -250,7 +269,7 @@ step_select() {
   restore_shipped
   : >"$REPORTS/selected.txt.partial"
   for abl in emp mp ep p; do
-    best=$(best_run "$abl")
+    best=$(best_run "$abl$SHIP_PROTOCOL")
     [ -n "$best" ] && echo "$abl $best" >>"$REPORTS/selected.txt.partial"
   done
   mv "$REPORTS/selected.txt.partial" "$REPORTS/selected.txt"
@@ -267,10 +286,10 @@ step_thresholds() {
   while read -r abl name loss; do
     model="$RUNS/$name.cal.bpk"
     out="$REPORTS/$abl-thresholds.json"
-    newer "$out" "$model" && continue
-    log "thresholds $abl ($name) on validation falls and walks"
+    current "$out" "$model" "$LATCH_MS" && continue
+    log "thresholds $abl ($name) at $LATCH_MS ms on validation falls and walks"
     "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose \
-      --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
+      --horizon-ms "$LATCH_MS" --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
     mv "$out.partial" "$out"
   done <"$REPORTS/selected.txt"
 }
@@ -403,7 +422,7 @@ latch_warnings() {
     walk) data=$WALK ;;
     collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
   esac
-  newer "$out" "$model" "$pairs" && return 0
+  current "$out" "$model" "$horizon" "$pairs" && return 0
   read -r trig rel < <(chosen_pair "$pairs")
   log "warnings $(basename "$model" .cal.bpk) at $horizon ms on $set $split (trigger $trig, release $rel)"
   "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms "$horizon" --trigger "$trig" \
@@ -413,8 +432,20 @@ latch_warnings() {
 
 # warnings_2s RUN: the latch on RUN's 2 s output, its pair chosen at 2 s on the
 # validation falls and walks: reports/warn2s-RUN-{choose,set-test,walk-*}.json.
+# For a shipped run whose latch is the 2 s one, these are its thresholds and
+# warnings (steps thresholds and evaluate), copied.
 warnings_2s() {
-  local name=$1 model="$RUNS/$1.cal.bpk" out target
+  local name=$1 model="$RUNS/$1.cal.bpk" out target abl f
+  abl=$(awk -v n="$name" '$2 == n {print $1}' "$REPORTS/selected.txt")
+  if [ "$LATCH_MS" = 2000 ] && [ -n "$abl" ]; then
+    for target in choose set-test walk-train walk-test; do
+      f="$REPORTS/warnings-$abl-$target.json"
+      [ $target = choose ] && f="$REPORTS/$abl-thresholds.json"
+      out="$REPORTS/warn2s-$name-$target.json"
+      [ -e "$f" ] && ! newer "$out" "$f" && cp "$f" "$out"
+    done
+    return 0
+  fi
   out="$REPORTS/warn2s-$name-choose.json"
   if ! newer "$out" "$model"; then
     log "warnings $name at 2 s: thresholds on validation falls and walks"
@@ -427,10 +458,10 @@ warnings_2s() {
   done
 }
 
-# warnings_one ABL RUN SET:SPLIT: the latch on RUN's 1 s output with its
+# warnings_one ABL RUN SET:SPLIT: the latch on RUN's LATCH_MS output with its
 # ablation's thresholds (step_thresholds).
 warnings_one() {
-  latch_warnings "$RUNS/$2.cal.bpk" "$REPORTS/$1-thresholds.json" 1000 "$3" \
+  latch_warnings "$RUNS/$2.cal.bpk" "$REPORTS/$1-thresholds.json" "$LATCH_MS" "$3" \
     "$REPORTS/warnings-$1-${3/:/-}.json"
 }
 
@@ -449,7 +480,7 @@ step_ship() {
     mv "$REPO/models/$abl.bpk.partial" "$REPO/models/$abl.bpk"
   done <"$REPORTS/selected.txt"
   # Each network's latch thresholds, chosen for it on validation, into the configs.
-  "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" \
+  "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" --horizon-ms "$LATCH_MS" \
     "$REPO/config/replay.toml" "$REPO/config/poppy_humanoid.toml" | tee -a "$LOG"
 }
 
