@@ -47,8 +47,8 @@ use std::sync::Arc;
 
 use crate::clock::{BadRate, TickGrid};
 use crate::frame::{CompressedFrame, Frame, FrameError};
-use crate::msgs::{JointState, JointTrajectory};
-use crate::recording::{topics, Recording};
+use crate::msgs::{CompressedImage, JointState, JointTrajectory};
+use crate::recording::{topics, Logged, Recording};
 use crate::streams::sample::{frame_from_msg, joints_from_msg, Plan, Sample, SampleError};
 use crate::streams::{PerStream, StreamKind};
 
@@ -819,16 +819,22 @@ pub fn samples_from_recording(
     rec: &Recording,
     spec: &WindowSpec,
 ) -> Result<Vec<Sample>, WindowError> {
+    require_joint_states(rec)?;
+    recorded_samples(rec, spec)
+        .into_iter()
+        .map(|r| r.sample.map_err(in_recording(rec, r.topic, r.stamp_ns)))
+        .collect()
+}
+
+/// A recording without joint states has nothing to make a window of.
+fn require_joint_states(rec: &Recording) -> Result<(), WindowError> {
     if rec.joint_states.is_empty() {
         return Err(WindowError::NoSamples {
             path: rec.path.clone(),
             topic: topics::JOINT_STATES,
         });
     }
-    recorded_samples(rec, spec)
-        .into_iter()
-        .map(|r| r.sample.map_err(in_recording(rec, r.topic, r.stamp_ns)))
-        .collect()
+    Ok(())
 }
 
 /// What a recording's episode is resampled from: a sample, or a frame held
@@ -845,58 +851,60 @@ fn inputs_with_compressed_frames(
     rec: &Recording,
     spec: &WindowSpec,
 ) -> Result<Vec<EpisodeInput>, WindowError> {
-    if rec.joint_states.is_empty() {
-        return Err(WindowError::NoSamples {
-            path: rec.path.clone(),
-            topic: topics::JOINT_STATES,
-        });
-    }
-    struct Converted {
-        topic: &'static str,
-        stamp_ns: i64,
-        file_order: u64,
-        input: Result<EpisodeInput, SampleError>,
-    }
-    let mut out = Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
-    for m in &rec.joint_states {
-        let stamp_ns = m.log_time_ns;
-        out.push(Converted {
-            topic: topics::JOINT_STATES,
-            stamp_ns,
-            file_order: m.file_order,
-            input: joint_sample(&m.msg, stamp_ns, spec).map(EpisodeInput::Sample),
-        });
-    }
-    for m in &rec.images {
-        let stamp_ns = m.log_time_ns;
-        let frame = CompressedFrame::new(&m.msg.format, m.msg.data.clone(), spec.frame_size)
-            .map_err(|source| SampleError::Frame {
-                topic: topics::HEAD_CAMERA,
-                source,
-            });
-        out.push(Converted {
-            topic: topics::HEAD_CAMERA,
-            stamp_ns,
-            file_order: m.file_order,
-            input: frame.map(|f| EpisodeInput::Frame {
+    require_joint_states(rec)?;
+    let converted = convert_messages(
+        rec,
+        |msg, stamp_ns| joint_sample(msg, stamp_ns, spec).map(EpisodeInput::Sample),
+        |msg, stamp_ns| {
+            let frame = CompressedFrame::new(&msg.format, msg.data.clone(), spec.frame_size)
+                .map_err(|source| SampleError::Frame {
+                    topic: topics::HEAD_CAMERA,
+                    source,
+                })?;
+            Ok(EpisodeInput::Frame {
                 stamp_ns,
-                frame: TickFrame::Compressed(Arc::new(f)),
-            }),
-        });
-    }
-    for m in &rec.plans {
-        let stamp_ns = m.log_time_ns;
-        out.push(Converted {
-            topic: topics::PLANNED_TRAJECTORY,
-            stamp_ns,
-            file_order: m.file_order,
-            input: plan_sample(&m.msg, stamp_ns, spec).map(EpisodeInput::Sample),
-        });
-    }
-    out.sort_by_key(|c| (c.stamp_ns, c.file_order));
-    out.into_iter()
-        .map(|c| c.input.map_err(in_recording(rec, c.topic, c.stamp_ns)))
+                frame: TickFrame::Compressed(Arc::new(frame)),
+            })
+        },
+        |msg, stamp_ns| plan_sample(msg, stamp_ns, spec).map(EpisodeInput::Sample),
+    );
+    converted
+        .into_iter()
+        .map(|c| c.sample.map_err(in_recording(rec, c.topic, c.stamp_ns)))
         .collect()
+}
+
+/// Each of `messages`, of stream `kind`, converted, into `out`.
+fn convert_stream<M, T>(
+    out: &mut Vec<RecordedSample<T>>,
+    kind: StreamKind,
+    messages: &[Logged<M>],
+    convert: impl Fn(&M, i64) -> Result<T, SampleError>,
+) {
+    out.extend(messages.iter().map(|m| RecordedSample {
+        kind,
+        topic: topics::of_stream(kind),
+        stamp_ns: m.log_time_ns,
+        file_order: m.file_order,
+        sample: convert(&m.msg, m.log_time_ns),
+    }));
+}
+
+/// Every message of the input streams of `rec`, each converted by its
+/// stream's function (message, log time), in log-time order (ties in file
+/// order).
+fn convert_messages<T>(
+    rec: &Recording,
+    joints: impl Fn(&JointState, i64) -> Result<T, SampleError>,
+    image: impl Fn(&CompressedImage, i64) -> Result<T, SampleError>,
+    plan: impl Fn(&JointTrajectory, i64) -> Result<T, SampleError>,
+) -> Vec<RecordedSample<T>> {
+    let mut out = Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
+    convert_stream(&mut out, StreamKind::Joints, &rec.joint_states, joints);
+    convert_stream(&mut out, StreamKind::Camera, &rec.images, image);
+    convert_stream(&mut out, StreamKind::Plan, &rec.plans, plan);
+    out.sort_by_key(|r| (r.stamp_ns, r.file_order));
+    out
 }
 
 /// A message of `rec` that did not convert, named by its topic and log time.
@@ -932,16 +940,16 @@ fn plan_sample(
     })
 }
 
-/// One recorded message of an input stream in model form, or why it is
-/// not one.
+/// One recorded message of an input stream in model form (`T`), or why
+/// it is not one.
 #[derive(Debug)]
-pub struct RecordedSample {
+pub struct RecordedSample<T = Sample> {
     pub kind: StreamKind,
     pub topic: &'static str,
     /// Its log time, ns.
     pub stamp_ns: i64,
     pub file_order: u64,
-    pub sample: Result<Sample, SampleError>,
+    pub sample: Result<T, SampleError>,
 }
 
 /// Every message of the input streams of `rec`, converted one by one (as
@@ -949,40 +957,15 @@ pub struct RecordedSample {
 /// order). A replay offers each to its stream's input boundary, which
 /// rejects the ones that did not convert.
 pub fn recorded_samples(rec: &Recording, spec: &WindowSpec) -> Vec<RecordedSample> {
-    let mut out = Vec::with_capacity(rec.joint_states.len() + rec.images.len() + rec.plans.len());
-    for m in &rec.joint_states {
-        let stamp_ns = m.log_time_ns;
-        out.push(RecordedSample {
-            kind: StreamKind::Joints,
-            topic: topics::JOINT_STATES,
-            stamp_ns,
-            file_order: m.file_order,
-            sample: joint_sample(&m.msg, stamp_ns, spec),
-        });
-    }
-    for m in &rec.images {
-        let stamp_ns = m.log_time_ns;
-        out.push(RecordedSample {
-            kind: StreamKind::Camera,
-            topic: topics::HEAD_CAMERA,
-            stamp_ns,
-            file_order: m.file_order,
-            sample: frame_from_msg(&m.msg, spec.frame_size).map(|frame| Sample::Frame {
+    convert_messages(
+        rec,
+        |msg, stamp_ns| joint_sample(msg, stamp_ns, spec),
+        |msg, stamp_ns| {
+            frame_from_msg(msg, spec.frame_size).map(|frame| Sample::Frame {
                 stamp_ns,
                 frame: Arc::new(frame),
-            }),
-        });
-    }
-    for m in &rec.plans {
-        let stamp_ns = m.log_time_ns;
-        out.push(RecordedSample {
-            kind: StreamKind::Plan,
-            topic: topics::PLANNED_TRAJECTORY,
-            stamp_ns,
-            file_order: m.file_order,
-            sample: plan_sample(&m.msg, stamp_ns, spec),
-        });
-    }
-    out.sort_by_key(|r| (r.stamp_ns, r.file_order));
-    out
+            })
+        },
+        |msg, stamp_ns| plan_sample(msg, stamp_ns, spec),
+    )
 }

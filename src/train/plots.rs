@@ -45,102 +45,101 @@ pub type HorizonSeries<'a> = (String, &'a [f32], &'a [bool]);
 
 /// ROC curves, one line per horizon.
 pub fn roc_plot(path: &Path, series: &[HorizonSeries<'_>]) -> Result<(), PlotError> {
-    register_font();
-    let e = err(path);
-    let root = BitMapBackend::new(path, (640, 560)).into_drawing_area();
-    root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption("ROC", ("sans-serif", 22))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(50)
-        .build_cartesian_2d(0.0..1.0, 0.0..1.0)
-        .map_err(|x| e(x.to_string()))?;
-    chart
-        .configure_mesh()
-        .x_desc("false positive rate")
-        .y_desc("true positive rate")
-        .draw()
-        .map_err(|x| e(x.to_string()))?;
-    chart
-        .draw_series(LineSeries::new(
-            vec![(0.0, 0.0), (1.0, 1.0)],
-            BLACK.mix(0.3),
-        ))
-        .map_err(|x| e(x.to_string()))?;
-    for (i, (label, p, y)) in series.iter().enumerate() {
-        let color = Palette99::pick(i).to_rgba();
-        chart
-            .draw_series(LineSeries::new(roc_curve(p, y), color.stroke_width(2)))
-            .map_err(|x| e(x.to_string()))?
-            .label(label.clone())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-            });
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|x| e(x.to_string()))?;
-    root.present().map_err(|x| e(x.to_string()))
+    let roc = UnitSquarePlot {
+        caption: "ROC",
+        x_desc: "false positive rate",
+        y_desc: "true positive rate",
+        points: false,
+        legend: SeriesLabelPosition::LowerRight,
+    };
+    roc.draw(path, series, roc_curve)
 }
 
 /// Reliability diagram (15 bins), one line per horizon.
 pub fn reliability_plot(path: &Path, series: &[HorizonSeries<'_>]) -> Result<(), PlotError> {
-    register_font();
-    let e = err(path);
-    let root = BitMapBackend::new(path, (640, 560)).into_drawing_area();
-    root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption("Reliability (15 bins)", ("sans-serif", 22))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(50)
-        .build_cartesian_2d(0.0..1.0, 0.0..1.0)
-        .map_err(|x| e(x.to_string()))?;
-    chart
-        .configure_mesh()
-        .x_desc("mean predicted probability")
-        .y_desc("fraction fallen")
-        .draw()
-        .map_err(|x| e(x.to_string()))?;
-    chart
-        .draw_series(LineSeries::new(
-            vec![(0.0, 0.0), (1.0, 1.0)],
-            BLACK.mix(0.3),
-        ))
-        .map_err(|x| e(x.to_string()))?;
-    for (i, (label, p, y)) in series.iter().enumerate() {
-        let color = Palette99::pick(i).to_rgba();
-        let pts: Vec<(f64, f64)> = reliability(p, y, 15)
+    let diagram = UnitSquarePlot {
+        caption: "Reliability (15 bins)",
+        x_desc: "mean predicted probability",
+        y_desc: "fraction fallen",
+        points: true,
+        legend: SeriesLabelPosition::UpperLeft,
+    };
+    diagram.draw(path, series, |p, y| {
+        reliability(p, y, 15)
             .iter()
             .map(|&(c, f, _)| (c, f))
-            .collect();
-        chart
-            .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
-            .map_err(|x| e(x.to_string()))?
-            .label(label.clone())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-            });
-        chart
-            .draw_series(
-                pts.iter()
-                    .map(|&(x, y)| Circle::new((x, y), 3, color.filled())),
-            )
+            .collect()
+    })
+}
+
+/// A plot on [0, 1] x [0, 1] with the diagonal and one curve per horizon.
+struct UnitSquarePlot {
+    caption: &'static str,
+    x_desc: &'static str,
+    y_desc: &'static str,
+    /// Mark each point of a curve.
+    points: bool,
+    legend: SeriesLabelPosition,
+}
+
+impl UnitSquarePlot {
+    fn draw(
+        &self,
+        path: &Path,
+        series: &[HorizonSeries<'_>],
+        curve: impl Fn(&[f32], &[bool]) -> Vec<(f64, f64)>,
+    ) -> Result<(), PlotError> {
+        register_font();
+        let e = err(path);
+        let root = BitMapBackend::new(path, (640, 560)).into_drawing_area();
+        root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(self.caption, ("sans-serif", 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(0.0..1.0, 0.0..1.0)
             .map_err(|x| e(x.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc(self.x_desc)
+            .y_desc(self.y_desc)
+            .draw()
+            .map_err(|x| e(x.to_string()))?;
+        chart
+            .draw_series(LineSeries::new(
+                vec![(0.0, 0.0), (1.0, 1.0)],
+                BLACK.mix(0.3),
+            ))
+            .map_err(|x| e(x.to_string()))?;
+        for (i, (label, p, y)) in series.iter().enumerate() {
+            let color = Palette99::pick(i).to_rgba();
+            let pts = curve(p, y);
+            chart
+                .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
+                .map_err(|x| e(x.to_string()))?
+                .label(label.clone())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+            if self.points {
+                chart
+                    .draw_series(
+                        pts.iter()
+                            .map(|&(x, y)| Circle::new((x, y), 3, color.filled())),
+                    )
+                    .map_err(|x| e(x.to_string()))?;
+            }
+        }
+        chart
+            .configure_series_labels()
+            .position(self.legend.clone())
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|x| e(x.to_string()))?;
+        root.present().map_err(|x| e(x.to_string()))
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|x| e(x.to_string()))?;
-    root.present().map_err(|x| e(x.to_string()))
 }
 
 /// Training and validation loss and validation accuracy per epoch.
