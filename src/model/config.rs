@@ -175,18 +175,14 @@ impl ModelConfig {
         }
     }
 
-    /// TimesNet's defaults (`inc_dim = 256`, `num_kernels = 6`).
-    pub fn paper(
-        n_ticks: usize,
-        n_joints: usize,
-        horizons_ticks: Vec<usize>,
-        frame_size: usize,
-    ) -> Self {
+    /// This config with TimesNet's defaults (`inc_dim = 256`,
+    /// `num_kernels = 6`): the `paper` config of the same shapes.
+    pub fn paper(self) -> Self {
         ModelConfig {
             name: "paper".into(),
             inc_dim: 256,
             num_kernels: 6,
-            ..Self::lite(n_ticks, n_joints, horizons_ticks, frame_size)
+            ..self
         }
     }
 
@@ -198,9 +194,10 @@ impl ModelConfig {
         horizons_ticks: Vec<usize>,
         frame_size: usize,
     ) -> Result<Self, String> {
+        let lite = Self::lite(n_ticks, n_joints, horizons_ticks, frame_size);
         match name {
-            "lite" => Ok(Self::lite(n_ticks, n_joints, horizons_ticks, frame_size)),
-            "paper" => Ok(Self::paper(n_ticks, n_joints, horizons_ticks, frame_size)),
+            "lite" => Ok(lite),
+            "paper" => Ok(lite.paper()),
             other => Err(format!(
                 "unknown model config {other:?}: expected lite or paper"
             )),

@@ -3,6 +3,8 @@
 use super::*;
 use burn::prelude::*;
 
+use crate::train::bench::noise;
+
 fn joint_names(c: usize) -> Vec<String> {
     (0..c).map(|i| format!("joint_{i}")).collect()
 }
@@ -14,19 +16,6 @@ fn small_config() -> ModelConfig {
     cfg.inc_dim = 8;
     cfg.plan_d = 8;
     cfg
-}
-
-/// Deterministic pseudo-random values in [0, 1).
-fn noise(len: usize, seed: u64) -> Vec<f32> {
-    let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15).wrapping_add(7);
-    (0..len)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            (s >> 40) as f32 / (1u64 << 24) as f32
-        })
-        .collect()
 }
 
 struct Windows {

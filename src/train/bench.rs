@@ -140,8 +140,10 @@ fn thread_cpu_ms() -> f64 {
     ts.tv_sec as f64 * 1e3 + ts.tv_nsec as f64 * 1e-6
 }
 
-fn noise(len: usize, seed: u64) -> Vec<f32> {
-    let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15) | 1;
+/// Deterministic pseudo-random values in [0, 1) (xorshift), the bench's
+/// inputs (and the model tests').
+pub fn noise(len: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15).wrapping_add(7);
     (0..len)
         .map(|_| {
             s ^= s << 13;
