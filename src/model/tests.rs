@@ -186,23 +186,41 @@ fn training_fusion_has_the_branches_outputs_and_gradients() {
         TensorData::new(noise(2 * 4 * 5 * 6, 8), [2, 4, 5, 6]),
         &device,
     );
-    let grads = |y: Tensor<4>| -> Vec<Vec<f32>> {
-        let g = (y * target.clone()).sum().backward();
-        let mut out = Vec::new();
-        for c in inc.branches() {
-            out.push(vec_of(c.weight.val().grad(&g).expect("weight gradient")));
-            let b = c.bias.as_ref().expect("bias").val();
-            out.push(vec_of(b.grad(&g).expect("bias gradient")));
+    // Outputs equal; the gradients `params` reads off `y * target` equal.
+    fn same_outputs_and_gradients<const D: usize>(
+        fused: Tensor<D>,
+        branches: Tensor<D>,
+        target: Tensor<D>,
+        params: impl Fn(&burn::tensor::Gradients) -> Vec<Vec<f32>>,
+    ) -> usize {
+        close(&vec_of(fused.clone()), &vec_of(branches.clone()));
+        let grads = |y: Tensor<D>| params(&(y * target.clone()).sum().backward());
+        let (ga, gb) = (grads(fused), grads(branches));
+        for (a, b) in ga.iter().zip(&gb) {
+            close(a, b);
         }
-        out
-    };
-    let (fused, branches) = (inc.forward(x.clone()), inc.forward_branches(x));
-    close(&vec_of(fused.clone()), &vec_of(branches.clone()));
-    let (ga, gb) = (grads(fused), grads(branches));
-    assert_eq!(ga.len(), 6);
-    for (a, b) in ga.iter().zip(&gb) {
-        close(a, b);
+        ga.len()
     }
+    let params = inc.branches().len();
+    let checked = same_outputs_and_gradients(
+        inc.forward(x.clone()),
+        inc.forward_branches(x),
+        target,
+        |g| {
+            inc.branches()
+                .iter()
+                .flat_map(|c| {
+                    let bias = c.bias.as_ref().expect("bias").val();
+                    [
+                        vec_of(c.weight.val().grad(g).expect("weight gradient")),
+                        vec_of(bias.grad(g).expect("bias gradient")),
+                    ]
+                })
+                .collect()
+        },
+    );
+    assert_eq!(checked, 2 * params);
+    assert_eq!(params, 3);
 
     let inc3 = inception::Inception3d::new(2, 3, &device);
     let x = Tensor::<5>::from_data(
@@ -213,23 +231,24 @@ fn training_fusion_has_the_branches_outputs_and_gradients() {
         TensorData::new(noise(3 * 4 * 5 * 5, 10), [1, 3, 4, 5, 5]),
         &device,
     );
-    let grads = |y: Tensor<5>| -> Vec<Vec<f32>> {
-        let g = (y * target.clone()).sum().backward();
-        let mut out = Vec::new();
-        for c in inc3.branches() {
-            out.push(vec_of(c.weight.val().grad(&g).expect("weight gradient")));
-            let b = c.bias.as_ref().expect("bias").val();
-            out.push(vec_of(b.grad(&g).expect("bias gradient")));
-        }
-        out
-    };
-    let (fused, branches) = (inc3.forward(x.clone()), inc3.forward_branches(x));
-    close(&vec_of(fused.clone()), &vec_of(branches.clone()));
-    let (ga, gb) = (grads(fused), grads(branches));
-    assert_eq!(ga.len(), 4);
-    for (a, b) in ga.iter().zip(&gb) {
-        close(a, b);
-    }
+    let checked = same_outputs_and_gradients(
+        inc3.forward(x.clone()),
+        inc3.forward_branches(x),
+        target,
+        |g| {
+            inc3.branches()
+                .iter()
+                .flat_map(|c| {
+                    let bias = c.bias.as_ref().expect("bias").val();
+                    [
+                        vec_of(c.weight.val().grad(g).expect("weight gradient")),
+                        vec_of(bias.grad(g).expect("bias gradient")),
+                    ]
+                })
+                .collect()
+        },
+    );
+    assert_eq!(checked, 4);
 }
 
 /// The conv3d reference and [`inception::conv3d_channel_major`] (channel-major
