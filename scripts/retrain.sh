@@ -96,11 +96,11 @@ plan() {
   # stop-line windows): the deployment windows hold almost no window that
   # ends 1-2 s before a fall, so there the 1.5 s and 2 s outputs learn what
   # the 1 s one does; these learn each horizon's own lead.
-  for s in 1 2; do
+  for s in 1 2 3; do
     echo "mp-pp-s$s --ablation MP --seed $s --protocol paper"
     echo "p-pp-s$s --ablation P --seed $s --protocol paper"
   done
-  for s in 1 2; do echo "emp-pp-s$s --ablation EMP --seed $s --protocol paper"; done
+  for s in 1 2 3; do echo "emp-pp-s$s --ablation EMP --seed $s --protocol paper"; done
   echo "ep-s1 --ablation EP --seed 1"
   for s in 4 5; do echo "emp-s$s --ablation EMP --seed $s"; done
   for s in 2 3; do echo "ep-s$s --ablation EP --seed $s"; done
