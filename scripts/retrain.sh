@@ -63,8 +63,9 @@ current() {
   "$PY" -c "
 import json, sys
 r = json.load(open(sys.argv[1]))
-sys.exit(0 if r.get('model') == sys.argv[2] and r.get('horizon_ms') == int(sys.argv[3]) else 1)" \
-    "$out" "$model" "$horizon"
+sys.exit(0 if r.get('model') == sys.argv[2] and r.get('horizon_ms') == int(sys.argv[3])
+         and r.get('release_hold_ms') == int(sys.argv[4]) else 1)" \
+    "$out" "$model" "$horizon" "$HOLD_MS"
 }
 
 # newer OUT IN...: OUT exists and is newer than every IN.
@@ -127,6 +128,9 @@ KEEP=$REPO/models/card/$SET_NAME   # the results kept per run (scripts/model_car
 # its thresholds chosen there on validation.
 SHIP_PROTOCOL=-pp
 LATCH_MS=${RETRAIN_LATCH_MS:-2000}
+# The latch releases after this long below release (`[model].release_hold_ms`
+# of the shipped configs; it delays a release, never an assertion).
+HOLD_MS=${RETRAIN_RELEASE_HOLD_MS:-1000}
 TRAINED_ON="$SET_NAME (sim generator 5, 2,000 episodes, seed 1; simulated data)"
 
 # The shipped networks are calibrated runs of this plan: in a data directory
@@ -289,7 +293,8 @@ step_thresholds() {
     current "$out" "$model" "$LATCH_MS" && continue
     log "thresholds $abl ($name) at $LATCH_MS ms on validation falls and walks"
     "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose \
-      --horizon-ms "$LATCH_MS" --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
+      --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 \
+      --out "$out.partial" >>"$LOG" 2>&1
     mv "$out.partial" "$out"
   done <"$REPORTS/selected.txt"
 }
@@ -426,7 +431,7 @@ latch_warnings() {
   read -r trig rel < <(chosen_pair "$pairs")
   log "warnings $(basename "$model" .cal.bpk) at $horizon ms on $set $split (trigger $trig, release $rel)"
   "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms "$horizon" --trigger "$trig" \
-    --release "$rel" --out "$out.partial" >>"$LOG" 2>&1
+    --release "$rel" --release-hold-ms "$HOLD_MS" --out "$out.partial" >>"$LOG" 2>&1
   mv "$out.partial" "$out"
 }
 
@@ -450,7 +455,7 @@ warnings_2s() {
   if ! newer "$out" "$model"; then
     log "warnings $name at 2 s: thresholds on validation falls and walks"
     "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose --horizon-ms 2000 \
-      --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
+      --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
     mv "$out.partial" "$out"
   fi
   for target in set:test walk:train walk:test; do
@@ -480,7 +485,7 @@ step_ship() {
     mv "$REPO/models/$abl.bpk.partial" "$REPO/models/$abl.bpk"
   done <"$REPORTS/selected.txt"
   # Each network's latch thresholds, chosen for it on validation, into the configs.
-  "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" --horizon-ms "$LATCH_MS" \
+  "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" \
     "$REPO/config/replay.toml" "$REPO/config/poppy_humanoid.toml" | tee -a "$LOG"
 }
 

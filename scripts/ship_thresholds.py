@@ -8,7 +8,8 @@ Reads DIR/selected.txt and DIR/ABL-thresholds.json (`fall-guard warnings
 each config, `[model].trigger` / `release` (EMP's pair: the default) and the
 `[model.thresholds]` table (one `[trigger, release]` per network), and with
 `--horizon-ms` the horizon the latch watches (`[model].horizon_ms`, the one
-the pairs were chosen at). A network
+the pairs were chosen at), with `--release-hold-ms` its release hold
+(`[model].release_hold_ms`). A network
 for which no pair on the grid kept false alarms within the budget gets the
 grid's highest trigger, as the evaluation used, and the config says so.
 Each file is written as FILE.partial and renamed. Standard library only.
@@ -41,9 +42,12 @@ def chosen_pairs(reports: Path) -> dict[str, tuple[float, float, str]]:
     return pairs
 
 
-def rewrite(text: str, pairs: dict[str, tuple[float, float, str]], horizon_ms: int | None = None) -> str:
+def rewrite(text: str, pairs: dict[str, tuple[float, float, str]], horizon_ms: int | None = None,
+            hold_ms: int | None = None) -> str:
     if horizon_ms is not None:
         text = re.sub(r"(?m)^horizon_ms = [0-9]+", f"horizon_ms = {horizon_ms}", text, count=1)
+    if hold_ms is not None:
+        text = re.sub(r"(?m)^release_hold_ms = [0-9]+", f"release_hold_ms = {hold_ms}", text, count=1)
     if "emp" in pairs:
         t, r, _ = pairs["emp"]
         text = re.sub(r"(?m)^trigger = [0-9.]+", f"trigger = {t}", text, count=1)
@@ -65,12 +69,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reports", type=Path, required=True)
     ap.add_argument("--horizon-ms", type=int, help="the horizon the pairs were chosen at")
+    ap.add_argument("--release-hold-ms", type=int, help="the release hold they were chosen with")
     ap.add_argument("configs", type=Path, nargs="+")
     a = ap.parse_args()
     pairs = chosen_pairs(a.reports)
     for path in a.configs:
         tmp = path.with_name(path.name + ".partial")
-        tmp.write_text(rewrite(path.read_text(), pairs, a.horizon_ms))
+        tmp.write_text(rewrite(path.read_text(), pairs, a.horizon_ms, a.release_hold_ms))
         os.replace(tmp, path)
         print(f"{path}: " + ", ".join(f"{k} {v[0]}/{v[1]}" for k, v in pairs.items()))
     return 0

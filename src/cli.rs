@@ -556,9 +556,12 @@ pub struct WarningsArgs {
     /// Latch on at or above this probability.
     #[arg(long, default_value_t = 0.7)]
     pub trigger: f32,
-    /// Latch off below this probability.
+    /// Latch off below this probability...
     #[arg(long, default_value_t = 0.4)]
     pub release: f32,
+    /// ... for this long, ms, as `[model].release_hold_ms` (0: at once).
+    #[arg(long, default_value_t = 0)]
+    pub release_hold_ms: u32,
     /// Search the thresholds on this split instead (trigger 0.30..0.95,
     /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
     /// false-alarm rate is within --max-false-alarms-per-min.
@@ -581,6 +584,7 @@ impl From<WarningsArgs> for WarningsOptions {
             horizon_ms: a.horizon_ms,
             trigger: a.trigger,
             release: a.release,
+            release_hold_ms: a.release_hold_ms,
             choose: a.choose,
             max_false_alarms_per_min: a.max_false_alarms_per_min,
             out: a.out,

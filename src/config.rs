@@ -147,6 +147,11 @@ pub struct ModelConfig {
     pub trigger: f32,
     /// Latch turns off only when it drops below this (< `trigger`).
     pub release: f32,
+    /// ... and has stayed below it this long, ms (0: at the first tick
+    /// below). A longer hold delays a release, never an assertion, so a
+    /// network whose output swings does not make the signal chatter.
+    #[serde(default)]
+    pub release_hold_ms: u32,
     /// `[model.thresholds]`: a (trigger, release) pair of one network,
     /// chosen for it on validation, used while it makes the forecasts;
     /// a network without one uses `trigger` and `release`.
@@ -898,8 +903,7 @@ mod tests {
 
     #[test]
     fn unknown_key_is_named_with_its_table_and_line() {
-        let text =
-            EMBEDDED_REPLAY_CONFIG.replace("horizon_ms = 1000", "horizon_ms = 1000\nhorizn = 3");
+        let text = EMBEDDED_REPLAY_CONFIG.replacen("[model]\n", "[model]\nhorizn = 3\n", 1);
         let err = parse(&text).expect_err("unknown key");
         assert_eq!(err.key(), Some("[model].horizn"));
         let shown = err.to_string();

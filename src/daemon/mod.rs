@@ -122,13 +122,16 @@ pub fn robot_joints(config: &Config) -> Vec<String> {
 /// The safety latch of `[model]`, on the index of `[model].horizon_ms`.
 pub fn latch_for(config: &Config, models: &ModelSet) -> Result<SafetyLatch, ServiceError> {
     let index = config.latch_horizon_index(models.horizons_ms())?;
-    let mut latch =
-        SafetyLatch::new(index, config.model.trigger, config.model.release).map_err(|source| {
-            ServiceError::Latch {
-                key: "[model].release",
-                source,
-            }
-        })?;
+    let hold_ticks = crate::outputs::latch::release_hold_ticks(
+        config.model.release_hold_ms,
+        models.spec().rate_hz,
+    );
+    let mut latch = SafetyLatch::new(index, config.model.trigger, config.model.release)
+        .map_err(|source| ServiceError::Latch {
+            key: "[model].release",
+            source,
+        })?
+        .with_release_hold(hold_ticks);
     for (network, key, pair) in config.model.thresholds.pairs() {
         latch = latch
             .with_network(network, pair[0], pair[1])

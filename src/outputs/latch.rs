@@ -3,8 +3,12 @@
 //!
 //! Each tick's probabilities enter through [`SafetyLatch::update`]; the latch
 //! turns on when the probability at its horizon reaches `trigger`, and off
-//! only once it drops below `release` (< `trigger`), so a probability that
-//! hovers around one threshold does not make the signal chatter.
+//! only once it has stayed below `release` (< `trigger`) for the release
+//! hold ([`SafetyLatch::with_release_hold`], `[model].release_hold_ms`;
+//! one tick without it), so a probability that hovers around one threshold,
+//! or a network whose output swings, does not make the signal chatter. The
+//! hold only delays a release, never an assertion: a latch that is off turns
+//! on at the first tick at or above `trigger`.
 //!
 //! Each network may have its own pair, chosen for it on validation
 //! ([`SafetyLatch::with_network`]): the latch uses the pair of the network
@@ -48,6 +52,15 @@ pub struct SafetyLatch {
     default: (f32, f32),
     /// Pairs chosen for one network.
     per_network: Vec<(Ablation, (f32, f32))>,
+    /// Valid ticks in a row below `release` that release the latch (>= 1).
+    release_hold_ticks: usize,
+    /// Valid ticks in a row below `release` so far while on.
+    below: usize,
+}
+
+/// A release hold of `ms` as ticks at `rate_hz` (rounded up: never shorter).
+pub fn release_hold_ticks(ms: u32, rate_hz: f64) -> usize {
+    (f64::from(ms) * rate_hz / 1000.0 - 1e-9).ceil().max(0.0) as usize
 }
 
 fn check(trigger: f32, release: f32) -> Result<(), LatchError> {
@@ -77,7 +90,16 @@ impl SafetyLatch {
             log: true,
             default: (trigger, release),
             per_network: Vec::new(),
+            release_hold_ticks: 1,
+            below: 0,
         })
+    }
+
+    /// The same latch released only after `ticks` valid ticks in a row
+    /// below `release` (0 or 1: at the first one).
+    pub fn with_release_hold(mut self, ticks: usize) -> SafetyLatch {
+        self.release_hold_ticks = ticks.max(1);
+        self
     }
 
     /// The same latch with `network`'s own pair, used while that network
@@ -134,9 +156,15 @@ impl SafetyLatch {
             }
             self.blind = true;
             self.imminent = true;
+            self.below = 0;
             return true;
         };
         self.blind = false;
+        if self.imminent && p < self.release {
+            self.below += 1;
+        } else {
+            self.below = 0;
+        }
         if !self.imminent && p >= self.trigger {
             self.imminent = true;
             self.triggers += 1;
@@ -147,8 +175,9 @@ impl SafetyLatch {
                     "fall imminent: latch on"
                 );
             }
-        } else if self.imminent && p < self.release {
+        } else if self.imminent && self.below >= self.release_hold_ticks {
             self.imminent = false;
+            self.below = 0;
             if self.log {
                 tracing::info!(
                     probability = p,
@@ -193,6 +222,39 @@ mod tests {
             [false, false, true, true, true, true, false, false, false, true]
         );
         assert_eq!(latch.triggers(), 2);
+    }
+
+    /// A swinging probability with a hold of 3 ticks: released only after
+    /// three valid ticks in a row below release (a blind tick starts the
+    /// count again); the assertion is never delayed.
+    #[test]
+    fn the_release_hold_delays_a_release_never_an_assertion() {
+        let mut latch = SafetyLatch::new(1, 0.7, 0.4)
+            .expect("valid")
+            .with_release_hold(3);
+        let states = run(
+            &mut latch,
+            &[0.1, 0.75, 0.2, 0.3, 0.5, 0.2, 0.1, 0.3, 0.2, 0.8],
+        );
+        assert_eq!(
+            states,
+            [false, true, true, true, true, true, true, false, false, true]
+        );
+        assert_eq!(latch.triggers(), 2);
+        assert!(latch.update(&[0.0, 0.1], true));
+        assert!(latch.update(&[0.0, 0.1], true));
+        assert!(latch.update(&[0.0, 0.1], false), "blind: asserted");
+        assert!(latch.update(&[0.0, 0.1], true));
+        assert!(latch.update(&[0.0, 0.1], true));
+        assert!(
+            !latch.update(&[0.0, 0.1], true),
+            "three valid below in a row"
+        );
+        // 0 and 1 both release at the first tick below.
+        let mut latch = SafetyLatch::new(1, 0.7, 0.4)
+            .expect("valid")
+            .with_release_hold(0);
+        assert_eq!(run(&mut latch, &[0.8, 0.3]), [true, false]);
     }
 
     #[test]

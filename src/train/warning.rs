@@ -20,7 +20,7 @@ use serde::Serialize;
 use super::cli::{forecast_ticks, needs_of_model};
 use super::dataset::{load_episode, Dataset, Split};
 use crate::model::LoadedModel;
-use crate::outputs::latch::SafetyLatch;
+use crate::outputs::latch::{release_hold_ticks, SafetyLatch};
 
 /// `fall-guard warnings`.
 #[derive(Debug)]
@@ -35,8 +35,10 @@ pub struct WarningsOptions {
     pub horizon_ms: u32,
     /// Latch on at or above this probability.
     pub trigger: f32,
-    /// Latch off below this probability.
+    /// Latch off below this probability...
     pub release: f32,
+    /// ... for this long, ms (`[model].release_hold_ms`; 0: at once).
+    pub release_hold_ms: u32,
     /// Search the thresholds on this split instead (trigger 0.30..0.95,
     /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
     /// false-alarm rate is within --max-false-alarms-per-min.
@@ -91,11 +93,13 @@ fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
     Some(sorted[i])
 }
 
-/// Runs the daemon's latch over every episode's forecasts.
+/// Runs the daemon's latch over every episode's forecasts (released after
+/// `hold_ticks` ticks in a row below `release`).
 pub fn warning_stats(
     episodes: &[EpisodeForecasts],
     trigger: f32,
     release: f32,
+    hold_ticks: usize,
     tick_s: f64,
 ) -> CommandResult<WarningStats> {
     let mut leads = Vec::new();
@@ -104,6 +108,7 @@ pub fn warning_stats(
         // The latch sees one probability: index 0 of a one-element forecast.
         let mut latch = SafetyLatch::new(0, trigger, release)
             .doing(|| format!("thresholds {trigger} / {release}"))?
+            .with_release_hold(hold_ticks)
             .silent();
         match ep.onset_ns {
             Some(onset) => {
@@ -210,6 +215,7 @@ pub fn run_warnings(args: &WarningsOptions) -> CommandResult<()> {
     let model =
         LoadedModel::load(&args.model).doing(|| format!("reading {}", args.model.display()))?;
     let tick_s = 1.0 / model.meta.rate_hz;
+    let hold_ticks = release_hold_ticks(args.release_hold_ms, model.meta.rate_hz);
     let horizons_ms = model.meta.horizons_ms();
     let horizon_index = horizons_ms
         .iter()
@@ -229,7 +235,7 @@ pub fn run_warnings(args: &WarningsOptions) -> CommandResult<()> {
     };
     let grid = pairs
         .iter()
-        .map(|&(t, r)| warning_stats(&episodes, t, r, tick_s))
+        .map(|&(t, r)| warning_stats(&episodes, t, r, hold_ticks, tick_s))
         .collect::<CommandResult<Vec<_>>>()?;
     println!(
         "| trigger | release | falls warned | warned >= {EARLY_LEAD_S} s ahead | lead median s | lead p10 s | false alarms / min |"
@@ -275,6 +281,7 @@ pub fn run_warnings(args: &WarningsOptions) -> CommandResult<()> {
             "data": args.data,
             "split": args.split.name(),
             "horizon_ms": args.horizon_ms,
+            "release_hold_ms": args.release_hold_ms,
             "grid": grid,
             "chosen": chosen,
             "max_false_alarms_per_min": args.max_false_alarms_per_min,
@@ -325,7 +332,7 @@ mod tests {
             episode(&short, Some(60)),
             episode(&calm, None),
         ];
-        let s = warning_stats(&eps, 0.7, 0.4, tick_s).unwrap();
+        let s = warning_stats(&eps, 0.7, 0.4, 1, tick_s).unwrap();
         assert_eq!((s.falling_episodes, s.warned, s.warned_by_0_5s), (3, 2, 1));
         assert!((s.warned_by_0_5s_share - 1.0 / 3.0).abs() < 1e-12);
         // Leads 1 s and 0.17 s: the nearest-rank median is the shorter.
@@ -337,7 +344,7 @@ mod tests {
         assert!((s.non_falling_minutes - 1.0).abs() < 1e-9);
         assert!((s.false_alarms_per_min - 2.0).abs() < 1e-9);
         // A higher trigger removes the alarms and the warning.
-        let s = warning_stats(&eps, 0.95, 0.5, tick_s).unwrap();
+        let s = warning_stats(&eps, 0.95, 0.5, 1, tick_s).unwrap();
         assert_eq!((s.warned, s.warned_by_0_5s, s.false_alarms), (0, 0, 0));
         assert!(s.lead_median_s.is_none());
     }
@@ -347,7 +354,7 @@ mod tests {
         let eps = vec![episode(&[0.1, 0.62, 0.1, 0.62, 0.1], None)];
         let grid: Vec<WarningStats> = threshold_grid()
             .into_iter()
-            .map(|(t, r)| warning_stats(&eps, t, r, 1.0).unwrap())
+            .map(|(t, r)| warning_stats(&eps, t, r, 1, 1.0).unwrap())
             .collect();
         // 5 ticks of 1 s: one alarm is 12 per min, over budget up to trigger 0.6.
         let c = choose(&grid, 1.0).unwrap();
