@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # The shipped networks on the real Poppy walk (tests/fixtures/real/, docs/real-recordings.md):
 # for each models/*.bpk, the share of valid ticks with fall_imminent asserted and the highest
-# probability at the latch's horizon ([model].horizon_ms of the fixture's config, 1 s). The walk
+# probability at the latch's horizon ([model].horizon_ms of the fixture's config). The walk
 # did not fall, so every assertion on a valid tick is a false alarm. Prints a Markdown table
 # (models/README.md, "On a real Poppy walk").
 #
 # - every network: `fall-guard eval --recording --per-tick-out` (the daemon's windows, offline,
 #   the input projection in int8 as the daemon holds it), with the config's latch (each network's trigger,
-#   release) applied here; EMP and EP need the camera, which the walk has not: reported as such;
+#   release, release hold) applied here; EMP and EP need the camera, which the walk has not: reported as such;
 # - the daemon as deployed: `fall-guard replay --config tests/fixtures/real/replay.toml`
 #   (no camera: it runs MP), its own printed latch counted.
 #
@@ -51,14 +51,19 @@ def pair(ablation):
     return tuple(own) if own else (model_cfg["trigger"], model_cfg["release"])
 
 
+hold_ticks = max(1, -(-model_cfg.get("release_hold_ms", 0) * 30 // 1000))
+
+
 def latch(probabilities, trigger, release):
-    """The daemon's latch over valid ticks: asserted until a valid forecast is below release."""
-    on, asserted, triggers = True, 0, 0
+    """The daemon's latch over valid ticks: asserted until valid forecasts have been below release
+    for the release hold ([model].release_hold_ms, at 30 Hz)."""
+    on, asserted, triggers, below = True, 0, 0, 0
     for p in probabilities:
-        if on and p < release:
-            on = False
-        elif not on and p >= trigger:
+        below = below + 1 if on and p < release else 0
+        if not on and p >= trigger:
             on, triggers = True, triggers + 1
+        elif on and below >= hold_ticks:
+            on, below = False, 0
         asserted += on
     return asserted, triggers
 
