@@ -5,10 +5,10 @@
 use std::time::Duration;
 
 use fall_guard::robot::JointTable;
-use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
 use fall_guard::sources::dynamixel::{
     DynamixelConfig, DynamixelError, DynamixelSource, ServoReader,
 };
+use fall_guard_testkit::emulator::{Fault, PoppyBuses};
 use tokio::sync::watch;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

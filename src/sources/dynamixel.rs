@@ -44,8 +44,6 @@
 //! ```
 
 mod bus;
-#[cfg(any(test, feature = "test-kits"))]
-pub mod emulator;
 pub mod protocol;
 mod stats;
 
