@@ -10,8 +10,8 @@ use std::time::Duration;
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use fall_guard::robot::JointTable;
-use fall_guard::sources::dynamixel::emulator::PoppyBuses;
 use fall_guard::sources::dynamixel::ServoReader;
+use fall_guard_testkit::emulator::PoppyBuses;
 
 fn read_cycle(c: &mut Criterion) {
     let table = JointTable::poppy_humanoid();

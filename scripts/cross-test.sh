@@ -18,7 +18,7 @@
 #   - profile `cross-ci` (Cargo.toml: dependencies at opt-level 1 except
 #     burn's Flex backend, gemm and pulp at 3; no debug info, no incremental);
 #   - without the V4L2 camera (`--no-default-features --features
-#     flex,jazzy,test-kits`: no nokhwa, bindgen or libclang); the
+#     flex,jazzy`: no nokhwa, bindgen or libclang); the
 #     full-feature cross build stays here, without CROSS_CI;
 #   - the per-tick comparison for EMP and P only (all four streams, and
 #     proprioception alone), same recording and tolerance;
@@ -45,13 +45,13 @@ recording=tests/fixtures/episode_00005.mcap
 mkdir -p "$out"
 
 if [ "${CROSS_CI:-0}" = 1 ]; then
-  build=(--profile cross-ci --no-default-features --features flex,jazzy,test-kits)
+  build=(--profile cross-ci --no-default-features --features flex,jazzy)
   profile_dir=cross-ci
   networks=(${NETWORKS:-emp p})
   bench_networks=(--ablation EMP --ablation P)
   native_bin="${NATIVE_BIN:-$native_dir/debug/fall-guard}"
 else
-  build=(--features test-kits)
+  build=()
   profile_dir=debug
   networks=(${NETWORKS:-emp mp ep p})
   bench_networks=()

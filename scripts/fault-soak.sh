@@ -22,5 +22,5 @@ case $report in /*) ;; *) report=$PWD/$report ;; esac
 export FALL_GUARD_REQUIRE_ROS=1
 FALL_GUARD_SOAK_S=$seconds FALL_GUARD_SOAK_SEED=$seed FALL_GUARD_SOAK_REPORT=$report \
   cargo test $([ "${FALL_GUARD_SOAK_PROFILE:-release}" = dev ] || echo --release) \
-    --features test-kits --test fault_soak -- --nocapture
+    --test fault_soak -- --nocapture
 echo "report: $report"

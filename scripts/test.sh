@@ -12,12 +12,13 @@ python3 scripts/check-layers.py
 # peers against the daemon. Only the DDS crates and fall-guard are built
 # again for it. First, so that target/debug/fall-guard (packaged by
 # scripts/test-deb.sh) is the default build's, made by the next line.
-cargo test --features security,test-kits --test ros_security
+cargo test --features security --test ros_security
 
-# `test-kits`: the bus emulator and synthetic recordings the tests use,
-# kept out of the shipped build (Cargo.toml).
-cargo test --all-targets --features test-kits --no-fail-fast
-cargo test --doc --features test-kits
+# The whole workspace: the product's tests, benches and example, and the
+# test kit (crates/testkit: the bus emulator, synthetic recordings and
+# windows the tests use; a dev-dependency, out of the shipped build).
+cargo test --workspace --all-targets --no-fail-fast
+cargo test --workspace --doc
 
 if [ -x sim/.venv/bin/python ]; then
   sim/.venv/bin/python -m pytest -q sim/tests

@@ -4,13 +4,9 @@
 //! Files enter through [`Recording::open`] (typed per-topic streams of
 //! `(log_time_ns, msg)` plus the `fall_guard.episode` metadata as
 //! [`EpisodeMeta`]); they are written by [`RecordingWriter`] (the daemon's
-//! `record` command, the simulator's Rust twin in `synthetic`, a test kit behind the cargo
-//! feature `test-kits`, tests) and
-//! rewritten in place, safely, by [`label`]. Errors name the file and, for a
-//! damaged file, the byte offset of the record that could not be read.
-
-#[cfg(any(test, feature = "test-kits"))]
-pub mod synthetic;
+//! `record` command, the test kit's synthetic recordings, tests) and
+//! rewritten in place, safely, by [`label`]. Errors name the file and, for
+//! a damaged file, the byte offset of the record that could not be read.
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;

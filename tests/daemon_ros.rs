@@ -619,7 +619,7 @@ fn joints_status(diag: &Value) -> &Value {
 fn servo_config(
     dir: &Path,
     domain: u16,
-    buses: &fall_guard::sources::dynamixel::emulator::PoppyBuses,
+    buses: &fall_guard_testkit::emulator::PoppyBuses,
     lower_keys: &str,
     upper_keys: &str,
 ) -> PathBuf {
@@ -640,7 +640,7 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
     let _side_by_side = ALONE.read().await;
     let _one_at_a_time = SERVO_BUSES.lock().await;
     use fall_guard::robot::JointTable;
-    use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
+    use fall_guard_testkit::emulator::{Fault, PoppyBuses};
 
     let test = "servo_faults_make_forecasts_not_valid_and_the_daemon_recovers";
     let Some(python) = rclpy_python(test) else {
@@ -799,7 +799,7 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
     let _side_by_side = ALONE.read().await;
     let _one_at_a_time = SERVO_BUSES.lock().await;
     use fall_guard::robot::JointTable;
-    use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
+    use fall_guard_testkit::emulator::{Fault, PoppyBuses};
 
     let test = "one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok";
     let Some(python) = rclpy_python(test) else {
@@ -1104,8 +1104,8 @@ async fn joints_gap_publishes_nan_forecasts_until_the_window_refills() {
 /// that lost every forecast to NaN under the rule that a cycle missing
 /// any motor is a gap: 5% of each motor's replies dropped, 2% with a bad
 /// checksum, 5% with garbage bytes before them.
-fn bus_noise(seed: u64) -> fall_guard::sources::dynamixel::emulator::ReplyNoise {
-    fall_guard::sources::dynamixel::emulator::ReplyNoise {
+fn bus_noise(seed: u64) -> fall_guard_testkit::emulator::ReplyNoise {
+    fall_guard_testkit::emulator::ReplyNoise {
         seed,
         p_drop: 0.05,
         p_corrupt: 0.02,
@@ -1120,7 +1120,7 @@ async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
     use std::sync::Arc;
 
     use fall_guard::robot::JointTable;
-    use fall_guard::sources::dynamixel::emulator::PoppyBuses;
+    use fall_guard_testkit::emulator::PoppyBuses;
 
     let test = "a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read";
     let Some(python) = rclpy_python(test) else {

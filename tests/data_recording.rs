@@ -3,10 +3,10 @@
 use std::collections::BTreeMap;
 
 use fall_guard::msgs::{Bool, CompressedImage, DiagnosticArray, Header, JointState, Time};
-use fall_guard::recording::synthetic::{joint_names, learnable_episode};
 use fall_guard::recording::{
     label, topics, EpisodeMeta, Recording, RecordingError, RecordingWriter,
 };
+use fall_guard_testkit::recordings::{joint_names, learnable_episode};
 
 fn meta() -> EpisodeMeta {
     let mut other = BTreeMap::new();

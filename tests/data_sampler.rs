@@ -5,10 +5,10 @@ use std::sync::Arc;
 use fall_guard::clock::TickGrid;
 use fall_guard::frame::Frame;
 use fall_guard::pipeline::window::{EpisodeTicks, Streams, TickInput, WindowSpec};
-use fall_guard::recording::synthetic::{joint_names, learnable_episode, write_dataset};
 use fall_guard::streams::sample::Plan;
 use fall_guard::train::dataset::{Dataset, DatasetError, Split};
 use fall_guard::train::sampler::{labels_at, EpisodeSpan, SamplerConfig, WindowSampler};
+use fall_guard_testkit::recordings::{joint_names, learnable_episode, write_dataset};
 use proptest::prelude::*;
 
 /// An in-memory episode of `len` ticks (all streams present from `present_from`).

@@ -11,9 +11,9 @@ use fall_guard::pipeline::window::{
     samples_from_recording, EpisodeTicks, Resampler, Ring, Streams, TickInput, Window, WindowError,
     WindowSpec,
 };
-use fall_guard::recording::synthetic::{joint_names, learnable_episode};
 use fall_guard::recording::Recording;
 use fall_guard::streams::sample::{Plan, Sample};
+use fall_guard_testkit::recordings::{joint_names, learnable_episode};
 use proptest::prelude::*;
 
 fn spec(n_ticks: usize, c: usize) -> WindowSpec {

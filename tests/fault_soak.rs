@@ -36,7 +36,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use fall_guard::robot::JointTable;
-use fall_guard::sources::dynamixel::emulator::{BusEmulator, PoppyBuses, ReplyNoise};
+use fall_guard_testkit::emulator::{BusEmulator, PoppyBuses, ReplyNoise};
 use heard::{forecast_values, level, status_named, statuses};
 use serde_json::{json, Value};
 use support::{diag_value as kv, domain_id, rclpy_python, Peer};

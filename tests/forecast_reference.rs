@@ -8,7 +8,7 @@
 //!
 //! When the shipped networks change (or a change of numerics is intended and
 //! measured), write the reference again and commit it with the change:
-//! `FALL_GUARD_WRITE_REFERENCE=1 cargo test --features test-kits --test forecast_reference`.
+//! `FALL_GUARD_WRITE_REFERENCE=1 cargo test --test forecast_reference`.
 //! `FALL_GUARD_BIN` runs another build of the binary against the reference
 //! (another profile, or an earlier commit's).
 

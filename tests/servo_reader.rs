@@ -5,10 +5,10 @@
 use std::time::{Duration, Instant};
 
 use fall_guard::robot::{JointTable, ServoModel};
-use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses, ReplyNoise};
 use fall_guard::sources::dynamixel::{
     DynamixelConfig, JointReading, ServoErrorKind, ServoReader, ServoStatsSnapshot,
 };
+use fall_guard_testkit::emulator::{Fault, PoppyBuses, ReplyNoise};
 use tempfile::TempDir;
 
 struct Rig {

@@ -5,13 +5,13 @@
 use std::time::Duration;
 
 use fall_guard::robot::JointTable;
-use fall_guard::sources::dynamixel::emulator::{Fault, PoppyBuses};
 use fall_guard::sources::dynamixel::{
     DynamixelConfig, DynamixelError, DynamixelSource, ServoReader,
 };
 use fall_guard::streams::input::InputLimits;
 use fall_guard::streams::sample::Sample;
 use fall_guard::streams::{stream, StreamKind, StreamTap};
+use fall_guard_testkit::emulator::{Fault, PoppyBuses};
 use tokio::sync::watch;
 
 /// The joints of the stream's next sample that `pick` accepts.

@@ -6,8 +6,8 @@
 use std::ops::Range;
 
 use fall_guard::model::{save_model, Ablation, ModelConfig, ModelMeta};
-use fall_guard::train::synthetic::RampEpisodes;
 use fall_guard::train::{fit, EpochSource, FitOptions, LabeledWindow, TrainError, WindowSet};
+use fall_guard_testkit::windows::RampEpisodes;
 
 fn small_cfg() -> ModelConfig {
     let mut cfg = ModelConfig::lite(24, 4, vec![3, 6, 9, 12], 32);

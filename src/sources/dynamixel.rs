@@ -46,8 +46,6 @@
 //! ```
 
 mod bus;
-#[cfg(any(test, feature = "test-kits"))]
-pub mod emulator;
 mod health;
 pub mod protocol;
 mod stats;

@@ -20,8 +20,6 @@ pub mod logreg;
 pub mod metrics;
 pub mod plots;
 pub mod sampler;
-#[cfg(any(test, feature = "test-kits"))]
-pub mod synthetic;
 pub mod warning;
 
 pub use device::TrainDevice;

@@ -12,10 +12,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use fall_guard::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
-use fall_guard::recording::synthetic::learnable_episode;
 use fall_guard::recording::{topics, Recording, RecordingWriter};
 use fall_guard::robot::JointTable;
-use fall_guard::sources::dynamixel::emulator::PoppyBuses;
+use fall_guard_testkit::emulator::PoppyBuses;
+use fall_guard_testkit::recordings::learnable_episode;
 
 /// Window and horizons of the test networks: small, so a replay is quick.
 pub const N_TICKS: usize = 16;

@@ -45,8 +45,11 @@ use rustypot::servo::dynamixel::{ax, mx};
 use serialport::{SerialPort, TTYPort};
 use thiserror::Error;
 
-use super::protocol::{self, instruction, Packet, Scanned, BROADCAST_ID, USB2AX_ID};
-use crate::robot::{JointTable, ServoModel};
+use fall_guard::robot::{JointTable, ServoModel};
+use fall_guard::sources::dynamixel::protocol::{
+    self, instruction, Packet, Scanned, BROADCAST_ID, USB2AX_ID,
+};
+use fall_guard::sources::dynamixel::DynamixelConfig;
 
 /// Error bit 6 (instruction) of a protocol 1.0 status packet.
 const ERROR_INSTRUCTION: u8 = 1 << 6;
@@ -705,8 +708,8 @@ impl PoppyBuses {
     }
 
     /// A reader config for both buses, every key at its default.
-    pub fn config(&self) -> super::DynamixelConfig {
-        super::DynamixelConfig::poppy(
+    pub fn config(&self) -> DynamixelConfig {
+        DynamixelConfig::poppy(
             self.lower.port_path().to_string_lossy(),
             self.upper.port_path().to_string_lossy(),
         )

@@ -1,9 +1,9 @@
 //! Synthetic labelled windows in which falls are learnable: for tests of
-//! the training loop (in this crate and in `tests/`), never for a model that
+//! the training loop (fall-guard's `tests/`), never for a model that
 //! ships.
 
-use super::fit::{EpochSource, LabeledWindow, TrainError, WindowSet};
-use crate::model::ModelConfig;
+use fall_guard::model::ModelConfig;
+use fall_guard::train::fit::{EpochSource, LabeledWindow, TrainError, WindowSet};
 
 /// Episodes with a lean that ramps up before the fall: joint 0 rises
 /// linearly over `2 h_K` ticks up to the onset. Half never fall.

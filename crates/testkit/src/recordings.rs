@@ -16,13 +16,13 @@ use std::path::Path;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use super::{topics, EpisodeMeta, RecordingError, RecordingWriter};
-use crate::clock::TickGrid;
-use crate::frame::{encode_jpeg, Frame};
-use crate::msgs::{
+use fall_guard::clock::TickGrid;
+use fall_guard::frame::{encode_jpeg, Frame};
+use fall_guard::msgs::{
     Bool, CompressedImage, Duration, Header, JointState, JointTrajectory, JointTrajectoryPoint,
     Time,
 };
+use fall_guard::recording::{topics, EpisodeMeta, RecordingError, RecordingWriter};
 
 /// What the camera shows at one tick.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -130,10 +130,8 @@ impl SyntheticEpisode {
             sigma: Some(self.sigma),
             other: Default::default(),
         };
-        meta.other.insert(
-            "generator".into(),
-            "fall_guard::recording::synthetic".into(),
-        );
+        meta.other
+            .insert("generator".into(), "fall_guard_testkit::recordings".into());
         meta.other.insert(
             "duration_s".into(),
             format!("{}", grid.stamp_ns(n as i64 - 1) as f64 / 1e9),
@@ -228,7 +226,7 @@ pub fn write_dataset(
         "validation": validation_names,
         "test": test_names,
         "generator": {
-            "kind": "fall_guard::recording::synthetic",
+            "kind": "fall_guard_testkit::recordings",
             "robot": "poppy_humanoid",
             "rate_hz": any.map(|e| e.rate_hz),
             "seeds": train.iter().chain(validation).chain(test).map(|e| e.seed).collect::<Vec<_>>(),
@@ -269,7 +267,7 @@ pub fn learnable_episode(
     let mut plan_rad = Vec::with_capacity(n_ticks);
     let mut frames = Vec::with_capacity(n_ticks);
     // A plan the daemon accepts: inside each Poppy joint's limits.
-    let range = crate::robot::JointTable::poppy_humanoid().ranges_rad(joint_names, 0.0);
+    let range = fall_guard::robot::JointTable::poppy_humanoid().ranges_rad(joint_names, 0.0);
     for k in 0..n_ticks {
         let t = k as f32 / rate_hz as f32;
         let plan: Vec<f32> = (0..c)
