@@ -261,8 +261,11 @@ def protocol_table(evals: dict, proto: str) -> list[str]:
 
 
 def checks(evals: dict) -> list[str]:
+    """The bars, on the groups that ship: the paper-trained runs (`ABL-pp`) when there are
+    any, else the deployment-trained ones."""
     out = []
-    emp, mp, p, hist = (evals.get((k, "paper")) for k in ("emp", "mp", "p", "emp-hist"))
+    emp, mp, p = (evals.get((f"{k}-pp", "paper")) or evals.get((k, "paper")) for k in ("emp", "mp", "p"))
+    hist = evals.get(("emp-hist", "paper"))
     if emp:
         pe = protocol(emp, "paper")
         for h in pe["horizons"]:
