@@ -201,23 +201,29 @@ fn training_fusion_has_the_branches_outputs_and_gradients() {
         }
         ga.len()
     }
+    // Each branch's weight and bias gradients (the 2-D and 3-D blocks'
+    // branches are different types).
+    macro_rules! branch_gradients {
+        ($block:expr, $g:expr) => {
+            $block
+                .branches()
+                .iter()
+                .flat_map(|c| {
+                    let bias = c.bias.as_ref().expect("bias").val();
+                    [
+                        vec_of(c.weight.val().grad($g).expect("weight gradient")),
+                        vec_of(bias.grad($g).expect("bias gradient")),
+                    ]
+                })
+                .collect()
+        };
+    }
     let params = inc.branches().len();
     let checked = same_outputs_and_gradients(
         inc.forward(x.clone()),
         inc.forward_branches(x),
         target,
-        |g| {
-            inc.branches()
-                .iter()
-                .flat_map(|c| {
-                    let bias = c.bias.as_ref().expect("bias").val();
-                    [
-                        vec_of(c.weight.val().grad(g).expect("weight gradient")),
-                        vec_of(bias.grad(g).expect("bias gradient")),
-                    ]
-                })
-                .collect()
-        },
+        |g| branch_gradients!(inc, g),
     );
     assert_eq!(checked, 2 * params);
     assert_eq!(params, 3);
@@ -235,18 +241,7 @@ fn training_fusion_has_the_branches_outputs_and_gradients() {
         inc3.forward(x.clone()),
         inc3.forward_branches(x),
         target,
-        |g| {
-            inc3.branches()
-                .iter()
-                .flat_map(|c| {
-                    let bias = c.bias.as_ref().expect("bias").val();
-                    [
-                        vec_of(c.weight.val().grad(g).expect("weight gradient")),
-                        vec_of(bias.grad(g).expect("bias gradient")),
-                    ]
-                })
-                .collect()
-        },
+        |g| branch_gradients!(inc3, g),
     );
     assert_eq!(checked, 4);
 }
