@@ -32,7 +32,7 @@
 //! Same arithmetic as `burn`'s `conv2d` (f32 products summed, bias added),
 //! in another order: equal to it within rounding (tested).
 
-use super::host_conv::{HostConv, Strides};
+use super::host_conv::{HostConv, Product, Strides};
 
 /// One input of [`HostConv::forward_grids_summed`]: a sequence
 /// `[len, C_in]`, its folding `rows x p` and its weight in the sum.
@@ -150,11 +150,13 @@ impl HostConv {
                         let row_major = |cols| Strides { row: cols, col: 1 };
                         self.accumulate_taps(
                             ky_lo * k..ky_hi * k,
-                            tile,
-                            &mut out[m0 * c_out..(m0 + tile) * c_out],
-                            row_major(c_out),
-                            &a[..tile * kk],
-                            row_major(kk),
+                            Product {
+                                m: tile,
+                                dst: &mut out[m0 * c_out..(m0 + tile) * c_out],
+                                dst_s: row_major(c_out),
+                                a: &a[..tile * kk],
+                                a_s: row_major(kk),
+                            },
                         );
                         m0 += tile;
                     }
@@ -235,11 +237,13 @@ impl HostConv {
                 let row_major = |cols| Strides { row: cols, col: 1 };
                 self.accumulate_taps(
                     0..k * k,
-                    tile,
-                    &mut out[m0 * c_out..(m0 + tile) * c_out],
-                    row_major(c_out),
-                    a,
-                    row_major(kk),
+                    Product {
+                        m: tile,
+                        dst: &mut out[m0 * c_out..(m0 + tile) * c_out],
+                        dst_s: row_major(c_out),
+                        a,
+                        a_s: row_major(kk),
+                    },
                 );
                 m0 += tile;
             }
@@ -331,11 +335,13 @@ impl HostConv {
                     let rows_of = |cols| Strides { row: cols, col: 1 };
                     self.accumulate_kernel_columns(
                         kx_lo..kx_hi,
-                        tile,
-                        out_tile,
-                        rows_of(c_out),
-                        &a[..tile * kk],
-                        rows_of(kk),
+                        Product {
+                            m: tile,
+                            dst: out_tile,
+                            dst_s: rows_of(c_out),
+                            a: &a[..tile * kk],
+                            a_s: rows_of(kk),
+                        },
                     );
                     for (&m, part) in positions.iter().zip(out_tile.chunks_exact(c_out)) {
                         for (o, v) in out[m * c_out..(m + 1) * c_out].iter_mut().zip(part) {

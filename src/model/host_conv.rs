@@ -143,57 +143,31 @@ impl HostConv {
     /// `m x taps.len()·C_in` im2col matrix of the kernel taps `taps` (the
     /// others read only zero padding, whose products are all zero), `dst`
     /// the `m x C_out` output, each stored with its strides.
-    pub fn accumulate_taps(
-        &self,
-        taps: std::ops::Range<usize>,
-        m: usize,
-        dst: &mut [f32],
-        dst_s: Strides,
-        a: &[f32],
-        a_s: Strides,
-    ) {
-        self.gemm(&self.weight, taps, m, dst, dst_s, a, a_s);
+    pub fn accumulate_taps(&self, taps: std::ops::Range<usize>, product: Product<'_>) {
+        self.gemm(&self.weight, taps, product);
     }
 
     /// [`accumulate_taps`](Self::accumulate_taps) over the kernel columns
     /// `cols` of a 2-D kernel, every kernel row: `a` is
     /// `m x cols.len()·k·C_in`, its columns ordered `(kx, ky, ci)`.
-    pub fn accumulate_kernel_columns(
-        &self,
-        cols: std::ops::Range<usize>,
-        m: usize,
-        dst: &mut [f32],
-        dst_s: Strides,
-        a: &[f32],
-        a_s: Strides,
-    ) {
+    pub fn accumulate_kernel_columns(&self, cols: std::ops::Range<usize>, product: Product<'_>) {
         let weight = self
             .weight_by_column
             .as_ref()
             .expect("kernel columns of a 2-D convolution");
         let k = self.k;
-        self.gemm(weight, cols.start * k..cols.end * k, m, dst, dst_s, a, a_s);
+        self.gemm(weight, cols.start * k..cols.end * k, product);
     }
 
     /// `dst += a · weight[taps]`, `weight` one of this convolution's layouts.
-    #[allow(clippy::too_many_arguments)]
-    fn gemm(
-        &self,
-        weight: &[f32],
-        taps: std::ops::Range<usize>,
-        m: usize,
-        dst: &mut [f32],
-        dst_s: Strides,
-        a: &[f32],
-        a_s: Strides,
-    ) {
+    fn gemm(&self, weight: &[f32], taps: std::ops::Range<usize>, product: Product<'_>) {
         let n = self.c_out;
         assert!(
             taps.start < taps.end && taps.end * self.c_in * n <= weight.len(),
             "taps inside the kernel"
         );
         let weight = &weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
-        gemm_rows(weight, n, m, dst, dst_s, a, a_s);
+        gemm_rows(weight, n, product);
     }
 
     /// Every kernel tap's product with every input position: `x`
@@ -212,22 +186,41 @@ impl HostConv {
         let (len, n) = (x.len() / c_in, self.k * self.k * self.c_out);
         let mut y = vec![0.0f32; len * n];
         let row_major = |cols| Strides { row: cols, col: 1 };
-        gemm_rows(weight, n, len, &mut y, row_major(n), x, row_major(c_in));
+        gemm_rows(
+            weight,
+            n,
+            Product {
+                m: len,
+                dst: &mut y,
+                dst_s: row_major(n),
+                a: x,
+                a_s: row_major(c_in),
+            },
+        );
         y
     }
 }
 
+/// The operands of `dst += a · weight`: `a` (`m` rows) and `dst`, each
+/// stored with its strides.
+pub struct Product<'a> {
+    pub m: usize,
+    pub dst: &'a mut [f32],
+    pub dst_s: Strides,
+    pub a: &'a [f32],
+    pub a_s: Strides,
+}
+
 /// `dst += a · weight`: `weight` `kk x n` row-major (`kk = weight.len() / n`),
 /// `a` `m x kk` and `dst` `m x n` with their strides, on this thread.
-fn gemm_rows(
-    weight: &[f32],
-    n: usize,
-    m: usize,
-    dst: &mut [f32],
-    dst_s: Strides,
-    a: &[f32],
-    a_s: Strides,
-) {
+fn gemm_rows(weight: &[f32], n: usize, product: Product<'_>) {
+    let Product {
+        m,
+        dst,
+        dst_s,
+        a,
+        a_s,
+    } = product;
     assert!(n > 0 && weight.len().is_multiple_of(n), "weight rows");
     let kk = weight.len() / n;
     if m == 0 || kk == 0 {

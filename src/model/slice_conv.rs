@@ -21,7 +21,7 @@
 //! `conv3d` directly, `slice_conv_equals_conv3d_same_padding` in the
 //! model tests).
 
-use super::host_conv::{HostConv, Strides};
+use super::host_conv::{HostConv, Product, Strides};
 
 impl HostConv {
     /// One output slice: `inputs` the `k` input slices centred on it, each
@@ -91,11 +91,13 @@ impl HostConv {
             let column_major = Strides { row: 1, col: wide };
             self.accumulate_taps(
                 kt_lo * taps_per_kt..kt_hi * taps_per_kt,
-                wide,
-                &mut conv,
-                column_major,
-                a,
-                column_major,
+                Product {
+                    m: wide,
+                    dst: &mut conv,
+                    dst_s: column_major,
+                    a,
+                    a_s: column_major,
+                },
             );
         });
         Self::relu_pool(&conv, c_out, hw, w)

@@ -123,41 +123,37 @@ fn probabilities_never_decrease_with_horizon_for_random_inputs() {
 
 #[test]
 fn fused_inception_equals_branches() {
+    // The block's branches and its fused kernel on `x`, element by element
+    // (the 2-D and 3-D blocks are different types).
+    macro_rules! assert_fused_equals_branches {
+        ($block:expr, $x:expr) => {
+            let a: Vec<f32> = $block
+                .forward_branches($x.clone())
+                .into_data()
+                .try_to_vec::<f32>()
+                .unwrap();
+            let b: Vec<f32> = $block
+                .fuse()
+                .forward($x)
+                .into_data()
+                .try_to_vec::<f32>()
+                .unwrap();
+            assert!(a.iter().zip(&b).all(|(p, q)| (p - q).abs() < 1e-5));
+        };
+    }
     let device = cpu_device();
     let inc = inception::Inception2d::new(4, 6, 3, &device);
     let x = Tensor::<4>::from_data(
         TensorData::new(noise(2 * 4 * 5 * 7, 3), [2, 4, 5, 7]),
         &device,
     );
-    let a: Vec<f32> = inc
-        .forward_branches(x.clone())
-        .into_data()
-        .try_to_vec::<f32>()
-        .unwrap();
-    let b: Vec<f32> = inc
-        .fuse()
-        .forward(x)
-        .into_data()
-        .try_to_vec::<f32>()
-        .unwrap();
-    assert!(a.iter().zip(&b).all(|(p, q)| (p - q).abs() < 1e-5));
+    assert_fused_equals_branches!(inc, x);
     let inc3 = inception::Inception3d::new(3, 5, &device);
     let x = Tensor::<5>::from_data(
         TensorData::new(noise(3 * 6 * 8 * 8, 4), [1, 3, 6, 8, 8]),
         &device,
     );
-    let a: Vec<f32> = inc3
-        .forward_branches(x.clone())
-        .into_data()
-        .try_to_vec::<f32>()
-        .unwrap();
-    let b: Vec<f32> = inc3
-        .fuse()
-        .forward(x)
-        .into_data()
-        .try_to_vec::<f32>()
-        .unwrap();
-    assert!(a.iter().zip(&b).all(|(p, q)| (p - q).abs() < 1e-5));
+    assert_fused_equals_branches!(inc3, x);
 }
 
 /// Training runs the fused kernel built from the branch parameters with

@@ -321,26 +321,53 @@ impl BusReader {
         None
     }
 
+    /// One sync read of `request` (`n_ids` motors) on the open port, the
+    /// garbage bytes skipped counted; `None` while the port is closed.
+    fn sync_read_once(
+        &mut self,
+        stats: &BusStats,
+        request: &[u8],
+        n_ids: usize,
+        clock: &dyn Fn() -> i64,
+    ) -> Option<Result<(i64, Vec<u8>), Failure>> {
+        let port = self.port.as_mut()?;
+        // The stale bytes drained first count as garbage; the data is
+        // stamped with `clock` read just before the request is sent.
+        let mut garbage = 0;
+        let result = match drain(port.as_mut()) {
+            Err(e) => Err(e),
+            Ok(drained) => {
+                garbage += drained;
+                let stamp_ns = clock();
+                let timeout = self.config.timeout();
+                sync_read(
+                    port.as_mut(),
+                    request,
+                    n_ids,
+                    timeout,
+                    &mut self.buf,
+                    &mut garbage,
+                )
+                .map(|data| (stamp_ns, data))
+            }
+        };
+        self.garbage(stats, garbage);
+        Some(result)
+    }
+
     fn cycle_sync(
         &mut self,
         stats: &BusStats,
         raw: &mut [Option<(u16, i64)>],
         clock: &dyn Fn() -> i64,
     ) {
-        let Some(port) = self.port.as_mut() else {
+        // The request is the bus's own, lent for the read.
+        let request = std::mem::take(&mut self.request);
+        let result = self.sync_read_once(stats, &request, self.motors.len(), clock);
+        self.request = request;
+        let Some(result) = result else {
             return;
         };
-        let mut garbage = 0;
-        let result = drained_sync_read(
-            port.as_mut(),
-            &self.request,
-            self.motors.len(),
-            self.config.timeout(),
-            &mut self.buf,
-            &mut garbage,
-            clock,
-        );
-        self.garbage(stats, garbage);
         match result {
             Ok((stamp_ns, data)) => {
                 self.sync_ok_since_open = true;
@@ -397,20 +424,9 @@ impl BusReader {
         else {
             return;
         };
-        let Some(port) = self.port.as_mut() else {
+        let Some(result) = self.sync_read_once(stats, &request, ids.len(), clock) else {
             return;
         };
-        let mut garbage = 0;
-        let result = drained_sync_read(
-            port.as_mut(),
-            &request,
-            ids.len(),
-            self.config.timeout(),
-            &mut self.buf,
-            &mut garbage,
-            clock,
-        );
-        self.garbage(stats, garbage);
         match result {
             Ok((stamp_ns, data)) => {
                 for (k, &i) in lost.iter().enumerate() {
@@ -536,23 +552,6 @@ fn drain(port: &mut dyn SerialPort) -> Result<usize, Failure> {
         }
     }
     Ok(total)
-}
-
-/// [`drain`], then [`sync_read`]: the stale bytes drained count as garbage.
-/// Returns the data with `clock` read just before the request was sent
-/// (the stamp of every position in it).
-fn drained_sync_read(
-    port: &mut dyn SerialPort,
-    request: &[u8],
-    n_ids: usize,
-    timeout: Duration,
-    buf: &mut Vec<u8>,
-    garbage: &mut usize,
-    clock: &dyn Fn() -> i64,
-) -> Result<(i64, Vec<u8>), Failure> {
-    *garbage += drain(port)?;
-    let stamp_ns = clock();
-    sync_read(port, request, n_ids, timeout, buf, garbage).map(|data| (stamp_ns, data))
 }
 
 /// One USB2AX SYNC_READ of 2 bytes from `n_ids` motors: send `request`,
