@@ -7,15 +7,7 @@ use std::ops::Range;
 
 use fall_guard::model::{save_model, Ablation, ModelConfig, ModelMeta};
 use fall_guard::train::{fit, EpochSource, FitOptions, LabeledWindow, TrainError, WindowSet};
-use fall_guard_testkit::windows::RampEpisodes;
-
-fn small_cfg() -> ModelConfig {
-    let mut cfg = ModelConfig::lite(24, 4, vec![3, 6, 9, 12], 32);
-    cfg.d_model = 128;
-    cfg.inc_dim = 8;
-    cfg.plan_d = 8;
-    cfg
-}
+use fall_guard_testkit::windows::{small_config, RampEpisodes};
 
 fn names(cfg: &ModelConfig) -> Vec<String> {
     (0..cfg.n_joints).map(|i| format!("j{i}")).collect()
@@ -23,7 +15,7 @@ fn names(cfg: &ModelConfig) -> Vec<String> {
 
 #[test]
 fn training_is_deterministic_for_a_seed() {
-    let cfg = small_cfg();
+    let cfg = small_config();
     let run = |seed: u64| {
         let meta = ModelMeta::new(cfg.clone(), Ablation::MP, 30.0, names(&cfg));
         let mut source = RampEpisodes {
@@ -90,7 +82,7 @@ impl EpochSource for StopsIn {
 /// ends with: the same file, byte for byte, and the same history.
 #[test]
 fn a_run_stopped_and_resumed_trains_the_uninterrupted_model() {
-    let cfg = small_cfg();
+    let cfg = small_config();
     let dir = tempfile::tempdir().unwrap();
     let ckpt = dir.path().join("run.ckpt");
     let meta = ModelMeta::new(cfg.clone(), Ablation::MP, 30.0, names(&cfg));

@@ -2,21 +2,13 @@
 //! test kit's windows and recordings): the training loop, the logistic
 //! baseline, and the `train` and `eval` commands.
 
-use fall_guard::model::{save_model, Ablation, LoadedModel, ModelConfig, ModelMeta};
+use fall_guard::model::{save_model, Ablation, LoadedModel, ModelMeta};
 use fall_guard::train::{fit, FitOptions};
-use fall_guard_testkit::windows::RampEpisodes;
-
-fn small_cfg() -> ModelConfig {
-    let mut cfg = ModelConfig::lite(24, 4, vec![3, 6, 9, 12], 32);
-    cfg.d_model = 128;
-    cfg.inc_dim = 8;
-    cfg.plan_d = 8;
-    cfg
-}
+use fall_guard_testkit::windows::{small_config, RampEpisodes};
 
 #[test]
 fn learns_a_learnable_fall_task_and_the_file_reproduces_it() {
-    let cfg = small_cfg();
+    let cfg = small_config();
     let names: Vec<String> = (0..cfg.n_joints).map(|i| format!("j{i}")).collect();
     let meta = ModelMeta::new(cfg.clone(), Ablation::P, 30.0, names);
     let mut source = RampEpisodes {
@@ -57,7 +49,7 @@ fn learns_a_learnable_fall_task_and_the_file_reproduces_it() {
 #[test]
 fn logistic_baseline_learns_the_ramp_task_and_round_trips() {
     use fall_guard::train::logreg::LogRegModel;
-    let cfg = small_cfg();
+    let cfg = small_config();
     let source = RampEpisodes {
         cfg: cfg.clone(),
         per_epoch: 0,

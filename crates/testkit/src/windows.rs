@@ -79,3 +79,14 @@ impl EpochSource for RampEpisodes {
         Ok(Box::new(self.windows(64, 1)))
     }
 }
+
+/// A small but complete network configuration for the training tests: 24
+/// ticks, 4 joints, horizons 3-12 ticks, 32 x 32 frames (the reference
+/// sizes make tests slow in debug).
+pub fn small_config() -> ModelConfig {
+    let mut cfg = ModelConfig::lite(24, 4, vec![3, 6, 9, 12], 32);
+    cfg.d_model = 128;
+    cfg.inc_dim = 8;
+    cfg.plan_d = 8;
+    cfg
+}
