@@ -49,7 +49,7 @@ use crate::clock::{BadRate, TickGrid};
 use crate::frame::{CompressedFrame, Frame, FrameError};
 use crate::msgs::{CompressedImage, JointState, JointTrajectory};
 use crate::recording::{topics, Logged, Recording};
-use crate::streams::sample::{frame_from_msg, joints_from_msg, Plan, Sample, SampleError};
+use crate::streams::sample::{Plan, Sample, SampleError};
 use crate::streams::{PerStream, StreamKind};
 
 /// A resampler that sees no sample for longer than this restarts its grid at
@@ -854,7 +854,9 @@ fn inputs_with_compressed_frames(
     require_joint_states(rec)?;
     let converted = convert_messages(
         rec,
-        |msg, stamp_ns| joint_sample(msg, stamp_ns, spec).map(EpisodeInput::Sample),
+        |msg, stamp_ns| {
+            Sample::joints_from_msg(msg, &spec.joint_names, stamp_ns).map(EpisodeInput::Sample)
+        },
         |msg, stamp_ns| {
             let frame = CompressedFrame::new(&msg.format, msg.data.clone(), spec.frame_size)
                 .map_err(|source| SampleError::Frame {
@@ -866,7 +868,9 @@ fn inputs_with_compressed_frames(
                 frame: TickFrame::Compressed(Arc::new(frame)),
             })
         },
-        |msg, stamp_ns| plan_sample(msg, stamp_ns, spec).map(EpisodeInput::Sample),
+        |msg, stamp_ns| {
+            Sample::plan_from_msg(msg, &spec.joint_names, stamp_ns).map(EpisodeInput::Sample)
+        },
     );
     converted
         .into_iter()
@@ -921,25 +925,6 @@ fn in_recording<'a>(
     }
 }
 
-fn joint_sample(msg: &JointState, stamp_ns: i64, spec: &WindowSpec) -> Result<Sample, SampleError> {
-    joints_from_msg(msg, &spec.joint_names).map(|positions_rad| Sample::Joints {
-        stamp_ns,
-        positions_rad,
-        read_ns: None,
-    })
-}
-
-fn plan_sample(
-    msg: &JointTrajectory,
-    stamp_ns: i64,
-    spec: &WindowSpec,
-) -> Result<Sample, SampleError> {
-    Plan::from_msg(msg, &spec.joint_names).map(|plan| Sample::Plan {
-        stamp_ns,
-        plan: Arc::new(plan),
-    })
-}
-
 /// One recorded message of an input stream in model form (`T`), or why
 /// it is not one.
 #[derive(Debug)]
@@ -959,13 +944,8 @@ pub struct RecordedSample<T = Sample> {
 pub fn recorded_samples(rec: &Recording, spec: &WindowSpec) -> Vec<RecordedSample> {
     convert_messages(
         rec,
-        |msg, stamp_ns| joint_sample(msg, stamp_ns, spec),
-        |msg, stamp_ns| {
-            frame_from_msg(msg, spec.frame_size).map(|frame| Sample::Frame {
-                stamp_ns,
-                frame: Arc::new(frame),
-            })
-        },
-        |msg, stamp_ns| plan_sample(msg, stamp_ns, spec),
+        |msg, stamp_ns| Sample::joints_from_msg(msg, &spec.joint_names, stamp_ns),
+        |msg, stamp_ns| Sample::frame_from_msg(msg, spec.frame_size, stamp_ns),
+        |msg, stamp_ns| Sample::plan_from_msg(msg, &spec.joint_names, stamp_ns),
     )
 }

@@ -5,8 +5,8 @@
 //! queued here).
 //!
 //! One tokio task per topic takes each message as DDS hands it over and
-//! converts it with the functions a replay uses (`streams::sample`:
-//! [`joints_from_msg`], [`frame_from_msg`], [`Plan::from_msg`]); a
+//! converts it with the functions a replay uses ([`Sample::joints_from_msg`],
+//! [`Sample::frame_from_msg`], [`Sample::plan_from_msg`]); a
 //! conversion error is offered as its typed [`Rejection`], counted at the
 //! boundary. The stamp is a sensor message's header stamp (its reception
 //! when the header has none) and a plan's reception, since a plan is known
@@ -28,7 +28,7 @@ use crate::pipeline::window::WindowSpec;
 use crate::ros::{qos, RosError, RosNode};
 use crate::shutdown::Shutdown;
 use crate::streams::input::{InputLimits, Rejection, StreamValue};
-use crate::streams::sample::{frame_from_msg, joints_from_msg, Plan, Sample};
+use crate::streams::sample::Sample;
 use crate::streams::StreamFeed;
 
 pub const JOINT_STATE: &str = "sensor_msgs/msg/JointState";
@@ -129,11 +129,7 @@ pub fn joints_sample(
     received_ns: i64,
 ) -> (i64, Result<Sample, Rejection>) {
     let stamp_ns = header_stamp(&msg.header, received_ns);
-    let sample = joints_from_msg(msg, joint_names).map(|positions_rad| Sample::Joints {
-        stamp_ns,
-        positions_rad,
-        read_ns: None,
-    });
+    let sample = Sample::joints_from_msg(msg, joint_names, stamp_ns);
     (stamp_ns, sample.map_err(|e| Rejection::from_sample(&e)))
 }
 
@@ -149,10 +145,7 @@ pub fn frame_sample(
     if let Err(too_large) = limits.image_size(msg.data.len()) {
         return (stamp_ns, Err(too_large));
     }
-    let sample = frame_from_msg(msg, frame_size).map(|frame| Sample::Frame {
-        stamp_ns,
-        frame: Arc::new(frame),
-    });
+    let sample = Sample::frame_from_msg(msg, frame_size, stamp_ns);
     (stamp_ns, sample.map_err(|e| Rejection::from_sample(&e)))
 }
 
@@ -162,10 +155,7 @@ pub fn plan_sample(
     joint_names: &[String],
     received_ns: i64,
 ) -> (i64, Result<Sample, Rejection>) {
-    let sample = Plan::from_msg(msg, joint_names).map(|plan| Sample::Plan {
-        stamp_ns: received_ns,
-        plan: Arc::new(plan),
-    });
+    let sample = Sample::plan_from_msg(msg, joint_names, received_ns);
     (received_ns, sample.map_err(|e| Rejection::from_sample(&e)))
 }
 

@@ -211,6 +211,43 @@ pub enum Sample {
 }
 
 impl Sample {
+    /// A `JointState` in model order (`joint_names`), stamped `stamp_ns`.
+    pub fn joints_from_msg(
+        msg: &JointState,
+        joint_names: &[String],
+        stamp_ns: i64,
+    ) -> Result<Sample, SampleError> {
+        joints_from_msg(msg, joint_names).map(|positions_rad| Sample::Joints {
+            stamp_ns,
+            positions_rad,
+            read_ns: None,
+        })
+    }
+
+    /// A `CompressedImage` decoded to a `size x size` frame, stamped `stamp_ns`.
+    pub fn frame_from_msg(
+        msg: &CompressedImage,
+        size: u32,
+        stamp_ns: i64,
+    ) -> Result<Sample, SampleError> {
+        frame_from_msg(msg, size).map(|frame| Sample::Frame {
+            stamp_ns,
+            frame: Arc::new(frame),
+        })
+    }
+
+    /// A `JointTrajectory` in model order (`joint_names`), stamped `stamp_ns`.
+    pub fn plan_from_msg(
+        msg: &JointTrajectory,
+        joint_names: &[String],
+        stamp_ns: i64,
+    ) -> Result<Sample, SampleError> {
+        Plan::from_msg(msg, joint_names).map(|plan| Sample::Plan {
+            stamp_ns,
+            plan: Arc::new(plan),
+        })
+    }
+
     pub fn stamp_ns(&self) -> i64 {
         match self {
             Sample::Joints { stamp_ns, .. }
