@@ -33,7 +33,7 @@ done
 "$BIN" replay --config "$CONFIG" --max-speed > "$tmp/replay.txt" 2> "$tmp/replay.log"
 
 python3 - "$tmp" "$CONFIG" models/*.bpk <<'EOF'
-import json, re, sys, tomllib
+import json, math, re, sys, tomllib
 from pathlib import Path
 
 sys.path.insert(0, "scripts")
@@ -51,26 +51,28 @@ def pair(ablation):
     return tuple(own) if own else (model_cfg["trigger"], model_cfg["release"])
 
 
-hold_ticks = max(1, -(-model_cfg.get("release_hold_ms", 0) * 30 // 1000))
+def hold_ticks(rate_hz):
+    """[model].release_hold_ms in ticks at `rate_hz`, rounded up (outputs::latch::release_hold_ticks)."""
+    return max(1, math.ceil(model_cfg.get("release_hold_ms", 0) * rate_hz / 1000 - 1e-9))
 
 
-def latch(probabilities, trigger, release):
+def latch(probabilities, trigger, release, hold):
     """The daemon's latch over valid ticks: asserted until valid forecasts have been below release
-    for the release hold ([model].release_hold_ms, at 30 Hz)."""
+    for `hold` ticks in a row."""
     on, asserted, triggers, below = True, 0, 0, 0
     for p in probabilities:
         below = below + 1 if on and p < release else 0
         if not on and p >= trigger:
             on, triggers = True, triggers + 1
-        elif on and below >= hold_ticks:
+        elif on and below >= hold:
             on, below = False, 0
         asserted += on
     return asserted, triggers
 
 
-def row(label, ablation, probabilities, note=""):
+def row(label, ablation, rate_hz, probabilities, note=""):
     trigger, release = pair(ablation)
-    asserted, triggers = latch(probabilities, trigger, release)
+    asserted, triggers = latch(probabilities, trigger, release, hold_ticks(rate_hz))
     n = len(probabilities)
     return (f"| {label} | {ablation} | {n} | {asserted} ({100 * asserted / n:.1f}%) | {triggers} | "
             f"{max(probabilities):.3f} | {100 * sum(p >= trigger for p in probabilities) / n:.1f}% | "
@@ -96,7 +98,7 @@ for model in models:
         print(f"| `{model}` | {meta['ablation']} | could not run: {why} | | | | | |")
         continue
     ps = [json.loads(line)["probabilities"][k] for line in out.read_text().splitlines()]
-    print(row(f"`{model}` (eval)", meta["ablation"], ps))
+    print(row(f"`{model}` (eval)", meta["ablation"], meta["rate_hz"], ps))
 
 lines = [l for l in (tmp / "replay.txt").read_text().splitlines() if l.startswith("tick ")]
 valid = [l for l in lines if " valid p=[" in l]
