@@ -178,8 +178,8 @@ step_data() {
   log "data: $SET (2,000 episodes, seed 1, $JOBS jobs)"
   "$PY" -m sim generate --out "$SET" --episodes 2000 --seed 1 --jobs "$JOBS" --quiet >>"$LOG"
   touch "$SET/.complete"
-  log "data: $WALK (200 walking episodes, sigma 0.005/0.01, no ball, seed 3)"
-  "$PY" -m sim generate --out "$WALK" --episodes 200 --seed 3 --jobs "$JOBS" --sigmas 0.005,0.01 \
+  log "data: $WALK (300 walking episodes, sigma 0.005/0.01, no ball, seed 3)"
+  "$PY" -m sim generate --out "$WALK" --episodes 300 --seed 3 --jobs "$JOBS" --sigmas 0.005,0.01 \
     --ball-probability 0 --quiet >>"$LOG"
   touch "$WALK/.complete"
   "$PY" -m sim stats "$SET" --counterfactual 150 --jobs "$JOBS" >"$REPORTS/set-stats.json.partial"

@@ -137,14 +137,22 @@ where
 
 /// The bundled replay config on `domain`, loopback only, the ROS inputs of
 /// `run` (joints and plan; no camera).
+///
+/// `/diagnostics` every 200 ms instead of every second: each peer's secure
+/// handshake with the daemon (authentication, then the exchange of crypto
+/// tokens) can take seconds on a loaded machine, and a peer matched late
+/// should still hear several.
 fn config(dir: &Path, domain: u16) -> PathBuf {
-    let text = bundled_config_on(domain).replace(
-        "recording = \"tests/fixtures/episode_00007.mcap\"",
-        &format!(
-            "recording = \"{}\"",
-            repo("tests/fixtures/episode_00007.mcap").display()
-        ),
-    );
+    let text = bundled_config_on(domain)
+        .replace(
+            "recording = \"tests/fixtures/episode_00007.mcap\"",
+            &format!(
+                "recording = \"{}\"",
+                repo("tests/fixtures/episode_00007.mcap").display()
+            ),
+        )
+        .replace("diagnostics_period_ms = 1000", "diagnostics_period_ms = 200");
+    assert!(text.contains("diagnostics_period_ms = 200"), "config/replay.toml changed shape");
     let path = dir.join("fall_guard.toml");
     std::fs::write(&path, text).expect("write config");
     path
@@ -246,10 +254,11 @@ async fn secured_peers_receive_only_what_their_permissions_and_ca_allow() {
     )
     .expect("open reader");
 
-    // The daemon replays the bundled episode in real time (~10 s).
+    // The daemon replays the bundled episode at half speed (~20 s), so that
+    // every peer's handshake has time to finish while it publishes.
     let config = config(dir.path(), domain);
     let daemon = secured_daemon(
-        &["replay", "--config", config.to_str().expect("utf8")],
+        &["replay", "--speed", "0.5", "--config", config.to_str().expect("utf8")],
         &ks,
         "Enforce",
     );
