@@ -146,11 +146,13 @@ import json, sys
 sys.path.insert(0, sys.argv[2])
 from model_meta import read_meta
 m = read_meta(sys.argv[1])
-print(m['trained_on'] == sys.argv[3], m['ablation'].lower(), m['seed'], m['config'].get('trajectory', 'planned'))" \
+print(m['trained_on'] == sys.argv[3], m['ablation'].lower(), m['seed'], m['config'].get('trajectory', 'planned'),
+      '-pp' if m.get('protocol') == 'paper' else '')" \
       "$f" "$REPO/scripts" "$TRAINED_ON")
     set -- $meta
     [ "$1" = True ] && [ "$4" = planned ] || continue
-    name=$2-s$3
+    # The run's name in the plan: ABLATION[-pp]-sSEED (-pp: paper protocol).
+    name=$2${5:-}-s$3
     [ -e "$RUNS/$name.cal.bpk" ] && continue
     log "restore: models/$abl.bpk is run $name (calibrated); not trained again"
     cp "$f" "$RUNS/$name.cal.bpk.partial"
@@ -290,7 +292,7 @@ step_thresholds() {
   while read -r abl name loss; do
     model="$RUNS/$name.cal.bpk"
     out="$REPORTS/$abl-thresholds.json"
-    current "$out" "$model" "$LATCH_MS" && continue
+    current "$out" "$model" "$LATCH_MS" "$SET/.complete" "$WALK/.complete" && continue
     log "thresholds $abl ($name) at $LATCH_MS ms on validation falls and walks"
     "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose \
       --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 \
@@ -419,7 +421,9 @@ print(c['trigger'], c['release'])" "$1"
 # latch_warnings MODEL THRESHOLDS.json HORIZON_MS SET:SPLIT OUT: the daemon's
 # path (`fall-guard warnings`) with the pair chosen in THRESHOLDS.json, on the
 # data set, the walking set (no choice is made on it) or the test falls of one
-# cause with the test walks; skipped while OUT is newer than both inputs.
+# cause with the test walks; skipped while OUT is newer than MODEL, the pair
+# and both data sets (a report restored from models/card for a shipped run is
+# made again when the data sets are newer).
 latch_warnings() {
   local model=$1 pairs=$2 horizon=$3 target=$4 out=$5 trig rel
   local set=${target%%:*} split=${target##*:} data=$SET
@@ -427,7 +431,7 @@ latch_warnings() {
     walk) data=$WALK ;;
     collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
   esac
-  current "$out" "$model" "$horizon" "$pairs" && return 0
+  current "$out" "$model" "$horizon" "$pairs" "$SET/.complete" "$WALK/.complete" && return 0
   read -r trig rel < <(chosen_pair "$pairs")
   log "warnings $(basename "$model" .cal.bpk) at $horizon ms on $set $split (trigger $trig, release $rel)"
   "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms "$horizon" --trigger "$trig" \
@@ -452,7 +456,7 @@ warnings_2s() {
     return 0
   fi
   out="$REPORTS/warn2s-$name-choose.json"
-  if ! newer "$out" "$model"; then
+  if ! newer "$out" "$model" "$SET/.complete" "$WALK/.complete"; then
     log "warnings $name at 2 s: thresholds on validation falls and walks"
     "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose --horizon-ms 2000 \
       --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1

@@ -471,6 +471,9 @@ async fn record_label_and_replay_live_ros_streams() {
             .replace("camera = \"none\"", "camera = \"ros\"")
     });
     let camera_out = dir.path().join("camera.mcap");
+    // 8 s of recording time: the recording starts at the first message, which
+    // comes once the walker is discovered (seconds on a loaded machine), and
+    // must still reach past the fall labelled at 4 s below.
     let record = |config: &Path, out: &Path| {
         Daemon::start(&[
             "record",
@@ -479,7 +482,7 @@ async fn record_label_and_replay_live_ros_streams() {
             "--out",
             out.to_str().expect("utf8"),
             "--duration-s",
-            "5",
+            "8",
         ])
     };
     let daemon = record(&config, &out);
