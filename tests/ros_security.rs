@@ -151,8 +151,14 @@ fn config(dir: &Path, domain: u16) -> PathBuf {
                 repo("tests/fixtures/episode_00007.mcap").display()
             ),
         )
-        .replace("diagnostics_period_ms = 1000", "diagnostics_period_ms = 200");
-    assert!(text.contains("diagnostics_period_ms = 200"), "config/replay.toml changed shape");
+        .replace(
+            "diagnostics_period_ms = 1000",
+            "diagnostics_period_ms = 200",
+        );
+    assert!(
+        text.contains("diagnostics_period_ms = 200"),
+        "config/replay.toml changed shape"
+    );
     let path = dir.join("fall_guard.toml");
     std::fs::write(&path, text).expect("write config");
     path
@@ -258,7 +264,13 @@ async fn secured_peers_receive_only_what_their_permissions_and_ca_allow() {
     // every peer's handshake has time to finish while it publishes.
     let config = config(dir.path(), domain);
     let daemon = secured_daemon(
-        &["replay", "--speed", "0.5", "--config", config.to_str().expect("utf8")],
+        &[
+            "replay",
+            "--speed",
+            "0.5",
+            "--config",
+            config.to_str().expect("utf8"),
+        ],
         &ks,
         "Enforce",
     );
