@@ -54,12 +54,17 @@ mkdir -p "$DATA_ROOT" "$RUNS" "$REPORTS"
 
 log() { printf '%s %s\n' "$(date -u +%Y-%m-%dT%H:%M:%SZ)" "$*" | tee -a "$LOG" >&2; }
 
+# The data sets every warnings report is made from (the latch's thresholds
+# are chosen on both, its figures taken on either).
+DATA_SETS=("$SET/.complete" "$WALK/.complete")
+
 # current OUT MODEL HORIZON_MS IN...: the warnings report OUT is newer than
-# MODEL and every IN, and is of MODEL at HORIZON_MS (a report of another run
-# or horizon, from an earlier selection, is made again).
+# MODEL, both data sets and every IN, and is of MODEL at HORIZON_MS (a report
+# of another run or horizon, from an earlier selection, or restored from
+# models/card before the data sets were made, is made again).
 current() {
   local out=$1 model=$2 horizon=$3; shift 3
-  newer "$out" "$model" "$@" || return 1
+  newer "$out" "$model" "${DATA_SETS[@]}" "$@" || return 1
   "$PY" -c "
 import json, sys
 r = json.load(open(sys.argv[1]))
@@ -292,7 +297,7 @@ step_thresholds() {
   while read -r abl name loss; do
     model="$RUNS/$name.cal.bpk"
     out="$REPORTS/$abl-thresholds.json"
-    current "$out" "$model" "$LATCH_MS" "$SET/.complete" "$WALK/.complete" && continue
+    current "$out" "$model" "$LATCH_MS" && continue
     log "thresholds $abl ($name) at $LATCH_MS ms on validation falls and walks"
     "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose \
       --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 \
@@ -421,9 +426,7 @@ print(c['trigger'], c['release'])" "$1"
 # latch_warnings MODEL THRESHOLDS.json HORIZON_MS SET:SPLIT OUT: the daemon's
 # path (`fall-guard warnings`) with the pair chosen in THRESHOLDS.json, on the
 # data set, the walking set (no choice is made on it) or the test falls of one
-# cause with the test walks; skipped while OUT is newer than MODEL, the pair
-# and both data sets (a report restored from models/card for a shipped run is
-# made again when the data sets are newer).
+# cause with the test walks; skipped while OUT is current (`current`).
 latch_warnings() {
   local model=$1 pairs=$2 horizon=$3 target=$4 out=$5 trig rel
   local set=${target%%:*} split=${target##*:} data=$SET
@@ -431,7 +434,7 @@ latch_warnings() {
     walk) data=$WALK ;;
     collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
   esac
-  current "$out" "$model" "$horizon" "$pairs" "$SET/.complete" "$WALK/.complete" && return 0
+  current "$out" "$model" "$horizon" "$pairs" && return 0
   read -r trig rel < <(chosen_pair "$pairs")
   log "warnings $(basename "$model" .cal.bpk) at $horizon ms on $set $split (trigger $trig, release $rel)"
   "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms "$horizon" --trigger "$trig" \
@@ -456,7 +459,7 @@ warnings_2s() {
     return 0
   fi
   out="$REPORTS/warn2s-$name-choose.json"
-  if ! newer "$out" "$model" "$SET/.complete" "$WALK/.complete"; then
+  if ! newer "$out" "$model" "${DATA_SETS[@]}"; then
     log "warnings $name at 2 s: thresholds on validation falls and walks"
     "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose --horizon-ms 2000 \
       --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
