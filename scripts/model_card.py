@@ -35,8 +35,11 @@ import shutil
 from pathlib import Path
 
 GROUPS = [("emp", "EMP"), ("mp", "MP"), ("ep", "EP"), ("p", "P"),
-          ("emp-pp", "EMP, trained under the paper protocol"), ("mp-pp", "MP, trained under the paper protocol"), ("p-pp", "P, trained under the paper protocol"), ("emp-hist", "EMP, historical-only plan"),
-          ("emp-real", "EMP, real-position trajectory"), ("logreg", "logistic baseline"),
+          ("emp-pp", "EMP, trained under the paper protocol"), ("mp-pp", "MP, trained under the paper protocol"),
+          ("ep-pp", "EP, trained under the paper protocol"), ("p-pp", "P, trained under the paper protocol"),
+          ("emp-hist", "EMP, historical-only plan"), ("emp-real", "EMP, real-position trajectory"),
+          ("emp-hist-pp", "EMP, historical-only plan, paper protocol"),
+          ("emp-real-pp", "EMP, real-position trajectory, paper protocol"), ("logreg", "logistic baseline"),
           ("gen1-emp", "EMP trained on generator 1"), ("gen1-mp", "MP trained on generator 1"),
           ("gen1-p", "P trained on generator 1"), ("gen4-emp", "EMP trained on generator 4"),
           ("gen4-mp", "MP trained on generator 4"), ("gen4-p", "P trained on generator 4")]
@@ -265,7 +268,7 @@ def checks(evals: dict) -> list[str]:
     any, else the deployment-trained ones."""
     out = []
     emp, mp, p = (evals.get((f"{k}-pp", "paper")) or evals.get((k, "paper")) for k in ("emp", "mp", "p"))
-    hist = evals.get(("emp-hist", "paper"))
+    hist = evals.get(("emp-hist-pp", "paper")) or evals.get(("emp-hist", "paper"))
     if emp:
         pe = protocol(emp, "paper")
         for h in pe["horizons"]:
