@@ -107,7 +107,7 @@ plan() {
     echo "p-pp-s$s --ablation P --seed $s --protocol paper"
   done
   for s in 1 2 3 4 5; do echo "emp-pp-s$s --ablation EMP --seed $s --protocol paper"; done
-  echo "logreg-s1 --ablation logreg --seed 1"
+  echo "logreg-pp-s1 --ablation logreg --seed 1 --protocol paper"
   # The other ablations under the protocol the shipped networks train on, so
   # that they compare with the EMP seeds above.
   for s in 1 2 3; do echo "ep-pp-s$s --ablation EP --seed $s --protocol paper"; done
@@ -386,8 +386,8 @@ step_evaluate() {
     [ -e "$f" ] || continue
     eval_group "$(basename "$f" .bpk)" paper "$f"
   done
-  if [ -e "$RUNS/logreg-s1.json" ]; then
-    eval_group logreg paper "$RUNS/logreg-s1.json"
+  if [ -e "$RUNS/logreg-pp-s1.json" ]; then
+    eval_group logreg paper "$RUNS/logreg-pp-s1.json"
   fi
   # The networks that shipped before, on the same test split, for contrast:
   # the generator-1 ones (trained_on "simulated", the newest such version of
