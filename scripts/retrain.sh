@@ -116,6 +116,9 @@ plan() {
     echo "emp-real-pp-s$s --ablation EMP --seed $s --protocol paper --trajectory real-position"
   done
   echo "emp-perh-s1 --ablation EMP --seed 1 --protocol paper --per-horizon"
+  # The vision encoder at the motion encoder's rate instead of the sim table's
+  # 1e-6: whether the camera learns to see the ball coming once it can move.
+  for s in 1 2 3; do echo "emp-vis-pp-s$s --ablation EMP --seed $s --protocol paper --vision-lr 1e-4"; done
   if [ "${RETRAIN_PAPER:-0}" = 1 ]; then echo "emp-paper-s1 --ablation EMP --seed 1 --config paper"; fi
 }
 

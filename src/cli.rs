@@ -287,6 +287,10 @@ pub struct TrainArgs {
     /// Learning-rate table: sim (SimP column) or robot (RP column).
     #[arg(long, default_value = "sim")]
     pub rates: String,
+    /// The vision encoder's learning rate, in place of the table's (the sim
+    /// table's 1e-6 barely moves the encoder in 10 epochs).
+    #[arg(long)]
+    pub vision_lr: Option<f64>,
     /// Window length N, ticks.
     #[arg(long, default_value_t = 60)]
     pub n_ticks: usize,
@@ -345,6 +349,7 @@ impl From<TrainArgs> for TrainOptions {
             patience: a.patience,
             batch: a.batch,
             rates: a.rates,
+            vision_lr: a.vision_lr,
             n_ticks: a.n_ticks,
             horizons: a.horizons,
             rate_hz: a.rate_hz,

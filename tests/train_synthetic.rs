@@ -105,6 +105,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         patience: 3,
         batch: 4,
         rates: "sim".into(),
+        vision_lr: None,
         n_ticks: 12,
         horizons: vec![3, 6, 9, 12],
         rate_hz: rate,

@@ -125,6 +125,10 @@ pub struct ModelMeta {
     /// (deployment).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub protocol: Option<String>,
+    /// The vision encoder's learning rate when it trained at another than
+    /// its rate table's (`train --vision-lr`); none: the table's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vision_lr: Option<f64>,
 }
 
 /// Post-hoc calibration, fitted on held-out windows after training (Platt
@@ -237,6 +241,7 @@ impl ModelMeta {
             seed: 0,
             calibration: None,
             protocol: None,
+            vision_lr: None,
             config,
         }
     }

@@ -52,6 +52,8 @@ pub struct TrainOptions {
     pub batch: usize,
     /// Learning-rate table: sim (SimP column) or robot (RP column).
     pub rates: String,
+    /// The vision encoder's learning rate in place of the table's.
+    pub vision_lr: Option<f64>,
     /// Window length N, ticks.
     pub n_ticks: usize,
     /// Horizons, ticks, comma-separated.
@@ -416,6 +418,18 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
             args.device
         )));
     }
+    if let Some(lr) = args.vision_lr {
+        if !(lr.is_finite() && lr > 0.0) {
+            return Err(refused(format!(
+                "--vision-lr {lr}: a learning rate is a positive number"
+            )));
+        }
+        if args.ablation.eq_ignore_ascii_case("logreg") {
+            return Err(refused(
+                "--vision-lr: the logistic baseline has no vision encoder".to_string(),
+            ));
+        }
+    }
     // Refuse a device not compiled in before reading any data.
     args.device.device()?;
     let dataset =
@@ -573,7 +587,7 @@ impl NetworkCheckpoint {
 /// What a run is checked against when it resumes: every argument that
 /// changes what it trains, and the data set's manifest.
 pub(crate) fn run_arguments(args: &TrainOptions, dataset: &Dataset) -> serde_json::Value {
-    serde_json::json!({
+    let mut arguments = serde_json::json!({
         "data": args.data,
         "manifest": {
             "train": dataset.manifest.train,
@@ -598,7 +612,12 @@ pub(crate) fn run_arguments(args: &TrainOptions, dataset: &Dataset) -> serde_jso
         "per_horizon": args.per_horizon,
         "trajectory": args.trajectory.to_string(),
         "device": args.device.to_string(),
-    })
+    });
+    // Only when given, so that runs started without it still resume.
+    if let Some(lr) = args.vision_lr {
+        arguments["vision_lr"] = lr.into();
+    }
+    arguments
 }
 
 impl RunCheckpoint {
@@ -700,11 +719,15 @@ fn train_one(
             let mut meta = ModelMeta::new(cfg, ablation, args.rate_hz, joint_names.to_vec());
             meta.trained_on = args.trained_on.clone();
             meta.protocol = Some(args.protocol.name().into());
-            let rates = match args.rates.as_str() {
+            let mut rates = match args.rates.as_str() {
                 "sim" => EncoderRates::sim(),
                 "robot" => EncoderRates::robot(),
                 other => return Err(refused(format!("unknown --rates {other:?}: sim or robot"))),
             };
+            if let Some(lr) = args.vision_lr {
+                rates.vision.lr = lr;
+                meta.vision_lr = Some(lr);
+            }
             let opts = FitOptions {
                 seed: args.seed,
                 max_epochs: args.epochs,

@@ -44,6 +44,7 @@ fn per_horizon_paper_training_on_the_fixtures() {
         patience: 1,
         batch: 4,
         rates: "sim".into(),
+        vision_lr: None,
         n_ticks: 20,
         horizons: horizons.clone(),
         rate_hz: 30.0,
@@ -158,6 +159,66 @@ fn resume_skips_the_written_horizons(args: &super::cli::TrainOptions, horizons: 
     std::fs::remove_dir_all(&ckpt).unwrap();
     // The first network back for the checks that follow.
     std::fs::write(&first, first_bytes).unwrap();
+}
+
+/// `--vision-lr`: refused unless a positive number or for the baseline,
+/// kept in the model file, and part of the arguments a run resumes on only
+/// when given (runs started without it still resume).
+#[test]
+fn vision_learning_rate_is_checked_kept_and_resumed_on() {
+    use super::cli::{run_arguments, run_train, TrainOptions};
+    use super::sampler::Protocol;
+    use crate::model::TrajectoryInput;
+    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
+    let dir = tempfile::tempdir().unwrap();
+    let mut args = TrainOptions {
+        data: data.clone(),
+        ablation: "EP".into(),
+        config: "lite".into(),
+        seed: 1,
+        out: dir.path().join("ep.bpk"),
+        epochs: 1,
+        patience: 1,
+        batch: 4,
+        rates: "sim".into(),
+        vision_lr: Some(0.0),
+        n_ticks: 20,
+        horizons: vec![10, 20],
+        rate_hz: 30.0,
+        frame_size: 64,
+        joint_names: None,
+        trained_on: "fixtures".into(),
+        quiet: true,
+        device: super::device::TrainDevice::Cpu,
+        protocol: Protocol::Deployment,
+        per_horizon: false,
+        trajectory: TrajectoryInput::Planned,
+        checkpoint_dir: None,
+    };
+    for bad in [0.0, -1e-4, f64::NAN] {
+        args.vision_lr = Some(bad);
+        let e = format!("{:#}", run_train(&args).unwrap_err());
+        assert!(e.contains("--vision-lr"), "{e}");
+    }
+    let baseline = TrainOptions {
+        ablation: "logreg".into(),
+        vision_lr: Some(1e-4),
+        ..args.clone()
+    };
+    let e = format!("{:#}", run_train(&baseline).unwrap_err());
+    assert!(e.contains("no vision encoder"), "{e}");
+    assert!(!args.out.exists(), "nothing written by a refused run");
+
+    let dataset = super::dataset::Dataset::open(&data).unwrap();
+    args.vision_lr = None;
+    assert!(run_arguments(&args, &dataset).get("vision_lr").is_none());
+    args.vision_lr = Some(1e-4);
+    assert_eq!(run_arguments(&args, &dataset)["vision_lr"], 1e-4);
+    run_train(&args).unwrap();
+    assert_eq!(
+        LoadedModel::load(&args.out).unwrap().meta.vision_lr,
+        Some(1e-4)
+    );
 }
 
 /// The shipped networks with their input projection in int8 forecast what
