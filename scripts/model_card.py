@@ -441,6 +441,12 @@ def stats_rows(stats: dict | None, title: str) -> list[str]:
         rows += ["", f"Counterfactual (knots from onset - {cf['lead_s']} s redrawn, {cf['perturbation_falls_tried']} "
                      f"perturbation falls): {cf['averted']} averted, {cf['moved']} moved by more than "
                      f"{cf['move_ticks']} ticks: {100 * cf['share_averted_or_moved']:.0f}%."]
+    lead, share = stats.get("collision_launch_to_onset_s"), stats.get("collision_launched_before_onset_share")
+    if lead and share:
+        rows += ["", f"The ball, from its launch (in the head camera's view from then on) to the collision fall: "
+                     f"median {lead['median']} s (p10 {lead['p10']}, p90 {lead['p90']}); launched more than "
+                     + ", ".join(f"{k} s before the onset in {100 * v:.0f}%" for k, v in share.items())
+                     + " of the collision falls."]
     return rows
 
 

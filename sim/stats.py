@@ -101,6 +101,8 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
             "event_s": int(meta["event_ns"]) / 1e9 if "event_ns" in meta else None,
             "cause": meta.get("fall_cause"),
             "hazard": hazard is not None and hazard.get("launched", True),
+            "launch_s": (int(hazard["launch_ns"]) / 1e9
+                         if hazard is not None and hazard.get("launched", True) and "launch_ns" in hazard else None),
             "distance_m": float(meta.get("distance_m", "nan")),
             "progress_m": float(meta.get("progress_m", "nan")),
             "generator": meta.get("generator", "1"),
@@ -128,6 +130,8 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
             "distance_m_not_falling": _spread([r["distance_m"] for r in rs if r["onset_s"] is None], 3),
         }
     falls = [r for r in rows if r["onset_s"] is not None]
+    launch_leads = [r["onset_s"] - r["launch_s"] for r in falls
+                    if r["cause"] == "collision" and r["launch_s"] is not None]
     summary = {
         "episodes": len(rows),
         "generators": sorted({r["generator"] for r in rows}),
@@ -136,6 +140,12 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
         "collision_share_of_falls": (round(sum(r["cause"] == "collision" for r in falls) / len(falls), 3)
                                      if falls else None),
         "episodes_with_ball": sum(r["hazard"] for r in rows),
+        # How long before a collision fall the ball was launched (in the
+        # camera's view from then on): what the camera can foresee at most.
+        "collision_launch_to_onset_s": _spread(launch_leads, 2),
+        "collision_launched_before_onset_share": (
+            {f"{t:g}": round(sum(x > t for x in launch_leads) / len(launch_leads), 3) for t in (0.5, 1.0, 1.5, 2.0)}
+            if launch_leads else None),
         "per_sigma": per_sigma,
         "onset_s": _spread([r["onset_s"] for r in falls], 2),
         "distance_m": _spread([r["distance_m"] for r in rows], 3),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+from pathlib import Path
 
 import numpy as np
 from PIL import Image
@@ -129,6 +130,25 @@ def test_stats_report_causes_distance_and_refuse_nothing(small_dataset):
     for row in s["per_sigma"].values():
         assert row["distance_m"]["min"] >= 0.0
         assert row["collision_falls"] <= row["falling"]
+
+
+def test_stats_time_the_ball_from_launch_to_the_collision_fall():
+    """On the fixtures (one collision fall): the launch lead is that fall's
+    onset less its ball's launch, from its own metadata."""
+    from sim.stats import read_episode_metadata, summarise
+
+    fixtures = Path(__file__).resolve().parents[2] / "tests" / "fixtures"
+    leads = []
+    for f in sorted(fixtures.glob("*.mcap")):
+        meta = read_episode_metadata(f)
+        if meta.get("fall_cause") == "collision":
+            launch = json.loads(meta["hazard"])["launch_ns"]
+            leads.append((int(meta["fall_onset_ns"]) - int(launch)) / 1e9)
+    assert len(leads) == 1
+    s = summarise(fixtures)
+    assert s["collision_launch_to_onset_s"]["median"] == round(leads[0], 2)
+    assert s["collision_launched_before_onset_share"]["0.5"] == float(leads[0] > 0.5)
+    assert s["collision_launched_before_onset_share"]["2"] == float(leads[0] > 2.0)
 
 
 def test_generator_1_directory_is_refused(tmp_path):
