@@ -496,9 +496,11 @@ step_ship() {
     cp "$RUNS/$name.cal.bpk" "$REPO/models/$abl.bpk.partial"
     mv "$REPO/models/$abl.bpk.partial" "$REPO/models/$abl.bpk"
   done <"$REPORTS/selected.txt"
-  # Each network's latch thresholds, chosen for it on validation, into the configs.
+  # Each network's latch thresholds, chosen for it on validation, into the
+  # configs (and the real walk's, which replays the shipped latch).
   "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" \
-    "$REPO/config/replay.toml" "$REPO/config/poppy_humanoid.toml" | tee -a "$LOG"
+    "$REPO/config/replay.toml" "$REPO/config/poppy_humanoid.toml" "$REPO/tests/fixtures/real/replay.toml" \
+    | tee -a "$LOG"
 }
 
 all_steps=(data train calibrate select thresholds evaluate card)
