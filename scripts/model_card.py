@@ -39,7 +39,8 @@ GROUPS = [("emp", "EMP"), ("mp", "MP"), ("ep", "EP"), ("p", "P"),
           ("ep-pp", "EP, trained under the paper protocol"), ("p-pp", "P, trained under the paper protocol"),
           ("emp-hist", "EMP, historical-only plan"), ("emp-real", "EMP, real-position trajectory"),
           ("emp-hist-pp", "EMP, historical-only plan, paper protocol"),
-          ("emp-real-pp", "EMP, real-position trajectory, paper protocol"), ("logreg", "logistic baseline"),
+          ("emp-real-pp", "EMP, real-position trajectory, paper protocol"),
+          ("emp-vis-pp", "EMP, vision encoder at 1e-4, paper protocol"), ("logreg", "logistic baseline"),
           ("gen1-emp", "EMP trained on generator 1"), ("gen1-mp", "MP trained on generator 1"),
           ("gen1-p", "P trained on generator 1"), ("gen4-emp", "EMP trained on generator 4"),
           ("gen4-mp", "MP trained on generator 4"), ("gen4-p", "P trained on generator 4")]
@@ -498,6 +499,19 @@ def main() -> int:
                   "accuracy (ROC-AUC))", "",
                   "| network | seeds | 0.5 s | 1 s | 1.5 s | 2 s |",
                   "| --- | --- | --- | --- | --- | --- |", *sigma_rows, ""]
+    camera_rows = []
+    for key, label in (("emp-pp", "EMP"), ("emp-vis-pp", "EMP, vision encoder at 1e-4"), ("mp-pp", "MP")):
+        r = evals.get((f"{key}-valcollision", "paper"))
+        if r:
+            p = protocol(r, "paper")
+            camera_rows.append(f"| {label} | {len(r['models'])} | "
+                               + " | ".join(f"{fmt_ms(h['accuracy'])} ({fmt_ms(h['roc_auc'])})" for h in p["horizons"])
+                               + " |")
+    if camera_rows:
+        lines += ["### The camera's case on validation (validation collision falls with the validation walks; "
+                  "paper protocol, accuracy (ROC-AUC))", "",
+                  "| network | seeds | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |",
+                  *camera_rows, ""]
     lead_rows = cause_lead_rows(kept, selected)
     if lead_rows:
         lines += ["### Warnings by fall cause (`fall-guard warnings` on the test falls of that cause)", "",

@@ -378,6 +378,13 @@ step_evaluate() {
       SET="$DATA_ROOT/bycause/$cause" eval_group "$group-$cause" paper "${files[@]}"
     done
   done
+  # The camera's case on validation (the validation collision falls with the
+  # validation walks), where the vision encoder's settings are compared.
+  for group in emp-pp mp-pp emp-vis-pp; do
+    mapfile -t files < <(seeds_of "$group")
+    [ ${#files[@]} -gt 0 ] || continue
+    SET="$DATA_ROOT/bycause/validation-collision" eval_group "$group-valcollision" paper "${files[@]}"
+  done
   for group in ep-pp emp-hist-pp emp-real-pp; do
     mapfile -t files < <(seeds_of "$group")
     [ ${#files[@]} -gt 0 ] || continue

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Data sets of one fall cause, and of the high sigmas, from SET's test split.
 
-    subset_by_cause.py SET OUT     writes OUT/collision/, OUT/perturbation/ and OUT/high-sigma/
+    subset_by_cause.py SET OUT     writes OUT/collision/, OUT/perturbation/, OUT/high-sigma/
+                                   and OUT/validation-collision/
 
 collision/ and perturbation/ hold the test falls of that cause with every
 non-falling test episode; high-sigma/ holds every test episode at a
@@ -11,7 +12,10 @@ swell does not already tell the sigma.
 
 Each is a directory of symbolic links to SET's recordings with a manifest.json
 whose test split holds those episodes (train and validation empty), so that
-`fall-guard eval` and `warnings` score one cause at a time. The cause is the
+`fall-guard eval` and `warnings` score one cause at a time.
+validation-collision/ is the same for the validation split's collision falls
+and non-falling episodes: the camera's case where choices about the vision
+encoder may be made (the test split's never are). The cause is the
 recording's `fall_cause` metadata (sim/README.md). Run with sim/.venv/bin/python.
 """
 
@@ -65,6 +69,17 @@ def main() -> int:
     write_subset(d, [(src / n, n) for n in high], {"test": sorted(high)},
                  "test episodes at sigma >= 0.035", manifest.get("generator", {}))
     print(f"{d}: {len(high)} episodes at sigma >= 0.035")
+    falls, walks = [], []
+    for name in manifest["validation"]:
+        cause = read_episode_metadata(src / name).get("fall_cause")
+        if cause == "collision":
+            falls.append(name)
+        elif cause is None:
+            walks.append(name)
+    d = out / "validation-collision"
+    write_subset(d, [(src / n, n) for n in falls + walks], {"test": sorted(falls + walks)},
+                 "validation falls caused by collision + validation walks", manifest.get("generator", {}))
+    print(f"{d}: {len(falls)} collision falls, {len(walks)} walks (validation)")
     return 0
 
 
