@@ -287,8 +287,8 @@ pub struct TrainArgs {
     /// Learning-rate table: sim (SimP column) or robot (RP column).
     #[arg(long, default_value = "sim")]
     pub rates: String,
-    /// The vision encoder's learning rate, in place of the table's (the sim
-    /// table's 1e-6 barely moves the encoder in 10 epochs).
+    /// The vision encoder's learning rate (EP, EMP), in place of the
+    /// table's (the sim table's 1e-6 barely moves the encoder in 10 epochs).
     #[arg(long)]
     pub vision_lr: Option<f64>,
     /// Window length N, ticks.

@@ -424,10 +424,16 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
                 "--vision-lr {lr}: a learning rate is a positive number"
             )));
         }
-        if args.ablation.eq_ignore_ascii_case("logreg") {
-            return Err(refused(
-                "--vision-lr: the logistic baseline has no vision encoder".to_string(),
-            ));
+        let without_vision = args.ablation.eq_ignore_ascii_case("logreg")
+            || args
+                .ablation
+                .parse::<Ablation>()
+                .is_ok_and(|a| !a.uses_vision());
+        if without_vision {
+            return Err(refused(format!(
+                "--vision-lr: {} has no vision encoder",
+                args.ablation
+            )));
         }
     }
     // Refuse a device not compiled in before reading any data.

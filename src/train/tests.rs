@@ -161,7 +161,8 @@ fn resume_skips_the_written_horizons(args: &super::cli::TrainOptions, horizons: 
     std::fs::write(&first, first_bytes).unwrap();
 }
 
-/// `--vision-lr`: refused unless a positive number or for the baseline,
+/// `--vision-lr`: refused unless a positive number, or for a network
+/// without a vision encoder,
 /// kept in the model file, and part of the arguments a run resumes on only
 /// when given (runs started without it still resume).
 #[test]
@@ -200,13 +201,15 @@ fn vision_learning_rate_is_checked_kept_and_resumed_on() {
         let e = format!("{:#}", run_train(&args).unwrap_err());
         assert!(e.contains("--vision-lr"), "{e}");
     }
-    let baseline = TrainOptions {
-        ablation: "logreg".into(),
-        vision_lr: Some(1e-4),
-        ..args.clone()
-    };
-    let e = format!("{:#}", run_train(&baseline).unwrap_err());
-    assert!(e.contains("no vision encoder"), "{e}");
+    for blind in ["logreg", "MP", "P"] {
+        let without = TrainOptions {
+            ablation: blind.into(),
+            vision_lr: Some(1e-4),
+            ..args.clone()
+        };
+        let e = format!("{:#}", run_train(&without).unwrap_err());
+        assert!(e.contains(&format!("{blind} has no vision encoder")), "{e}");
+    }
     assert!(!args.out.exists(), "nothing written by a refused run");
 
     let dataset = super::dataset::Dataset::open(&data).unwrap();
