@@ -474,7 +474,8 @@ def main() -> int:
     cause_rows = []
     for cause in ("collision", "perturbation"):
         for key, label in (("emp", "EMP"), ("mp", "MP"), ("emp-pp", "EMP (paper-trained)"),
-                           ("mp-pp", "MP (paper-trained)"), ("p-pp", "P (paper-trained)")):
+                           ("mp-pp", "MP (paper-trained)"), ("p-pp", "P (paper-trained)"),
+                           ("emp-vis-pp", "EMP, vision encoder at 1e-4 (paper-trained)")):
             r = evals.get((f"{key}-{cause}", "paper"))
             if r:
                 p = protocol(r, "paper")

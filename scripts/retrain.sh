@@ -372,7 +372,7 @@ step_evaluate() {
   # By fall cause: EMP and MP on the test falls of one cause with the test walks.
   local cause
   for cause in collision perturbation; do
-    for group in emp mp emp-pp mp-pp p-pp; do
+    for group in emp mp emp-pp mp-pp p-pp emp-vis-pp; do
       mapfile -t files < <(seeds_of "$group")
       [ ${#files[@]} -gt 0 ] || continue
       SET="$DATA_ROOT/bycause/$cause" eval_group "$group-$cause" paper "${files[@]}"
