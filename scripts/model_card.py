@@ -451,6 +451,20 @@ def stats_rows(stats: dict | None, title: str) -> list[str]:
     return rows
 
 
+def accuracy_auc_rows(evals: dict, subset: str, groups) -> list[str]:
+    """One row per GROUP evaluated on SUBSET (label GROUP-SUBSET, paper protocol): its
+    seeds, then accuracy (ROC-AUC) per horizon."""
+    rows = []
+    for key, label in groups:
+        r = evals.get((f"{key}-{subset}", "paper"))
+        if r:
+            p = protocol(r, "paper")
+            rows.append(f"| {label} | {len(r['models'])} | "
+                        + " | ".join(f"{fmt_ms(h['accuracy'])} ({fmt_ms(h['roc_auc'])})" for h in p["horizons"])
+                        + " |")
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reports", type=Path, required=True)
@@ -485,29 +499,16 @@ def main() -> int:
         lines += ["### By fall cause (paper protocol, test falls of that cause with the test walks)", "",
                   "| cause | network | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |",
                   *cause_rows, ""]
-    sigma_rows = []
-    for key, label in (("emp", "EMP"), ("mp", "MP"), ("p", "P"), ("emp-pp", "EMP (paper-trained)"),
-                       ("mp-pp", "MP (paper-trained)"), ("p-pp", "P (paper-trained)")):
-        r = evals.get((f"{key}-highsigma", "paper"))
-        if not r:
-            continue
-        p = protocol(r, "paper")
-        sigma_rows.append(f"| {label} | {len(r['models'])} | "
-                          + " | ".join(f"{fmt_ms(h['accuracy'])} ({fmt_ms(h['roc_auc'])})" for h in p["horizons"])
-                          + " |")
+    sigma_rows = accuracy_auc_rows(evals, "highsigma", (
+        ("emp", "EMP"), ("mp", "MP"), ("p", "P"), ("emp-pp", "EMP (paper-trained)"),
+        ("mp-pp", "MP (paper-trained)"), ("p-pp", "P (paper-trained)")))
     if sigma_rows:
         lines += ["### Within the event episodes (test episodes at sigma >= 0.035; paper protocol, "
                   "accuracy (ROC-AUC))", "",
                   "| network | seeds | 0.5 s | 1 s | 1.5 s | 2 s |",
                   "| --- | --- | --- | --- | --- | --- |", *sigma_rows, ""]
-    camera_rows = []
-    for key, label in (("emp-pp", "EMP"), ("emp-vis-pp", "EMP, vision encoder at 1e-4"), ("mp-pp", "MP")):
-        r = evals.get((f"{key}-valcollision", "paper"))
-        if r:
-            p = protocol(r, "paper")
-            camera_rows.append(f"| {label} | {len(r['models'])} | "
-                               + " | ".join(f"{fmt_ms(h['accuracy'])} ({fmt_ms(h['roc_auc'])})" for h in p["horizons"])
-                               + " |")
+    camera_rows = accuracy_auc_rows(evals, "valcollision", (
+        ("emp-pp", "EMP"), ("emp-vis-pp", "EMP, vision encoder at 1e-4"), ("mp-pp", "MP")))
     if camera_rows:
         lines += ["### The camera's case on validation (validation collision falls with the validation walks; "
                   "paper protocol, accuracy (ROC-AUC))", "",
