@@ -29,34 +29,15 @@ fn masked_loss_counts_only_the_scored_labels() {
 fn per_horizon_paper_training_on_the_fixtures() {
     use super::cli::{per_horizon_path, run_eval, run_train, EvalOptions, TrainOptions};
     use super::sampler::Protocol;
-    use crate::model::TrajectoryInput;
+    let _turn = fixture_training_turn();
     let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("mp.bpk");
     let horizons = vec![10, 20];
     let args = TrainOptions {
-        data: data.clone(),
-        ablation: "MP".into(),
-        config: "lite".into(),
-        seed: 1,
-        out: out.clone(),
-        epochs: 1,
-        patience: 1,
-        batch: 4,
-        rates: "sim".into(),
-        vision_lr: None,
-        n_ticks: 20,
-        horizons: horizons.clone(),
-        rate_hz: 30.0,
-        frame_size: 64,
-        joint_names: None,
-        trained_on: "fixtures".into(),
-        quiet: true,
-        device: super::device::TrainDevice::Cpu,
         protocol: Protocol::Paper,
         per_horizon: true,
-        trajectory: TrajectoryInput::Planned,
-        checkpoint_dir: None,
+        ..fixture_training("MP", out.clone())
     };
     run_train(&args).unwrap();
     assert!(!out.exists(), "no all-horizon file with --per-horizon");
@@ -161,28 +142,29 @@ fn resume_skips_the_written_horizons(args: &super::cli::TrainOptions, horizons: 
     std::fs::write(&first, first_bytes).unwrap();
 }
 
-/// `--vision-lr`: refused unless a positive number, or for a network
-/// without a vision encoder,
-/// kept in the model file, and part of the arguments a run resumes on only
-/// when given (runs started without it still resume).
-#[test]
-fn vision_learning_rate_is_checked_kept_and_resumed_on() {
-    use super::cli::{run_arguments, run_train, TrainOptions};
-    use super::sampler::Protocol;
-    use crate::model::TrajectoryInput;
-    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
-    let dir = tempfile::tempdir().unwrap();
-    let mut args = TrainOptions {
-        data: data.clone(),
-        ablation: "EP".into(),
+/// Held by each test here that trains on the fixtures: a run's bytes are
+/// compared with a rerun's (resume), and another test's training or
+/// evaluation beside it changes them, so they take turns.
+fn fixture_training_turn() -> std::sync::MutexGuard<'static, ()> {
+    static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    TURN.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// One epoch on the fixtures (20-tick windows, horizons 10 and 20 ticks,
+/// deployment protocol), written to OUT.
+fn fixture_training(ablation: &str, out: std::path::PathBuf) -> super::cli::TrainOptions {
+    super::cli::TrainOptions {
+        data: std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures"),
+        ablation: ablation.into(),
         config: "lite".into(),
         seed: 1,
-        out: dir.path().join("ep.bpk"),
+        out,
         epochs: 1,
         patience: 1,
         batch: 4,
         rates: "sim".into(),
-        vision_lr: Some(0.0),
+        vision_lr: None,
         n_ticks: 20,
         horizons: vec![10, 20],
         rate_hz: 30.0,
@@ -191,11 +173,24 @@ fn vision_learning_rate_is_checked_kept_and_resumed_on() {
         trained_on: "fixtures".into(),
         quiet: true,
         device: super::device::TrainDevice::Cpu,
-        protocol: Protocol::Deployment,
+        protocol: super::sampler::Protocol::Deployment,
         per_horizon: false,
-        trajectory: TrajectoryInput::Planned,
+        trajectory: crate::model::TrajectoryInput::Planned,
         checkpoint_dir: None,
-    };
+    }
+}
+
+/// `--vision-lr`: refused unless a positive number, or for a network
+/// without a vision encoder,
+/// kept in the model file, and part of the arguments a run resumes on only
+/// when given (runs started without it still resume).
+#[test]
+fn vision_learning_rate_is_checked_kept_and_resumed_on() {
+    use super::cli::{run_arguments, run_train, TrainOptions};
+    let _turn = fixture_training_turn();
+    let dir = tempfile::tempdir().unwrap();
+    let mut args = fixture_training("EP", dir.path().join("ep.bpk"));
+    let data = args.data.clone();
     for bad in [0.0, -1e-4, f64::NAN] {
         args.vision_lr = Some(bad);
         let e = format!("{:#}", run_train(&args).unwrap_err());
