@@ -46,40 +46,41 @@ def write_subset(out: Path, entries: list[tuple[Path, str]], splits: dict[str, l
     os.replace(tmp, out / "manifest.json")
 
 
+def by_cause(src: Path, names: list[str]) -> tuple[dict[str, list[str]], list[str], list[str]]:
+    """NAMES split by fall cause (collision, perturbation), the walks (no fall) and
+    those at sigma >= 0.035, from each recording's metadata."""
+    causes: dict[str, list[str]] = {"collision": [], "perturbation": []}
+    walks, high = [], []
+    for name in names:
+        meta = read_episode_metadata(src / name)
+        cause = meta.get("fall_cause")
+        (causes[cause] if cause in causes else walks).append(name)
+        if float(meta["sigma"]) >= 0.035:
+            high.append(name)
+    return causes, walks, high
+
+
 def main() -> int:
     if len(sys.argv) != 3:
         print(__doc__, file=sys.stderr)
         return 2
     src, out = Path(sys.argv[1]).resolve(), Path(sys.argv[2])
     manifest = json.loads((src / "manifest.json").read_text())
-    causes: dict[str, list[str]] = {"collision": [], "perturbation": []}
-    walks, high = [], []
-    for name in manifest["test"]:
-        meta = read_episode_metadata(src / name)
-        cause = meta.get("fall_cause")
-        (causes[cause] if cause in causes else walks).append(name)
-        if float(meta["sigma"]) >= 0.035:
-            high.append(name)
+    generator = manifest.get("generator", {})
+
+    def subset(d: Path, names: list[str], what: str) -> None:
+        write_subset(d, [(src / n, n) for n in names], {"test": sorted(names)}, what, generator)
+
+    causes, walks, high = by_cause(src, manifest["test"])
     for cause, falls in causes.items():
-        d = out / cause
-        write_subset(d, [(src / n, n) for n in falls + walks], {"test": sorted(falls + walks)},
-                     f"test falls caused by {cause} + test walks", manifest.get("generator", {}))
-        print(f"{d}: {len(falls)} {cause} falls, {len(walks)} walks")
-    d = out / "high-sigma"
-    write_subset(d, [(src / n, n) for n in high], {"test": sorted(high)},
-                 "test episodes at sigma >= 0.035", manifest.get("generator", {}))
-    print(f"{d}: {len(high)} episodes at sigma >= 0.035")
-    falls, walks = [], []
-    for name in manifest["validation"]:
-        cause = read_episode_metadata(src / name).get("fall_cause")
-        if cause == "collision":
-            falls.append(name)
-        elif cause is None:
-            walks.append(name)
-    d = out / "validation-collision"
-    write_subset(d, [(src / n, n) for n in falls + walks], {"test": sorted(falls + walks)},
-                 "validation falls caused by collision + validation walks", manifest.get("generator", {}))
-    print(f"{d}: {len(falls)} collision falls, {len(walks)} walks (validation)")
+        subset(out / cause, falls + walks, f"test falls caused by {cause} + test walks")
+        print(f"{out / cause}: {len(falls)} {cause} falls, {len(walks)} walks")
+    subset(out / "high-sigma", high, "test episodes at sigma >= 0.035")
+    print(f"{out / 'high-sigma'}: {len(high)} episodes at sigma >= 0.035")
+    causes, walks, _ = by_cause(src, manifest["validation"])
+    falls = causes["collision"]
+    subset(out / "validation-collision", falls + walks, "validation falls caused by collision + validation walks")
+    print(f"{out / 'validation-collision'}: {len(falls)} collision falls, {len(walks)} walks (validation)")
     return 0
 
 
