@@ -264,6 +264,18 @@ def protocol_table(evals: dict, proto: str) -> list[str]:
     return [head, "| " + " | ".join(["---"] * (2 + 2 * len(hs))) + " |", *rows]
 
 
+def floor_note(h: dict) -> str:
+    """What the ECE's noise floor (`eval`'s `floor`, `floor_upper`: the ECE a perfectly calibrated
+    network shows on the same windows) says of a horizon's seeds; empty for reports without it."""
+    cis = [c for c in h.get("ece_ci95", []) if "floor" in c]
+    if not cis:
+        return ""
+    floor = sum(c["floor"] for c in cis) / len(cis)
+    above = sum(1 for c in cis if c["ece"] > c["floor_upper"])
+    return (f"; a calibrated network would show {floor:.3f} on these windows (mean of seeds), and "
+            f"{above} of {len(cis)} seeds stand above its 97.5th percentile")
+
+
 def checks(evals: dict) -> list[str]:
     """The bars, on the groups that ship: the paper-trained runs (`ABL-pp`) when there are
     any, else the deployment-trained ones."""
@@ -281,7 +293,7 @@ def checks(evals: dict) -> list[str]:
             cis = ", ".join(f"[{c['lower']:.3f}, {c['upper']:.3f}]" for c in h.get("ece_ci95", []) if "lower" in c)
             verdict = "met" if ece <= 0.03 else f"missed by {ece - 0.03:.3f}"
             out.append(f"- EMP ECE at {h['horizon_ms'] / 1000:g} s: {ece:.3f} (target <= 0.03; 95% bootstrap "
-                       f"per seed {cis or '-'}): {verdict}")
+                       f"per seed {cis or '-'}): {verdict}{floor_note(h)}")
     for a, b, an, bn, gap in ((emp, mp, "EMP", "MP", 0.02), (mp, p, "MP", "P", 0.04)):
         if not (a and b):
             continue

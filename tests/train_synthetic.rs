@@ -160,6 +160,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         assert_eq!(h["positive_rate"].as_f64().unwrap(), 0.5, "{h}");
         let ci = &h["ece_ci95"][0];
         assert!(ci["lower"].as_f64().unwrap() <= ci["upper"].as_f64().unwrap());
+        assert!(ci["floor"].as_f64().unwrap() <= ci["floor_upper"].as_f64().unwrap());
     }
 
     // Streaming per tick == window.rs windows through the whole-window forward.

@@ -9,7 +9,9 @@
 //! files under the output directory. Horizon `k` is scored on the windows
 //! that score it ([`WindowTruth::scores`]): all of them under the
 //! deployment protocol, horizon `k`'s own set under the paper's. The ECE
-//! comes with a 95% bootstrap interval that resamples episodes.
+//! comes with a 95% bootstrap interval that resamples episodes and with its
+//! noise floor: the ECE a perfectly calibrated network shows on the same
+//! windows.
 
 use std::path::Path;
 
@@ -232,17 +234,22 @@ impl EvalReport {
                 p.protocol, p.windows, p.description
             ));
             s.push_str(
-                "| horizon | accuracy | F1 | precision | recall | ECE | ECE 95% CI | ROC-AUC | windows | positives |\n",
+                "| horizon | accuracy | F1 | precision | recall | ECE | ECE 95% CI | ECE floor | ROC-AUC | windows | positives |\n",
             );
-            s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
+            s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
             for h in &p.horizons {
                 let ci = h
                     .ece_ci95
                     .first()
                     .map(|c| format!("[{:.3}, {:.3}]", c.lower, c.upper))
                     .unwrap_or_default();
+                let floor = h
+                    .ece_ci95
+                    .first()
+                    .map(|c| format!("{:.3} (97.5%: {:.3})", c.floor, c.floor_upper))
+                    .unwrap_or_default();
                 s.push_str(&format!(
-                    "| {} ticks ({:.0} ms) | {} | {} | {} | {} | {} | {} | {} | {} | {:.2} |\n",
+                    "| {} ticks ({:.0} ms) | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.2} |\n",
                     h.horizon_ticks,
                     h.horizon_ms,
                     f(h.accuracy),
@@ -251,6 +258,7 @@ impl EvalReport {
                     f(h.recall),
                     f(h.ece),
                     ci,
+                    floor,
                     f(h.roc_auc),
                     h.windows,
                     h.positive_rate
@@ -258,7 +266,7 @@ impl EvalReport {
             }
         }
         s.push_str(&format!(
-            "\nECE 95% CI: percentile bootstrap over episodes, {ECE_RESAMPLES} resamples (first model; every model's in metrics.json).\n\nModels:\n"
+            "\nECE 95% CI: percentile bootstrap over episodes, {ECE_RESAMPLES} resamples. ECE floor: the ECE a perfectly calibrated network shows on these windows (labels drawn from the probabilities, {ECE_RESAMPLES} times), mean and 97.5th percentile; an ECE above that percentile shows miscalibration. First model; every model's in metrics.json.\n\nModels:\n"
         ));
         for m in &self.models {
             s.push_str(&format!("- `{m}`\n"));

@@ -3,7 +3,8 @@
 //!
 //! In: predicted probabilities and 0/1 labels of one horizon. Out: [`Metrics`],
 //! and [`ece_bootstrap`]: a confidence interval of the ECE that resamples
-//! whole episodes (windows of one episode are not independent).
+//! whole episodes (windows of one episode are not independent), with the
+//! ECE's noise floor on the same windows ([`ece_floor`]).
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -85,6 +86,12 @@ pub struct EceInterval {
     pub resamples: usize,
     /// Number of episodes resampled.
     pub episodes: usize,
+    /// The ECE a perfectly calibrated network shows on these windows, on
+    /// average ([`ece_floor`]): what the sample's ECE is compared with.
+    pub floor: f64,
+    /// The `(1 + level) / 2` percentile of that calibrated network's ECE: a
+    /// sample ECE above it shows miscalibration at this level.
+    pub floor_upper: f64,
 }
 
 /// Per-bin sums of one episode's windows: count, sum of p, sum of y.
@@ -148,21 +155,74 @@ pub fn ece_bootstrap(
             values.push(ece_of(&acc));
         }
     }
-    values.sort_by(f64::total_cmp);
-    let pct = |q: f64| -> f64 {
-        if values.is_empty() {
-            return f64::NAN;
-        }
-        values[((values.len() - 1) as f64 * q).round() as usize]
-    };
+    let floor = ece_floor(p, episode, bins, resamples, seed.wrapping_add(1));
     EceInterval {
         ece: sample,
-        lower: pct((1.0 - level) / 2.0),
-        upper: pct((1.0 + level) / 2.0),
+        lower: percentile(&mut values, (1.0 - level) / 2.0),
+        upper: percentile(&mut values, (1.0 + level) / 2.0),
         level,
         resamples: values.len(),
         episodes: groups.len(),
+        floor: floor.iter().sum::<f64>() / floor.len().max(1) as f64,
+        floor_upper: percentile(&mut floor.clone(), (1.0 + level) / 2.0),
     }
+}
+
+/// The `q` quantile (nearest rank) of `values`, sorting them; NaN when empty.
+fn percentile(values: &mut [f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(f64::total_cmp);
+    values[((values.len() - 1) as f64 * q).round() as usize]
+}
+
+/// The ECE's noise floor by consistency resampling: `resamples` times, draw
+/// each window's label from its own predicted probability (what a perfectly
+/// calibrated network's labels would be) and compute the ECE of `p` against
+/// them. Returns those ECEs: on a few hundred episodes they are far from 0,
+/// so a sample ECE means miscalibration only where it stands above them.
+///
+/// Windows of one episode with the same probability are one window drawn
+/// again (the paper protocol draws an episode's window at its stop line in
+/// every draw): they share a drawn label, as they share their true one.
+/// Deterministic for `seed`.
+pub fn ece_floor(
+    p: &[f32],
+    episode: &[usize],
+    bins: usize,
+    resamples: usize,
+    seed: u64,
+) -> Vec<f64> {
+    assert_eq!(p.len(), episode.len(), "one episode per prediction");
+    // Each window's distinct window, numbered in order of first appearance.
+    let mut seen = std::collections::HashMap::new();
+    let distinct: Vec<usize> = p
+        .iter()
+        .zip(episode)
+        .map(|(pi, &e)| {
+            let next = seen.len();
+            *seen.entry((e, pi.to_bits())).or_insert(next)
+        })
+        .collect();
+    let mut first_p = vec![0.0f32; seen.len()];
+    for (&d, &pi) in distinct.iter().zip(p) {
+        first_p[d] = pi;
+    }
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut drawn = vec![false; first_p.len()];
+    let mut y = vec![false; p.len()];
+    (0..resamples)
+        .map(|_| {
+            for (d, &pd) in drawn.iter_mut().zip(&first_p) {
+                *d = rng.random::<f32>() < pd;
+            }
+            for (yi, &d) in y.iter_mut().zip(&distinct) {
+                *yi = drawn[d];
+            }
+            ece(p, &y, bins)
+        })
+        .collect()
 }
 
 /// ROC-AUC by the rank statistic (Mann-Whitney U), ties counted half.
@@ -317,6 +377,42 @@ mod tests {
         let ep: Vec<usize> = (0..200).map(|i| i / 2).collect();
         let ci = ece_bootstrap(&p, &y, &ep, 15, 200, 0.95, 3);
         assert!(ci.upper < 1e-12, "{ci:?}");
+    }
+
+    #[test]
+    fn the_ece_floor_holds_a_calibrated_sample_and_not_a_miscalibrated_one() {
+        // 200 episodes of 5 windows: a calibrated network's ECE is well
+        // above 0 there, and its floor says so.
+        let (p, y, ep) = sample(200, 5, |p| p, 4);
+        let ci = ece_bootstrap(&p, &y, &ep, 15, 1000, 0.95, 7);
+        assert!(ci.ece > 0.02, "{ci:?}");
+        assert!(ci.floor > 0.02 && ci.floor < ci.floor_upper, "{ci:?}");
+        assert!(ci.ece <= ci.floor_upper, "{ci:?}");
+        // Over-confident (true probability p^2) on the same windows: above it.
+        let (p, y, ep) = sample(200, 5, |p| p * p, 4);
+        let ci = ece_bootstrap(&p, &y, &ep, 15, 1000, 0.95, 7);
+        assert!(ci.ece > ci.floor_upper, "{ci:?}");
+    }
+
+    #[test]
+    fn a_window_drawn_again_shares_its_label_in_the_floor() {
+        // The same windows each drawn 5 times in their episode: every
+        // resampled ECE is the one of the windows drawn once.
+        let (p, _, ep) = sample(100, 3, |p| p, 5);
+        let once = ece_floor(&p, &ep, 15, 50, 9);
+        fn five<T: Copy>(v: &[T]) -> Vec<T> {
+            v.iter().flat_map(|&x| [x; 5]).collect()
+        }
+        let again = ece_floor(&five(&p), &five(&ep), 15, 50, 9);
+        for (a, b) in once.iter().zip(&again) {
+            assert!((a - b).abs() < 1e-12, "{a} {b}");
+        }
+        // Drawn independently instead, the repeats would average out: a
+        // lower floor.
+        let apart: Vec<usize> = (0..p.len() * 5).collect();
+        let independent = ece_floor(&five(&p), &apart, 15, 50, 9);
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        assert!(mean(&independent) < mean(&once), "{independent:?}");
     }
 
     #[test]

@@ -1,0 +1,112 @@
+"""scripts/model_card.py: results kept per run, merged over seeds, the statistics and the checks."""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import model_card  # noqa: E402
+
+
+def horizon(ms: float, accs: list[float], eces: list[float], floors=None) -> dict:
+    """One horizon of a group report of len(accs) models."""
+    per_model = [{"accuracy": a, "f1": a, "precision": a, "recall": a, "ece": e, "roc_auc": a, "count": 10}
+                 for a, e in zip(accs, eces)]
+    cis = [{"ece": e, "lower": e / 2, "upper": 2 * e, "level": 0.95, "resamples": 1000, "episodes": 5}
+           for e in eces]
+    for c, f in zip(cis, floors or []):
+        c["floor"], c["floor_upper"] = f
+    return {"horizon_ticks": round(ms * 0.03), "horizon_ms": ms, "per_model": per_model, "ece_ci95": cis,
+            "windows": 10, "positive_rate": 0.5}
+
+
+def report(models: list[str], accs_by_ms: dict[float, list[float]], eces=None, floors=None) -> dict:
+    hs = [horizon(ms, accs, eces or [0.05] * len(accs), floors) for ms, accs in accs_by_ms.items()]
+    return {"models": models, "ablation": "EMP", "split": "test",
+            "protocols": [{"protocol": "paper", "description": "d", "windows": 40, "horizons": hs}]}
+
+
+def test_a_group_report_splits_into_runs_and_merges_back_as_mean_and_std():
+    r = report(["/d/runs/emp-pp-s1.cal.bpk", "/d/runs/emp-pp-s2.cal.bpk"], {1000.0: [0.8, 0.9]})
+    runs = model_card.split_report(r)
+    assert sorted(runs) == ["emp-pp-s1", "emp-pp-s2"]
+    assert runs["emp-pp-s2"]["protocols"][0]["horizons"][0]["per_model"][0]["accuracy"] == 0.9
+    merged = model_card.merge_records(list(runs.values()))
+    h = merged["protocols"][0]["horizons"][0]
+    assert merged["models"] == ["emp-pp-s1", "emp-pp-s2"]
+    assert math.isclose(h["accuracy"]["mean"], 0.85) and math.isclose(h["accuracy"]["std"], 0.05)
+    assert len(h["ece_ci95"]) == 2
+
+
+def write_eval(reports: Path, label: str, r: dict) -> None:
+    d = reports / f"eval-{label}-paper"
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "metrics.json").write_text(json.dumps(r))
+
+
+def test_seeds_evaluated_apart_add_up_and_the_newest_record_of_a_run_wins(tmp_path):
+    reports, keep = tmp_path / "reports", tmp_path / "keep"
+    write_eval(reports, "emp-pp", report(["runs/emp-pp-s1.cal.bpk", "runs/emp-pp-s2.cal.bpk"],
+                                         {1000.0: [0.80, 0.82]}))
+    model_card.keep_results(reports, keep)
+    # Another data directory evaluates seed 3, and seed 2 again with another result.
+    write_eval(reports, "emp-pp", report(["runs/emp-pp-s2.cal.bpk", "runs/emp-pp-s3.cal.bpk"],
+                                         {1000.0: [0.90, 0.84]}))
+    model_card.keep_results(reports, keep)
+    evals = model_card.kept_evals(keep)
+    r = evals[("emp-pp", "paper")]
+    assert r["models"] == ["emp-pp-s1", "emp-pp-s2", "emp-pp-s3"]
+    assert model_card.per_seed(r["protocols"][0]["horizons"][0], "accuracy") == [0.80, 0.90, 0.84]
+
+
+def t_sf_by_integration(t: float, df: float) -> float:
+    """P(T > t) by Simpson's rule on Student's density over [t, t + 200]."""
+    c = math.gamma((df + 1) / 2) / (math.sqrt(df * math.pi) * math.gamma(df / 2))
+    f = lambda x: c * (1 + x * x / df) ** (-(df + 1) / 2)  # noqa: E731
+    n, a, b = 200_000, t, t + 200.0
+    step = (b - a) / n
+    s = f(a) + f(b) + sum((4 if i % 2 else 2) * f(a + i * step) for i in range(1, n))
+    return s * step / 3
+
+
+def test_the_t_tail_matches_the_density_integrated():
+    for t, df in ((1.9, 3.7), (0.4, 2.0), (3.1, 8.5)):
+        assert math.isclose(model_card.t_sf(t, df), t_sf_by_integration(t, df), rel_tol=1e-3, abs_tol=1e-6)
+    assert math.isclose(model_card.t_sf(-1.2, 4.0), 1 - model_card.t_sf(1.2, 4.0), rel_tol=1e-9)
+
+
+def test_welch_is_one_sided_and_needs_two_seeds_a_side():
+    a, b = [0.84, 0.85, 0.86], [0.80, 0.81, 0.83]
+    t, p = model_card.welch_greater(a, b)
+    # t = (mean a - mean b) / sqrt(va / na + vb / nb), sample variances.
+    se = math.sqrt(statistics.variance(a) / 3 + statistics.variance(b) / 3)
+    assert math.isclose(t, (statistics.mean(a) - statistics.mean(b)) / se, rel_tol=1e-9)
+    assert 0 < p < 0.05
+    assert math.isclose(model_card.welch_greater(b, a)[1], 1 - p, rel_tol=1e-9)
+    assert model_card.welch_greater([0.9], b) is None
+
+
+def merged(r: dict) -> dict:
+    """A group report as the card reads it: merged from its runs' records."""
+    return model_card.merge_records(list(model_card.split_report(r).values()))
+
+
+def test_the_ece_check_says_by_how_much_and_where_the_floor_stands():
+    # Seed 1 above its floor's 97.5th percentile, seed 2 within it.
+    emp = report(["emp-pp-s1", "emp-pp-s2"], {500.0: [0.95, 0.97]}, eces=[0.08, 0.04],
+                 floors=[(0.03, 0.05), (0.035, 0.06)])
+    lines = model_card.checks({("emp-pp", "paper"): merged(emp)})
+    ece = [x for x in lines if "ECE" in x]
+    assert len(ece) == 1
+    assert "0.060 (target <= 0.03" in ece[0] and "missed by 0.030" in ece[0]
+    assert "would show 0.033" in ece[0] and "1 of 2 seeds stand above" in ece[0]
+    acc = [x for x in lines if "accuracy" in x]
+    assert "0.960 (target >= 0.96): met" in acc[0]
+    # A report from before the floor: the check without it.
+    old = report(["emp-pp-s1"], {500.0: [0.9]}, eces=[0.02])
+    ece = [x for x in model_card.checks({("emp-pp", "paper"): merged(old)}) if "ECE" in x]
+    assert ece[0].endswith("): met")
