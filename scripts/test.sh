@@ -21,7 +21,8 @@ cargo test --workspace --all-targets --no-fail-fast
 cargo test --workspace --doc
 
 if [ -x sim/.venv/bin/python ]; then
-  sim/.venv/bin/python -m pytest -q sim/tests
+  # The simulator, and the retrain's scripts (model card, subsets by cause).
+  sim/.venv/bin/python -m pytest -q sim/tests scripts/tests
 else
   echo "sim/.venv missing: run 'bash scripts/setup-python.sh' first" >&2
   exit 1
