@@ -334,24 +334,27 @@ eval_group() { # eval_group LABEL PROTOCOL FILES...
   rm -rf "$out"; mv "$out.partial" "$out"
 }
 
+# eval_seeds GROUP LABEL: eval_group LABEL over the calibrated seeds of GROUP
+# (nothing when it has none), on $SET.
+eval_seeds() {
+  local files
+  mapfile -t files < <(seeds_of "$1")
+  [ ${#files[@]} -gt 0 ] || return 0
+  eval_group "$2" paper "${files[@]}"
+}
+
 # The evaluations, most needed first (a run stopped early has the comparison
 # of EMP, MP and P and the daemon's warnings before the rest).
 step_evaluate() {
   need_binary
-  local group files abl name loss model
+  local group abl name loss
   # One eval reports both protocols (metrics.json `protocols`).
-  for group in emp mp p emp-pp mp-pp p-pp; do
-    mapfile -t files < <(seeds_of "$group")
-    [ ${#files[@]} -gt 0 ] || continue
-    eval_group "$group" paper "${files[@]}"
-  done
+  for group in emp mp p emp-pp mp-pp p-pp; do eval_seeds "$group" "$group"; done
   # Within the event episodes (the test episodes at sigma >= 0.035): whether
   # the plan and the camera add to the joints once an event is known to come.
   "$PY" "$REPO/scripts/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
   for group in emp mp p emp-pp mp-pp p-pp; do
-    mapfile -t files < <(seeds_of "$group")
-    [ ${#files[@]} -gt 0 ] || continue
-    SET="$DATA_ROOT/bycause/high-sigma" eval_group "$group-highsigma" paper "${files[@]}"
+    SET="$DATA_ROOT/bycause/high-sigma" eval_seeds "$group" "$group-highsigma"
   done
   # The daemon's own path: warnings on test and on the long walking set, then
   # on the test falls of each cause with the test walks.
@@ -373,23 +376,15 @@ step_evaluate() {
   local cause
   for cause in collision perturbation; do
     for group in emp mp emp-pp mp-pp p-pp emp-vis-pp; do
-      mapfile -t files < <(seeds_of "$group")
-      [ ${#files[@]} -gt 0 ] || continue
-      SET="$DATA_ROOT/bycause/$cause" eval_group "$group-$cause" paper "${files[@]}"
+      SET="$DATA_ROOT/bycause/$cause" eval_seeds "$group" "$group-$cause"
     done
   done
   # The camera's case on validation (the validation collision falls with the
   # validation walks), where the vision encoder's settings are compared.
   for group in emp-pp mp-pp emp-vis-pp; do
-    mapfile -t files < <(seeds_of "$group")
-    [ ${#files[@]} -gt 0 ] || continue
-    SET="$DATA_ROOT/bycause/validation-collision" eval_group "$group-valcollision" paper "${files[@]}"
+    SET="$DATA_ROOT/bycause/validation-collision" eval_seeds "$group" "$group-valcollision"
   done
-  for group in ep-pp emp-hist-pp emp-real-pp; do
-    mapfile -t files < <(seeds_of "$group")
-    [ ${#files[@]} -gt 0 ] || continue
-    eval_group "$group" paper "${files[@]}"
-  done
+  for group in ep-pp emp-hist-pp emp-real-pp; do eval_seeds "$group" "$group"; done
   # EMP trained per horizon (paper protocol): each network on its own horizon's windows.
   local f
   for f in "$RUNS"/emp-perh-s1.h*.bpk; do
