@@ -50,7 +50,7 @@ pub enum Command {
     BenchDaemon(BenchDaemonArgs),
     /// Warning lead time and false alarms of the safety latch on a split; choose its thresholds.
     Warnings(WarningsArgs),
-    /// Calibrate a model's probabilities on held-out windows (Platt scaling per horizon).
+    /// Calibrate a model's probabilities on held-out windows (Platt scaling per horizon, shortest first).
     Calibrate(CalibrateArgs),
     /// Rewrite a model file with its weights in half precision (f16).
     Half(HalfArgs),

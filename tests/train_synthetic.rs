@@ -163,6 +163,41 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         assert!(ci["floor"].as_f64().unwrap() <= ci["floor_upper"].as_f64().unwrap());
     }
 
+    // `calibrate` on the validation split (never on train): a calibration
+    // per horizon in the written file (f16), which `eval` reads.
+    use fall_guard::train::calibrate::{run_calibrate, CalibrateOptions};
+    let calibrated = dir.path().join("models/emp.cal.bpk");
+    let mut cal = CalibrateOptions {
+        model: model_path.clone(),
+        data: data.clone(),
+        split: "train".into(),
+        draws: 4,
+        sample_seed: 5,
+        protocol: fall_guard::train::sampler::Protocol::Paper,
+        out: calibrated.clone(),
+        half: true,
+    };
+    let refused = run_calibrate(&cal).unwrap_err().to_string();
+    assert!(refused.contains("--split train"), "{refused}");
+    assert!(!calibrated.exists());
+    cal.split = "validation".into();
+    run_calibrate(&cal).unwrap();
+    let model = LoadedModel::load(&calibrated).unwrap();
+    let c = model.meta.calibration.clone().expect("a calibration");
+    assert_eq!(c.scale.len(), 4);
+    assert!(c.scale.iter().all(|&a| a >= 0.001), "{c:?}");
+    assert!(
+        c.fitted_on.starts_with("validation split"),
+        "{}",
+        c.fitted_on
+    );
+    let eval_cal = EvalOptions {
+        model: calibrated.clone(),
+        out: Some(dir.path().join("eval-cal")),
+        ..eval.clone()
+    };
+    run_eval(&eval_cal).unwrap();
+
     // Streaming per tick == window.rs windows through the whole-window forward.
     let model = LoadedModel::load(&model_path).unwrap();
     let rec = data.join("episode_0096.mcap");

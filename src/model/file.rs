@@ -136,6 +136,8 @@ pub struct ModelMeta {
 /// network's logit `z_k`, then a running maximum over the horizons, so that
 /// a longer horizon never reads less likely than a shorter one (the network
 /// guarantees that for its raw output; a per-horizon fit alone would not).
+/// `fall-guard calibrate` fits each horizon, shortest first, for the
+/// probability so applied (above the shorter ones' maximum).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Calibration {
     /// Logit scale per horizon (`1 / temperature`), positive.

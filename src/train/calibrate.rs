@@ -1,5 +1,7 @@
 //! `fall-guard calibrate`: post-hoc calibration of a trained network on
-//! held-out windows (Platt scaling per horizon).
+//! held-out windows (Platt scaling per horizon, shortest first, each fitted
+//! for the probability as published: above the running maximum of the
+//! shorter horizons).
 //!
 //! In: a model file, a data set and a split that the network was not trained
 //! on (validation by default). Out: the same model file with a
@@ -45,13 +47,49 @@ pub struct CalibrateOptions {
 /// the identity `(1, 0)` so that a separable or one-class sample still gives
 /// a finite answer. Returns `(a, b)`.
 pub fn fit_platt(z: &[f32], y: &[bool]) -> (f32, f32) {
-    assert_eq!(z.len(), y.len(), "one label per logit");
+    newton(z, y, &vec![0.0; z.len()], (1.0, 0.0))
+}
+
+/// [`fit_platt`] for the probability as it is applied: `max(floor_i,
+/// sigmoid(a·z_i + b))`, where `floor_i` is what the shorter horizons
+/// already give window `i` (the running maximum of [`Calibration::apply`]).
+/// Where the floor stands above the fitted term, `(a, b)` do not change that
+/// window's probability, so it adds nothing to the gradient. Starts from
+/// the fit without floors and accepts only steps that lower the loss, so
+/// the result is never worse than that fit on the applied probabilities.
+/// With every floor 0 it is [`fit_platt`].
+pub fn fit_platt_above(z: &[f32], y: &[bool], floor: &[f32]) -> (f32, f32) {
+    assert!(
+        z.len() == y.len() && z.len() == floor.len(),
+        "one label and one floor per logit"
+    );
+    let plain = fit_platt(z, y);
+    if floor.iter().all(|&f| f <= 0.0) {
+        return plain;
+    }
+    newton(z, y, floor, (f64::from(plain.0), f64::from(plain.1)))
+}
+
+/// The smallest logit scale a fit takes.
+const MIN_SCALE: f64 = 1e-3;
+
+/// Newton's method with backtracking on the ridge-regularised mean
+/// cross-entropy of `max(floor_i, sigmoid(a·z_i + b))`, from `start`, the
+/// scale kept at or above [`MIN_SCALE`].
+fn newton(z: &[f32], y: &[bool], floor: &[f32], start: (f64, f64)) -> (f32, f32) {
     const RIDGE: f64 = 1e-3;
     let n = z.len().max(1) as f64;
     let loss = |a: f64, b: f64| -> f64 {
         let mut l = 0.0;
-        for (&zi, &yi) in z.iter().zip(y) {
+        for ((&zi, &yi), &fi) in z.iter().zip(y).zip(floor) {
             let s = a * f64::from(zi) + b;
+            let fi = f64::from(fi);
+            if fi > 0.0 && f64::from(sigmoid(s as f32)) < fi {
+                // The floor is the probability: -log p or -log(1 - p).
+                let p = fi.clamp(1e-7, 1.0 - 1e-7);
+                l -= if yi { p.ln() } else { (1.0 - p).ln() };
+                continue;
+            }
             // log(1 + e^s) - y·s, stable.
             let softplus = if s > 0.0 {
                 s + (-s).exp().ln_1p()
@@ -62,13 +100,17 @@ pub fn fit_platt(z: &[f32], y: &[bool]) -> (f32, f32) {
         }
         l / n + 0.5 * RIDGE * ((a - 1.0).powi(2) + b * b)
     };
-    let (mut a, mut b) = (1.0f64, 0.0f64);
+    let (mut a, mut b) = start;
     let mut current = loss(a, b);
     for _ in 0..100 {
         let (mut ga, mut gb, mut haa, mut hab, mut hbb) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for (&zi, &yi) in z.iter().zip(y) {
+        for ((&zi, &yi), &fi) in z.iter().zip(y).zip(floor) {
             let zi = f64::from(zi);
-            let p = f64::from(sigmoid((a * zi + b) as f32));
+            let p = sigmoid((a * zi + b) as f32);
+            if p < fi {
+                continue;
+            }
+            let p = f64::from(p);
             let r = p - if yi { 1.0 } else { 0.0 };
             let w = (p * (1.0 - p)).max(1e-12);
             ga += r * zi;
@@ -88,11 +130,17 @@ pub fn fit_platt(z: &[f32], y: &[bool]) -> (f32, f32) {
         }
         let da = (hbb * ga - hab * gb) / det;
         let db = (haa * gb - hab * ga) / det;
-        // Backtracking: never accept a step that raises the loss.
+        // Backtracking: never accept a step that raises the loss, nor one
+        // that turns the scale below MIN_SCALE (a calibration keeps the
+        // network's order).
         let mut t = 1.0;
         let mut improved = false;
         while t > 1e-6 {
             let (na, nb) = (a - t * da, b - t * db);
+            if na < MIN_SCALE {
+                t *= 0.5;
+                continue;
+            }
             let l = loss(na, nb);
             if l <= current {
                 improved = current - l > 1e-12;
@@ -138,10 +186,19 @@ pub fn fit_calibration(
     let mut cal = Calibration::identity(k);
     cal.fitted_on = fitted_on;
     let rows = |h: usize| (0..logits.len()).filter(move |&i| scored[i].is_none_or(|s| s == h));
+    // Shortest horizon first: each is fitted for the probability applied,
+    // above the running maximum of the shorter ones as already fitted.
     for h in 0..k {
         let z: Vec<f32> = rows(h).map(|i| logits[i][h]).collect();
         let y: Vec<bool> = rows(h).map(|i| labels[i][h]).collect();
-        let (a, b) = fit_platt(&z, &y);
+        let floor: Vec<f32> = rows(h)
+            .map(|i| {
+                (0..h)
+                    .map(|j| sigmoid(cal.scale[j] * logits[i][j] + cal.bias[j]))
+                    .fold(0.0, f32::max)
+            })
+            .collect();
+        let (a, b) = fit_platt_above(&z, &y, &floor);
         cal.scale[h] = a;
         cal.bias[h] = b;
     }
@@ -277,6 +334,55 @@ mod tests {
         let (a, b) = fit_platt(&z, &y);
         assert!((a - 0.5).abs() < 0.05, "scale {a}");
         assert!((b + 0.7).abs() < 0.07, "bias {b}");
+    }
+
+    #[test]
+    fn windows_under_the_floor_do_not_bend_the_fit() {
+        // Calibrated windows, and windows the shorter horizons already give
+        // 0.97, all positive at a low logit: fitted alone, those bend the
+        // line; fitted above the floor, they leave it where it belongs.
+        let (mut z, mut y) = sample(1.0, 0.0, 10_000);
+        let mut floor = vec![0.0f32; z.len()];
+        z.extend([-3.0f32; 3000]);
+        y.extend([true; 3000]);
+        floor.extend([0.97f32; 3000]);
+        let plain = fit_platt(&z, &y);
+        let above = fit_platt_above(&z, &y, &floor);
+        assert!(
+            (above.0 - 1.0).abs() < 0.08 && above.1.abs() < 0.08,
+            "{above:?}"
+        );
+        assert!((plain.0 - 1.0).abs() + plain.1.abs() > 0.3, "{plain:?}");
+        // On the probabilities as applied, the fit above the floor is better.
+        let applied_loss = |(a, b): (f32, f32)| -> f64 {
+            z.iter()
+                .zip(&y)
+                .zip(&floor)
+                .map(|((&zi, &yi), &fi)| {
+                    let p = f64::from(fi.max(sigmoid(a * zi + b))).clamp(1e-7, 1.0 - 1e-7);
+                    -if yi { p.ln() } else { (1.0 - p).ln() }
+                })
+                .sum::<f64>()
+        };
+        assert!(applied_loss(above) < applied_loss(plain));
+        // No floor: the plain fit.
+        let none = vec![0.0f32; z.len()];
+        assert_eq!(fit_platt_above(&z, &y, &none), plain);
+    }
+
+    #[test]
+    fn the_fit_never_reverses_the_networks_order() {
+        // Labels that run against the logits (the truth is sigmoid(-z), as
+        // for the windows left above a floor that holds the positives): the
+        // scale stops at its minimum, the probability near the base rate,
+        // instead of turning negative.
+        let (z, y) = sample(-1.0, 0.0, 4000);
+        let (a, b) = fit_platt(&z, &y);
+        assert!(a > 0.0 && a < 0.01, "{a}");
+        assert!(b.abs() < 0.1, "{b}");
+        let floor = vec![0.3f32; z.len()];
+        let (a, _) = fit_platt_above(&z, &y, &floor);
+        assert!(a > 0.0, "{a}");
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! sampler (data plane: `dataset`, `sampler`), and the network side: the
 //! training loop (`fit`), metrics, evaluation, plots, the logistic baseline,
 //! the optimizer (`adam`), checkpoints of a training run (`checkpoint`), the
-//! `train`/`eval` commands (`cli`), `calibrate` (Platt scaling on
+//! `train`/`eval` commands (`cli`), `calibrate` (Platt scaling, shortest horizon first, on
 //! held-out windows), `bench`, and the safety figures of
 //! `warnings` (lead time, false alarms, thresholds).
 
