@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The model card's result tables, from the reports of scripts/retrain.sh.
 
-    model_card.py --reports DIR --keep models/card --set DATASET --out tables.md
+    model_card.py --reports DIR --keep models/card --out tables.md
 
 Reads, under DIR (this data directory's reports): eval-GROUP-PROTOCOL/metrics.json
 (`fall-guard eval`), warnings-ABL-SET-SPLIT.json (`fall-guard warnings`),
@@ -481,7 +481,6 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reports", type=Path, required=True)
     ap.add_argument("--keep", type=Path, required=True)
-    ap.add_argument("--set", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args()
     keep_results(a.reports, a.keep)

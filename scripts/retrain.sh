@@ -486,7 +486,7 @@ warnings_one() {
 
 step_card() {
   log "card: tables from $REPORTS and the results kept in $KEEP"
-  "$PY" "$REPO/scripts/model_card.py" --reports "$REPORTS" --keep "$KEEP" --set "$SET" \
+  "$PY" "$REPO/scripts/model_card.py" --reports "$REPORTS" --keep "$KEEP" \
     --out "$KEEP/tables.md.partial"
   mv "$KEEP/tables.md.partial" "$KEEP/tables.md"
 }
