@@ -192,11 +192,7 @@ pub fn fit_calibration(
         let z: Vec<f32> = rows(h).map(|i| logits[i][h]).collect();
         let y: Vec<bool> = rows(h).map(|i| labels[i][h]).collect();
         let floor: Vec<f32> = rows(h)
-            .map(|i| {
-                (0..h)
-                    .map(|j| sigmoid(cal.scale[j] * logits[i][j] + cal.bias[j]))
-                    .fold(0.0, f32::max)
-            })
+            .map(|i| h.checked_sub(1).map_or(0.0, |k| cal.apply(&logits[i])[k]))
             .collect();
         let (a, b) = fit_platt_above(&z, &y, &floor);
         cal.scale[h] = a;

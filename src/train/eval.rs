@@ -238,15 +238,15 @@ impl EvalReport {
             );
             s.push_str("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
             for h in &p.horizons {
-                let ci = h
+                let (ci, floor) = h
                     .ece_ci95
                     .first()
-                    .map(|c| format!("[{:.3}, {:.3}]", c.lower, c.upper))
-                    .unwrap_or_default();
-                let floor = h
-                    .ece_ci95
-                    .first()
-                    .map(|c| format!("{:.3} (97.5%: {:.3})", c.floor, c.floor_upper))
+                    .map(|c| {
+                        (
+                            format!("[{:.3}, {:.3}]", c.lower, c.upper),
+                            format!("{:.3} (97.5%: {:.3})", c.floor, c.floor_upper),
+                        )
+                    })
                     .unwrap_or_default();
                 s.push_str(&format!(
                     "| {} ticks ({:.0} ms) | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:.2} |\n",

@@ -155,7 +155,7 @@ pub fn ece_bootstrap(
             values.push(ece_of(&acc));
         }
     }
-    let floor = ece_floor(p, episode, bins, resamples, seed.wrapping_add(1));
+    let mut floor = ece_floor(p, episode, bins, resamples, seed.wrapping_add(1));
     EceInterval {
         ece: sample,
         lower: percentile(&mut values, (1.0 - level) / 2.0),
@@ -164,7 +164,7 @@ pub fn ece_bootstrap(
         resamples: values.len(),
         episodes: groups.len(),
         floor: floor.iter().sum::<f64>() / floor.len().max(1) as f64,
-        floor_upper: percentile(&mut floor.clone(), (1.0 + level) / 2.0),
+        floor_upper: percentile(&mut floor, (1.0 + level) / 2.0),
     }
 }
 
