@@ -288,11 +288,14 @@ def checks(evals: dict) -> list[str]:
             acc = h["accuracy"]["mean"]
             verdict = "met" if acc >= 0.96 else f"missed by {100 * (0.96 - acc):.1f} points"
             out.append(f"- EMP accuracy at {h['horizon_ms'] / 1000:g} s: {acc:.3f} (target >= 0.96): {verdict}")
-        for h in pe["horizons"]:
+    for report, where in ((emp, ""), (evals.get(("emp-pp-heldout", "paper")), " on the held-out set")):
+        if not report:
+            continue
+        for h in protocol(report, "paper")["horizons"]:
             ece = h["ece"]["mean"]
             cis = ", ".join(f"[{c['lower']:.3f}, {c['upper']:.3f}]" for c in h.get("ece_ci95", []) if "lower" in c)
             verdict = "met" if ece <= 0.03 else f"missed by {ece - 0.03:.3f}"
-            out.append(f"- EMP ECE at {h['horizon_ms'] / 1000:g} s: {ece:.3f} (target <= 0.03; 95% bootstrap "
+            out.append(f"- EMP ECE{where} at {h['horizon_ms'] / 1000:g} s: {ece:.3f} (target <= 0.03; 95% bootstrap "
                        f"per seed {cis or '-'}): {verdict}{floor_note(h)}")
     for a, b, an, bn, gap in ((emp, mp, "EMP", "MP", 0.02), (mp, p, "MP", "P", 0.04)):
         if not (a and b):
@@ -477,6 +480,33 @@ def accuracy_auc_rows(evals: dict, subset: str, groups) -> list[str]:
     return rows
 
 
+def heldout_rows(evals: dict) -> list[str]:
+    """The held-out set (`GROUP-heldout`, paper protocol): per network its seeds, accuracy per
+    horizon, then ECE per horizon with its noise floor (mean of seeds)."""
+    rows = []
+    horizons = None
+    for key, label in (("emp-pp", "EMP"), ("mp-pp", "MP"), ("p-pp", "P")):
+        r = evals.get((f"{key}-heldout", "paper"))
+        if not r:
+            continue
+        p = protocol(r, "paper")
+        horizons = horizons or [h["horizon_ms"] for h in p["horizons"]]
+
+        def ece(h: dict) -> str:
+            floors = [c["floor"] for c in h.get("ece_ci95", []) if "floor" in c]
+            floor = f" (floor {sum(floors) / len(floors):.3f})" if floors else ""
+            return fmt_ms(h["ece"]) + floor
+
+        rows.append(f"| {label} | {len(r['models'])} | " + " | ".join(fmt_ms(h["accuracy"]) for h in p["horizons"])
+                    + " | " + " | ".join(ece(h) for h in p["horizons"]) + " |")
+    if not rows:
+        return []
+    hs = [f"{h / 1000:g} s" for h in horizons]
+    return ["| network | seeds | " + " | ".join(f"accuracy {h}" for h in hs) + " | "
+            + " | ".join(f"ECE {h}" for h in hs) + " |",
+            "| " + " | ".join(["---"] * (2 + 2 * len(hs))) + " |", *rows]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reports", type=Path, required=True)
@@ -518,6 +548,10 @@ def main() -> int:
                   "accuracy (ROC-AUC))", "",
                   "| network | seeds | 0.5 s | 1 s | 1.5 s | 2 s |",
                   "| --- | --- | --- | --- | --- | --- |", *sigma_rows, ""]
+    held = heldout_rows(evals)
+    if held:
+        lines += ["### The held-out set (a second test set of its own seed and plans; paper protocol, "
+                  "ECE with its noise floor)", "", *held, ""]
     camera_rows = accuracy_auc_rows(evals, "valcollision", (
         ("emp-pp", "EMP"), ("emp-vis-pp", "EMP, vision encoder at 1e-4"), ("mp-pp", "MP")))
     if camera_rows:

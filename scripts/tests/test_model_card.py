@@ -110,3 +110,22 @@ def test_the_ece_check_says_by_how_much_and_where_the_floor_stands():
     old = report(["emp-pp-s1"], {500.0: [0.9]}, eces=[0.02])
     ece = [x for x in model_card.checks({("emp-pp", "paper"): merged(old)}) if "ECE" in x]
     assert ece[0].endswith("): met")
+
+
+def test_the_held_out_set_gets_its_own_ece_check_and_table():
+    emp = report(["emp-pp-s1", "emp-pp-s2"], {500.0: [0.95, 0.97]}, eces=[0.08, 0.04],
+                 floors=[(0.03, 0.05), (0.035, 0.06)])
+    held = report(["emp-pp-s1", "emp-pp-s2"], {500.0: [0.93, 0.95]}, eces=[0.02, 0.03],
+                  floors=[(0.015, 0.02), (0.017, 0.025)])
+    evals = {("emp-pp", "paper"): merged(emp), ("emp-pp-heldout", "paper"): merged(held)}
+    ece = [x for x in model_card.checks(evals) if "ECE" in x]
+    assert len(ece) == 2
+    assert ece[0].startswith("- EMP ECE at 0.5 s: 0.060") and "missed by 0.030" in ece[0]
+    assert ece[1].startswith("- EMP ECE on the held-out set at 0.5 s: 0.025") and "): met;" in ece[1]
+    assert "would show 0.016" in ece[1] and "1 of 2 seeds stand above" in ece[1]
+    # The accuracy checks stay the test split's.
+    assert len([x for x in model_card.checks(evals) if "accuracy" in x]) == 1
+    rows = model_card.heldout_rows(evals)
+    assert rows[0] == "| network | seeds | accuracy 0.5 s | ECE 0.5 s |"
+    assert rows[2] == "| EMP | 2 | 0.940 +- 0.010 | 0.025 +- 0.005 (floor 0.016) |"
+    assert model_card.heldout_rows({("emp-pp", "paper"): merged(emp)}) == []
