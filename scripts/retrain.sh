@@ -402,7 +402,7 @@ step_evaluate() {
   # The second test set (every episode of the held-out set): the test split's
   # 97 falls cannot tell an ECE of 0.03 from the noise; its ~300 can.
   if [ -e "$HELDOUT/.complete" ]; then
-    "$PY" "$REPO/scripts/heldout_set.py" "$HELDOUT" "$DATA_ROOT/heldout-test" >>"$LOG"
+    "$PY" "$REPO/scripts/compose_set.py" "$DATA_ROOT/heldout-test" --test "$HELDOUT" >>"$LOG"
     for group in mp-pp p-pp emp-pp; do
       SET="$DATA_ROOT/heldout-test" eval_seeds "$group" "$group-heldout"
     done
