@@ -11,8 +11,7 @@ recordings' names; with several, each is prefixed by its source's directory name
 sets both hold episode_00000.mcap). An episode named twice, in one split or in two, is refused.
 
 The retrain uses it for its held-out set (`--test heldout`: a set of its own seed and plans, a
-second test set large enough to measure calibration) and for the calibration windows
-(`--validation simv5:validation --validation calib`). Run with sim/.venv/bin/python.
+second test set large enough to measure calibration). Run with sim/.venv/bin/python.
 """
 
 from __future__ import annotations
