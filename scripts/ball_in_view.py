@@ -1,0 +1,91 @@
+#!/usr/bin/env python3
+"""How long the head camera sees the ball before a collision fall.
+
+    ball_in_view.py SET [SPLIT...]     (default: validation test)
+
+For every collision fall of those splits (the recording's `fall_cause` metadata), counts the
+frames from the ball's launch to the fall onset in which it is seen: at least MIN_PIXELS pixels
+of the ball's colour (its `hazard.rgb`, compared as chromaticity so that shading does not
+matter, and at least 60% of its brightness) more than in the frame 10 ticks before the launch.
+Prints one line per fall (launch, first contact and onset ticks, frames seen, the first and
+last, frames seen at or before the 1 s stop line onset - 30) and the medians. Run with
+sim/.venv/bin/python.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import statistics
+import sys
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from PIL import Image
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from sim.recording import TOPIC_CAMERA  # noqa: E402
+from sim.stats import read_episode_metadata  # noqa: E402
+
+RATE_HZ = 30
+MIN_PIXELS = 4
+
+
+def frames_of(path: Path) -> list[np.ndarray]:
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        return [np.asarray(Image.open(io.BytesIO(bytes(m.data))).convert("RGB"), dtype=np.float32) / 255
+                for _, _, _, m in reader.iter_decoded_messages(topics=[TOPIC_CAMERA])]
+
+
+def ball_pixels(img: np.ndarray, rgb: np.ndarray) -> int:
+    chroma = img / np.maximum(img.sum(-1, keepdims=True), 1e-3)
+    close = np.abs(chroma - rgb / rgb.sum()).sum(-1) < 0.04
+    return int((close & (img.sum(-1) > 0.6 * rgb.sum())).sum())
+
+
+def seen_frames(path: Path, meta: dict) -> dict:
+    hazard = json.loads(meta["hazard"])
+    launch = int(hazard["launch_tick"])
+    onset = round(int(meta["fall_onset_ns"]) * RATE_HZ / 1e9)
+    contact = round(int(meta["first_contact_ns"]) * RATE_HZ / 1e9)
+    frames = frames_of(path)
+    rgb = np.array(hazard["rgb"], dtype=np.float32)
+    base = ball_pixels(frames[max(0, launch - 10)], rgb)
+    seen = [t for t in range(launch, min(onset, len(frames))) if ball_pixels(frames[t], rgb) - base >= MIN_PIXELS]
+    return {"launch": launch, "contact": contact, "onset": onset, "seen": seen,
+            "seen_by_1s_stop_line": [t for t in seen if t <= onset - RATE_HZ]}
+
+
+def main() -> int:
+    if len(sys.argv) < 2:
+        print(__doc__, file=sys.stderr)
+        return 2
+    root = Path(sys.argv[1])
+    splits = sys.argv[2:] or ["validation", "test"]
+    manifest = json.loads((root / "manifest.json").read_text())
+    rows = []
+    for split in splits:
+        for name in manifest[split]:
+            meta = read_episode_metadata(root / name)
+            if meta.get("fall_cause") != "collision":
+                continue
+            r = seen_frames(root / name, meta)
+            rows.append(r)
+            span = f"{r['seen'][0]}-{r['seen'][-1]}" if r["seen"] else "-"
+            print(f"{name}: launch {r['launch']}, contact {r['contact']}, onset {r['onset']}: "
+                  f"{len(r['seen'])} frames ({span}), {len(r['seen_by_1s_stop_line'])} by the 1 s stop line")
+    if not rows:
+        print("no collision falls in these splits")
+        return 0
+    seen = [len(r["seen"]) for r in rows]
+    by_stop = [len(r["seen_by_1s_stop_line"]) for r in rows]
+    print(f"{len(rows)} collision falls: the ball seen in a median {statistics.median(seen):g} frames before the "
+          f"onset, {statistics.median(by_stop):g} by the 1 s stop line; never by it in {by_stop.count(0)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
