@@ -26,18 +26,15 @@ from mcap_ros2.decoder import DecoderFactory
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from sim.recording import TOPIC_CAMERA  # noqa: E402
+from sim.episode import RATE_HZ  # noqa: E402
 from sim.stats import read_episode_metadata  # noqa: E402
+from sim.strip import camera_frames  # noqa: E402
 
-RATE_HZ = 30
 MIN_PIXELS = 4
 
 
-def frames_of(path: Path) -> list[np.ndarray]:
-    with open(path, "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        return [np.asarray(Image.open(io.BytesIO(bytes(m.data))).convert("RGB"), dtype=np.float32) / 255
-                for _, _, _, m in reader.iter_decoded_messages(topics=[TOPIC_CAMERA])]
+def decoded(jpeg: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB"), dtype=np.float32) / 255
 
 
 def ball_pixels(img: np.ndarray, rgb: np.ndarray) -> int:
@@ -51,10 +48,13 @@ def seen_frames(path: Path, meta: dict) -> dict:
     launch = int(hazard["launch_tick"])
     onset = round(int(meta["fall_onset_ns"]) * RATE_HZ / 1e9)
     contact = round(int(meta["first_contact_ns"]) * RATE_HZ / 1e9)
-    frames = frames_of(path)
+    with open(path, "rb") as f:
+        frames = camera_frames(make_reader(f, decoder_factories=[DecoderFactory()]))
     rgb = np.array(hazard["rgb"], dtype=np.float32)
-    base = ball_pixels(frames[max(0, launch - 10)], rgb)
-    seen = [t for t in range(launch, min(onset, len(frames))) if ball_pixels(frames[t], rgb) - base >= MIN_PIXELS]
+    # Only the frames from the baseline to the onset are decoded.
+    base = ball_pixels(decoded(frames[max(0, launch - 10)]), rgb)
+    seen = [t for t in range(launch, min(onset, len(frames)))
+            if ball_pixels(decoded(frames[t]), rgb) - base >= MIN_PIXELS]
     return {"launch": launch, "contact": contact, "onset": onset, "seen": seen,
             "seen_by_1s_stop_line": [t for t in seen if t <= onset - RATE_HZ]}
 

@@ -19,6 +19,12 @@ from .episode import RATE_HZ
 from .recording import METADATA_NAME, TOPIC_CAMERA
 
 
+def camera_frames(reader) -> list[bytes]:
+    """The head camera's frames (JPEG bytes) in recording order, from an MCAP reader made with
+    the ROS 2 decoder."""
+    return [bytes(msg.data) for _, _, _, msg in reader.iter_decoded_messages(topics=[TOPIC_CAMERA])]
+
+
 def write_strip(recording: Path, out: Path, n_frames: int = 10) -> None:
     with open(recording, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
@@ -26,7 +32,7 @@ def write_strip(recording: Path, out: Path, n_frames: int = 10) -> None:
         for m in reader.iter_metadata():
             if m.name == METADATA_NAME:
                 meta = dict(m.metadata)
-        frames = [bytes(msg.data) for _, _, _, msg in reader.iter_decoded_messages(topics=[TOPIC_CAMERA])]
+        frames = camera_frames(reader)
     if not frames:
         raise ValueError(f"{recording}: no {TOPIC_CAMERA} messages")
     if "fall_onset_ns" in meta:
