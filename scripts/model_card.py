@@ -258,19 +258,31 @@ def protocol_table(evals: dict, proto: str) -> list[str]:
         rows.append(f"| {label} | {len(r['models'])} | " + " | ".join(cells) + " | " + " | ".join(auc) + " |")
     if not rows:
         return [f"(no {proto}-protocol report yet)"]
-    hs = [f"{h / 1000:g} s" for h in horizons]
-    head = ("| network | seeds | " + " | ".join(f"accuracy {h}" for h in hs) + " | "
-            + " | ".join(f"ROC-AUC {h}" for h in hs) + " |")
-    return [head, "| " + " | ".join(["---"] * (2 + 2 * len(hs))) + " |", *rows]
+    return [*table_head(horizons, "accuracy", "ROC-AUC"), *rows]
+
+
+def table_head(horizons_ms: list[float], *metrics: str) -> list[str]:
+    """The head and rule of a table with a network and seeds column, then one column per metric
+    and horizon."""
+    hs = [f"{h / 1000:g} s" for h in horizons_ms]
+    return ["| network | seeds | " + " | ".join(f"{m} {h}" for m in metrics for h in hs) + " |",
+            "| " + " | ".join(["---"] * (2 + len(metrics) * len(hs))) + " |"]
+
+
+def mean_floor(h: dict) -> float | None:
+    """The ECE's noise floor of a horizon (`eval`'s `floor`), mean of its seeds; None for reports
+    without it."""
+    floors = [c["floor"] for c in h.get("ece_ci95", []) if "floor" in c]
+    return sum(floors) / len(floors) if floors else None
 
 
 def floor_note(h: dict) -> str:
     """What the ECE's noise floor (`eval`'s `floor`, `floor_upper`: the ECE a perfectly calibrated
     network shows on the same windows) says of a horizon's seeds; empty for reports without it."""
-    cis = [c for c in h.get("ece_ci95", []) if "floor" in c]
-    if not cis:
+    floor = mean_floor(h)
+    if floor is None:
         return ""
-    floor = sum(c["floor"] for c in cis) / len(cis)
+    cis = [c for c in h["ece_ci95"] if "floor" in c]
     above = sum(1 for c in cis if c["ece"] > c["floor_upper"])
     return (f"; a calibrated network would show {floor:.3f} on these windows (mean of seeds), and "
             f"{above} of {len(cis)} seeds stand above its 97.5th percentile")
@@ -493,18 +505,14 @@ def heldout_rows(evals: dict) -> list[str]:
         horizons = horizons or [h["horizon_ms"] for h in p["horizons"]]
 
         def ece(h: dict) -> str:
-            floors = [c["floor"] for c in h.get("ece_ci95", []) if "floor" in c]
-            floor = f" (floor {sum(floors) / len(floors):.3f})" if floors else ""
-            return fmt_ms(h["ece"]) + floor
+            floor = mean_floor(h)
+            return fmt_ms(h["ece"]) + ("" if floor is None else f" (floor {floor:.3f})")
 
         rows.append(f"| {label} | {len(r['models'])} | " + " | ".join(fmt_ms(h["accuracy"]) for h in p["horizons"])
                     + " | " + " | ".join(ece(h) for h in p["horizons"]) + " |")
     if not rows:
         return []
-    hs = [f"{h / 1000:g} s" for h in horizons]
-    return ["| network | seeds | " + " | ".join(f"accuracy {h}" for h in hs) + " | "
-            + " | ".join(f"ECE {h}" for h in hs) + " |",
-            "| " + " | ".join(["---"] * (2 + 2 * len(hs))) + " |", *rows]
+    return [*table_head(horizons, "accuracy", "ECE"), *rows]
 
 
 def main() -> int:
