@@ -14,13 +14,14 @@ import json
 import struct
 import sys
 
-MAGIC = b"FGEMP\0v1"
+# Version 2: the same layout, for a file whose calibration is beta calibration.
+MAGICS = (b"FGEMP\0v1", b"FGEMP\0v2")
 
 
 def read_meta(path: str) -> dict:
     with open(path, "rb") as f:
-        if f.read(8) != MAGIC:
-            raise SystemExit(f"{path}: not a fall-guard model file (no FGEMP v1 header)")
+        if f.read(8) not in MAGICS:
+            raise SystemExit(f"{path}: not a fall-guard model file (no FGEMP v1 or v2 header)")
         (n,) = struct.unpack("<Q", f.read(8))
         return json.loads(f.read(n))
 

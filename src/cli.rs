@@ -14,7 +14,7 @@ use fall_guard::daemon::bench::BenchDaemonOptions;
 use fall_guard::daemon::{LabelOptions, RecordOptions, ReplayOptions, RunOptions};
 use fall_guard::model::{Ablation, ProjectionWeights, TrajectoryInput};
 use fall_guard::train::bench::BenchOptions;
-use fall_guard::train::calibrate::CalibrateOptions;
+use fall_guard::train::calibrate::{CalibrateOptions, CalibrationForm, FormChoice};
 use fall_guard::train::cli::{EvalOptions, HalfOptions, TrainOptions};
 use fall_guard::train::dataset::Split;
 use fall_guard::train::device::TrainDevice;
@@ -50,7 +50,7 @@ pub enum Command {
     BenchDaemon(BenchDaemonArgs),
     /// Warning lead time and false alarms of the safety latch on a split; choose its thresholds.
     Warnings(WarningsArgs),
-    /// Calibrate a model's probabilities on held-out windows (Platt scaling per horizon, shortest first).
+    /// Calibrate a model's probabilities on held-out windows (Platt scaling or beta calibration per horizon, shortest first).
     Calibrate(CalibrateArgs),
     /// Rewrite a model file with its weights in half precision (f16).
     Half(HalfArgs),
@@ -213,6 +213,29 @@ impl From<ProtocolArg> for Protocol {
         match p {
             ProtocolArg::Deployment => Protocol::Deployment,
             ProtocolArg::Paper => Protocol::Paper,
+        }
+    }
+}
+
+/// `calibrate --form`: `train::calibrate::FormChoice`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FormArg {
+    /// Per horizon, the form with the lower cross-validated loss on the
+    /// fitting windows (5 folds by episode).
+    Auto,
+    /// Platt scaling, `sigmoid(a z + b)`, at every horizon.
+    Platt,
+    /// Beta calibration, `sigmoid(a softplus(z) - c softplus(-z) + b)`, at
+    /// every horizon.
+    Beta,
+}
+
+impl From<FormArg> for FormChoice {
+    fn from(f: FormArg) -> Self {
+        match f {
+            FormArg::Auto => FormChoice::Auto,
+            FormArg::Platt => FormChoice::Fixed(CalibrationForm::Platt),
+            FormArg::Beta => FormChoice::Fixed(CalibrationForm::Beta),
         }
     }
 }
@@ -526,6 +549,10 @@ pub struct CalibrateArgs {
     /// Store the weights in half precision (f16).
     #[arg(long)]
     pub half: bool,
+    /// The map's form at each horizon: `auto` chooses between Platt scaling
+    /// and beta calibration by cross-validation on the fitting windows.
+    #[arg(long, value_enum, default_value_t = FormArg::Auto)]
+    pub form: FormArg,
 }
 
 impl From<CalibrateArgs> for CalibrateOptions {
@@ -539,6 +566,7 @@ impl From<CalibrateArgs> for CalibrateOptions {
             protocol: a.protocol.into(),
             out: a.out,
             half: a.half,
+            form: a.form.into(),
         }
     }
 }

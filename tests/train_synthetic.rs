@@ -176,6 +176,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         protocol: fall_guard::train::sampler::Protocol::Paper,
         out: calibrated.clone(),
         half: true,
+        form: Default::default(),
     };
     let refused = run_calibrate(&cal).unwrap_err().to_string();
     assert!(refused.contains("--split train"), "{refused}");

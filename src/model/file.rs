@@ -2,6 +2,9 @@
 //!
 //! Layout: `b"FGEMP\0v1"` (8 bytes), JSON length (u64 LE), the [`ModelMeta`]
 //! JSON, burnpack length (u64 LE), the burnpack bytes of the [`Emp`] weights.
+//! A file whose calibration is beta calibration at some horizon starts with
+//! `b"FGEMP\0v2"` instead, so that a reader that knows only Platt scaling
+//! refuses it rather than publish probabilities it would compute wrongly.
 //! Written by `fall-guard train`, read by the daemon, `eval` and `bench`.
 
 use std::path::{Path, PathBuf};
@@ -17,6 +20,8 @@ use super::emp::{Emp, EmpInference, EmpInput};
 use super::vision::lowpass_frames;
 
 const MAGIC: &[u8; 8] = b"FGEMP\0v1";
+/// The magic of a file that needs a reader of beta calibration.
+const MAGIC_V2: &[u8; 8] = b"FGEMP\0v2";
 
 /// Errors from loading, checking or running a model.
 #[derive(Debug, thiserror::Error)]
@@ -131,19 +136,29 @@ pub struct ModelMeta {
     pub vision_lr: Option<f64>,
 }
 
-/// Post-hoc calibration, fitted on held-out windows after training (Platt
-/// scaling per horizon): `p_k = sigmoid(scale_k · z_k + bias_k)` of the
-/// network's logit `z_k`, then a running maximum over the horizons, so that
-/// a longer horizon never reads less likely than a shorter one (the network
-/// guarantees that for its raw output; a per-horizon fit alone would not).
+/// Post-hoc calibration, fitted on held-out windows after training, per
+/// horizon of the network's logit `z_k`: Platt scaling, `p_k = sigmoid(a_k
+/// z_k + b_k)`, or beta calibration, `p_k = sigmoid(a_k softplus(z_k) -
+/// c_k softplus(-z_k) + b_k)`, which gives the two sides of the logit slopes
+/// of their own (in the raw probability `q = sigmoid(z)`: `sigmoid(c_k ln q -
+/// a_k ln(1 - q) + b_k)`, Kull et al.'s beta calibration; Platt is `c_k =
+/// a_k`). Then a running maximum over the horizons, so that a longer horizon
+/// never reads less likely than a shorter one (the network guarantees that
+/// for its raw output; a per-horizon fit alone would not).
 /// `fall-guard calibrate` fits each horizon, shortest first, for the
 /// probability so applied (above the shorter ones' maximum).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Calibration {
-    /// Logit scale per horizon (`1 / temperature`), positive.
+    /// Logit scale per horizon (`1 / temperature`), positive: `a_k`, of
+    /// the positive side of the logit under beta calibration.
     pub scale: Vec<f32>,
-    /// Logit offset per horizon.
+    /// Logit offset per horizon: `b_k`.
     pub bias: Vec<f32>,
+    /// Beta calibration's scale of the negative side per horizon, `c_k`,
+    /// positive (equal to `scale` at a horizon calibrated by Platt
+    /// scaling); none: Platt scaling at every horizon.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub neg_scale: Option<Vec<f32>>,
     /// What it was fitted on, e.g. `validation split of data/sim2000, 2000 windows`.
     pub fitted_on: String,
 }
@@ -154,7 +169,17 @@ impl Calibration {
         Calibration {
             scale: vec![1.0; horizons],
             bias: vec![0.0; horizons],
+            neg_scale: None,
             fitted_on: "identity".into(),
+        }
+    }
+
+    /// The calibrated logit of horizon `k` (before the running maximum).
+    pub fn logit(&self, k: usize, z: f32) -> f32 {
+        let (a, b) = (self.scale[k], self.bias[k]);
+        match &self.neg_scale {
+            Some(c) => a * softplus(z) - c[k] * softplus(-z) + b,
+            None => a * z + b,
         }
     }
 
@@ -163,12 +188,21 @@ impl Calibration {
         let mut floor = 0.0f32;
         logits
             .iter()
-            .zip(self.scale.iter().zip(&self.bias))
-            .map(|(&z, (&a, &b))| {
-                floor = floor.max(sigmoid(a * z + b));
+            .enumerate()
+            .map(|(k, &z)| {
+                floor = floor.max(sigmoid(self.logit(k, z)));
                 floor
             })
             .collect()
+    }
+
+    /// Whether some horizon is calibrated by beta calibration (a scale of
+    /// its own for the negative side), which a reader of Platt scaling
+    /// alone would apply wrongly.
+    pub fn is_beta(&self) -> bool {
+        self.neg_scale
+            .as_ref()
+            .is_some_and(|c| c.iter().zip(&self.scale).any(|(c, a)| c != a))
     }
 
     fn validate(&self, horizons: usize) -> Result<(), String> {
@@ -185,7 +219,27 @@ impl Calibration {
         if self.bias.iter().any(|b| !b.is_finite()) {
             return Err("a calibration bias is not finite".into());
         }
+        if let Some(c) = &self.neg_scale {
+            if c.len() != horizons {
+                return Err(format!(
+                    "calibration has {} negative-side scales for {horizons} horizons",
+                    c.len()
+                ));
+            }
+            if c.iter().any(|&c| !(c.is_finite() && c > 0.0)) {
+                return Err("a calibration negative-side scale is not a positive number".into());
+            }
+        }
         Ok(())
+    }
+}
+
+/// `ln(1 + e^z)`, without overflow for large `z`.
+pub fn softplus(z: f32) -> f32 {
+    if z > 0.0 {
+        z + (-z).exp().ln_1p()
+    } else {
+        z.exp().ln_1p()
     }
 }
 
@@ -406,7 +460,8 @@ pub fn save_model_as(
             message: e.to_string(),
         })?;
     let mut out = Vec::with_capacity(8 + 16 + json.len() + weights.len());
-    out.extend_from_slice(MAGIC);
+    let beta = meta.calibration.as_ref().is_some_and(Calibration::is_beta);
+    out.extend_from_slice(if beta { MAGIC_V2 } else { MAGIC });
     out.extend_from_slice(&(json.len() as u64).to_le_bytes());
     out.extend_from_slice(&json);
     out.extend_from_slice(&(weights.len() as u64).to_le_bytes());
@@ -447,7 +502,8 @@ pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelE
             ModelError::BadMagic { path: p() }
         });
     }
-    if &bytes[..8] != MAGIC {
+    let v1 = &bytes[..8] == MAGIC;
+    if !v1 && &bytes[..8] != MAGIC_V2 {
         return Err(ModelError::BadMagic { path: p() });
     }
     let mut at = 8usize;
@@ -474,6 +530,12 @@ pub fn load_emp(path: &Path, device: &Device) -> Result<(ModelMeta, Emp), ModelE
     })?;
     meta.validate()
         .map_err(|message| ModelError::BadMeta { path: p(), message })?;
+    if v1 && meta.calibration.as_ref().is_some_and(Calibration::is_beta) {
+        return Err(ModelError::BadMeta {
+            path: p(),
+            message: "a version-1 file carries a beta calibration (version 2's)".into(),
+        });
+    }
     let w_len =
         u64::from_le_bytes(take(8, "weights length")?.try_into().expect("8 bytes")) as usize;
     let weights = take(w_len, "weights")?.to_vec();

@@ -617,6 +617,7 @@ fn calibration_is_stored_applied_everywhere_and_checked() {
     let cal = Calibration {
         scale: vec![0.5, 0.8, 1.2, 2.0],
         bias: vec![-1.0, -0.3, 0.2, 0.1],
+        neg_scale: None,
         fitted_on: "test".into(),
     };
     meta.calibration = Some(cal.clone());
@@ -669,10 +670,62 @@ fn calibration_is_stored_applied_everywhere_and_checked() {
         );
     }
 
+    // Beta calibration: a negative side of its own, a version-2 file that a
+    // reader of version 1 (Platt alone) refuses by its magic.
+    let beta = Calibration {
+        neg_scale: Some(vec![0.5, 2.0, 1.2, 0.7]),
+        ..cal.clone()
+    };
+    meta.calibration = Some(beta.clone());
+    let path = dir.path().join("beta.bpk");
+    save_model(&path, &meta, &emp).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    assert_eq!(&bytes[..8], b"FGEMP\0v2");
+    let loaded = LoadedModel::load(&path).unwrap();
+    assert_eq!(loaded.meta.calibration.as_ref(), Some(&beta));
+    let got = loaded
+        .forecast_arrays(&w.joints, &w.plan, &w.frames)
+        .unwrap();
+    assert_eq!(got, beta.apply(&z));
+    let by_hand: Vec<f32> = (0..4)
+        .map(|k| {
+            let (a, c, b) = (
+                beta.scale[k],
+                beta.neg_scale.as_ref().unwrap()[k],
+                beta.bias[k],
+            );
+            let q = 1.0 / (1.0 + (-f64::from(z[k])).exp());
+            let s = f64::from(c) * q.ln() - f64::from(a) * (1.0 - q).ln() + f64::from(b);
+            (1.0 / (1.0 + (-s).exp())) as f32
+        })
+        .scan(0.0f32, |m, p| {
+            *m = m.max(p);
+            Some(*m)
+        })
+        .collect();
+    for (a, b) in got.iter().zip(&by_hand) {
+        assert!((a - b).abs() < 1e-5, "{got:?} vs {by_hand:?}");
+    }
+    // The same bytes under version 1's magic: refused, not misread.
+    let mut v1 = bytes.clone();
+    v1[7] = b'1';
+    let v1_path = dir.path().join("beta-v1.bpk");
+    std::fs::write(&v1_path, &v1).unwrap();
+    let e = LoadedModel::load(&v1_path).unwrap_err();
+    assert!(
+        matches!(e, ModelError::BadMeta { .. }) && e.to_string().contains("beta calibration"),
+        "{e}"
+    );
+    // Platt scaling stays a version-1 file.
+    assert_eq!(
+        &std::fs::read(dir.path().join("cal.bpk")).unwrap()[..8],
+        b"FGEMP\0v1"
+    );
+
     // A calibration that does not fit the model is refused, naming the file.
     meta.calibration = Some(Calibration {
         scale: vec![1.0, -1.0, 1.0, 1.0],
-        ..cal
+        ..cal.clone()
     });
     let bad = dir.path().join("badcal.bpk");
     save_model(&bad, &meta, &emp).unwrap();
@@ -683,6 +736,13 @@ fn calibration_is_stored_applied_everywhere_and_checked() {
             && e.to_string().contains("calibration"),
         "{e}"
     );
+    meta.calibration = Some(Calibration {
+        neg_scale: Some(vec![1.0, 1.0, 0.0, 1.0]),
+        ..cal
+    });
+    save_model(&bad, &meta, &emp).unwrap();
+    let e = LoadedModel::load(&bad).unwrap_err();
+    assert!(e.to_string().contains("negative-side scale"), "{e}");
 }
 
 /// A small episode whose plan and joints say which tick they belong to:
