@@ -4,7 +4,8 @@
 #   data      generate the 2,000-episode set, the long walking set and a
 #             second, held-out test set of its own seed (sim/)
 #   train     every network of the plan below, RETRAIN_PARALLEL at a time
-#   calibrate Platt scaling of every network on the validation split
+#   calibrate Platt scaling or beta calibration (per horizon, by
+#             cross-validation) of every network on the validation split
 #   select    the best network of each ablation by validation loss
 #   thresholds  the latch's trigger/release for each selected network (validation)
 #   evaluate  eval on test (both protocols, seeds as mean +- std), warnings on
@@ -252,19 +253,32 @@ step_train() {
 # The validation loss of a run's network (its best epoch), for selection.
 val_loss() { "$PY" "$REPO/scripts/model_meta.py" "$1" val_loss; }
 
+# calibrated_by_form CAL: CAL's calibration names its forms per horizon (it
+# was fitted by a `calibrate` that chooses between Platt scaling and beta
+# calibration); one fitted before that is fitted again.
+calibrated_by_form() {
+  "$PY" "$REPO/scripts/model_meta.py" "$1" calibration | grep -q '; forms '
+}
+
 step_calibrate() {
   need_binary
-  local name out cal
+  local name out cal src
   for name in $(plan | awk '{print $1}'); do
     case $name in logreg-*|emp-perh-*) continue ;; esac
     out=$(run_file "$name")
-    [ -e "$out" ] || continue
     cal="$RUNS/$name.cal.bpk"
-    newer "$cal" "$out" && continue
+    # A run restored from a shipped file has only its calibrated file, whose
+    # weights are the network's (f16): it is calibrated again from those.
+    src=$out
+    [ -e "$src" ] || src=$cal
+    [ -e "$src" ] || continue
+    if [ -e "$cal" ] && { [ ! -e "$out" ] || newer "$cal" "$out"; } && calibrated_by_form "$cal"; then
+      continue
+    fi
     log "calibrate $name"
     local protocol=deployment
     case $name in *-pp-*) protocol=paper ;; esac
-    "$FG" calibrate --model "$out" --data "$SET" --split validation --protocol "$protocol" \
+    "$FG" calibrate --model "$src" --data "$SET" --split validation --protocol "$protocol" \
       --out "$cal.partial" --half >>"$RUNS/$name.log" 2>&1
     mv "$cal.partial" "$cal"
   done

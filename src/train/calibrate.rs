@@ -348,6 +348,12 @@ pub struct HorizonFit {
     pub ece_before: f64,
     /// ECE after, on the fitting windows (with the running maximum).
     pub ece_after: f64,
+    /// ECE of this horizon's own map alone, on the fitting windows (without
+    /// the running maximum): what the maximum costs is the difference.
+    pub ece_own: f64,
+    /// Share of the fitting windows on which a shorter horizon's
+    /// probability stands above this horizon's own (the maximum decides).
+    pub held_by_shorter: f64,
 }
 
 /// Fits a [`Calibration`] per horizon to `logits` (one row of `K` per
@@ -409,6 +415,20 @@ pub fn fit_calibration(
         .map(|r| r.iter().map(|&z| sigmoid(z)).collect())
         .collect();
     let after: Vec<Vec<f32>> = logits.iter().map(|r| cal.apply(r)).collect();
+    let own: Vec<Vec<f32>> = logits
+        .iter()
+        .map(|r| (0..k).map(|h| sigmoid(cal.logit(h, r[h]))).collect())
+        .collect();
+    let forms_named: Vec<&str> = forms.iter().map(|(f, _)| f.name()).collect();
+    cal.fitted_on = format!(
+        "{}; forms {} ({})",
+        cal.fitted_on,
+        forms_named.join(" / "),
+        match choice {
+            FormChoice::Auto => "chosen by cross-validation",
+            FormChoice::Fixed(_) => "as asked",
+        }
+    );
     let fits = (0..k)
         .map(|h| {
             let y: Vec<bool> = rows(h).map(|i| labels[i][h]).collect();
@@ -422,6 +442,9 @@ pub fn fit_calibration(
                 cv_nll: forms[h].1,
                 ece_before: ece(&col(&before), &y, 15),
                 ece_after: ece(&col(&after), &y, 15),
+                ece_own: ece(&col(&own), &y, 15),
+                held_by_shorter: rows(h).filter(|&i| after[i][h] > own[i][h]).count() as f64
+                    / y.len().max(1) as f64,
             }
         })
         .collect();
@@ -497,23 +520,25 @@ pub fn run_calibrate(args: &CalibrateOptions) -> CommandResult<()> {
         fitted_on,
     );
     println!(
-        "| horizon | form | scale | negative-side scale | bias | CV loss Platt | CV loss beta | ECE before ({}) | ECE after |",
+        "| horizon | form | scale | negative-side scale | bias | CV loss Platt | CV loss beta | ECE before ({}) | ECE after | ECE of its own map | held by a shorter horizon |",
         split.name()
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for f in &fits {
         let (platt, beta) = f.cv_nll.map_or(("-".into(), "-".into()), |(p, b)| {
             (format!("{p:.4}"), format!("{b:.4}"))
         });
         println!(
-            "| {} ms | {} | {:.3} | {:.3} | {:.3} | {platt} | {beta} | {:.4} | {:.4} |",
+            "| {} ms | {} | {:.3} | {:.3} | {:.3} | {platt} | {beta} | {:.4} | {:.4} | {:.4} | {:.1}% |",
             f.horizon_ms,
             f.form.name(),
             f.scale,
             f.neg_scale,
             f.bias,
             f.ece_before,
-            f.ece_after
+            f.ece_after,
+            f.ece_own,
+            100.0 * f.held_by_shorter
         );
     }
     let mut meta = model.meta.clone();
@@ -705,6 +730,14 @@ mod tests {
         let (platt, beta) = fits[0].cv_nll.unwrap();
         assert!(beta < platt, "{fits:?}");
         assert!(cal.is_beta(), "{cal:?}");
+        assert!(
+            cal.fitted_on
+                .ends_with("forms beta (chosen by cross-validation)"),
+            "{}",
+            cal.fitted_on
+        );
+        assert_eq!(fits[0].held_by_shorter, 0.0);
+        assert_eq!(fits[0].ece_own, fits[0].ece_after);
         let (platt_cal, platt_fits) = fit(FormChoice::Fixed(CalibrationForm::Platt));
         assert!(platt_cal.neg_scale.is_none() && platt_fits[0].cv_nll.is_none());
         assert!(
