@@ -216,8 +216,8 @@ fn newton<const D: usize>(
         }
         for i in 0..D {
             g[i] = g[i] / n + RIDGE * (w[i] - centre[i]);
-            for j in 0..D {
-                h[i][j] /= n;
+            for hij in h[i].iter_mut() {
+                *hij /= n;
             }
             h[i][i] += RIDGE;
         }
@@ -263,8 +263,9 @@ fn solve<const D: usize>(mut h: [[f64; D]; D], mut g: [f64; D]) -> Option<[f64; 
         g.swap(col, pivot);
         for row in col + 1..D {
             let f = h[row][col] / h[col][col];
-            for k in col..D {
-                h[row][k] -= f * h[col][k];
+            let pivot_row = h[col];
+            for (hk, pk) in h[row].iter_mut().zip(pivot_row).skip(col) {
+                *hk -= f * pk;
             }
             g[row] -= f * g[col];
         }
