@@ -128,19 +128,26 @@ pub fn fit_above(form: CalibrationForm, z: &[f32], y: &[bool], floor: &[f32]) ->
             (a as f32, a as f32, b as f32)
         }
         CalibrationForm::Beta => {
-            let (a, _, b) = fit_above(CalibrationForm::Platt, z, y, floor);
-            let x: Vec<[f64; 3]> = z
-                .iter()
-                .map(|&z| {
-                    let z = f64::from(z);
-                    [softplus64(z), -softplus64(-z), 1.0]
-                })
-                .collect();
-            let start = [f64::from(a), f64::from(a), f64::from(b)];
-            let [a, c, b] = newton(&x, y, floor, start, [1.0, 1.0, 0.0]);
-            (a as f32, c as f32, b as f32)
+            let platt = fit_above(CalibrationForm::Platt, z, y, floor);
+            fit_beta_from(platt, z, y, floor)
         }
     }
+}
+
+/// Beta calibration above `floor`, Newton's method from the Platt fit
+/// `platt` (its special case `c = a`).
+fn fit_beta_from(platt: Map, z: &[f32], y: &[bool], floor: &[f32]) -> Map {
+    let (a, _, b) = platt;
+    let x: Vec<[f64; 3]> = z
+        .iter()
+        .map(|&z| {
+            let z = f64::from(z);
+            [softplus64(z), -softplus64(-z), 1.0]
+        })
+        .collect();
+    let start = [f64::from(a), f64::from(a), f64::from(b)];
+    let [a, c, b] = newton(&x, y, floor, start, [1.0, 1.0, 0.0]);
+    (a as f32, c as f32, b as f32)
 }
 
 /// `ln(1 + e^s)`, stable.
@@ -295,18 +302,13 @@ fn applied_nll(map: Map, z: &[f32], y: &[bool], floor: &[f32]) -> f64 {
         / n
 }
 
-/// Cross-validated loss of `form` on one horizon's windows: each of
-/// [`CV_FOLDS`] folds (by episode, so that the draws of one episode stay
-/// together) is scored by the map fitted on the others. Returns the mean
-/// cross-entropy over all windows.
-fn cross_validated_nll(
-    form: CalibrationForm,
-    z: &[f32],
-    y: &[bool],
-    floor: &[f32],
-    episode: &[usize],
-) -> f64 {
-    let mut total = 0.0;
+/// Cross-validated loss of Platt scaling and of beta calibration on one
+/// horizon's windows: each of [`CV_FOLDS`] folds (by episode, so that the
+/// draws of one episode stay together) is scored by the maps fitted on the
+/// others (beta calibration from that fold's Platt fit, as [`fit_above`]
+/// does). Returns the mean cross-entropy over all windows of each.
+fn cross_validated_nll(z: &[f32], y: &[bool], floor: &[f32], episode: &[usize]) -> (f64, f64) {
+    let (mut platt_total, mut beta_total) = (0.0, 0.0);
     for fold in 0..CV_FOLDS {
         let pick = |held: bool| {
             let idx: Vec<usize> = (0..z.len())
@@ -323,10 +325,13 @@ fn cross_validated_nll(
         if hz.is_empty() {
             continue;
         }
-        let map = fit_above(form, &tz, &ty, &tf);
-        total += applied_nll(map, &hz, &hy, &hf) * hz.len() as f64;
+        let platt = fit_above(CalibrationForm::Platt, &tz, &ty, &tf);
+        let beta = fit_beta_from(platt, &tz, &ty, &tf);
+        platt_total += applied_nll(platt, &hz, &hy, &hf) * hz.len() as f64;
+        beta_total += applied_nll(beta, &hz, &hy, &hf) * hz.len() as f64;
     }
-    total / z.len().max(1) as f64
+    let n = z.len().max(1) as f64;
+    (platt_total / n, beta_total / n)
 }
 
 /// What calibration did to one horizon of the fitting split.
@@ -389,8 +394,7 @@ pub fn fit_calibration(
             FormChoice::Fixed(form) => (form, None),
             FormChoice::Auto => {
                 let ep: Vec<usize> = rows(h).map(|i| episode[i]).collect();
-                let platt = cross_validated_nll(CalibrationForm::Platt, &z, &y, &floor, &ep);
-                let beta = cross_validated_nll(CalibrationForm::Beta, &z, &y, &floor, &ep);
+                let (platt, beta) = cross_validated_nll(&z, &y, &floor, &ep);
                 let form = if beta < platt {
                     CalibrationForm::Beta
                 } else {
