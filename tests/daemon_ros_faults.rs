@@ -377,8 +377,8 @@ async fn undecodable_jpeg_and_empty_plan_are_rejected_and_the_daemon_recovers() 
             name: "empty_plan",
             stream: ": plan",
             key: "empty_plan",
-            // The shipped set has no EP (config/replay.toml): a lost plan runs P.
-            fallback: Some("P"),
+            // The camera still streams: a lost plan runs EP.
+            fallback: Some("EP"),
         })
         .await;
     s.finish();
