@@ -21,7 +21,7 @@ use fall_guard::outputs::annotate::read_forecasts;
 const REFERENCE: &str = "tests/fixtures/forecast_reference.json";
 /// The recording the offline path forecasts with each network.
 const OFFLINE_RECORDING: &str = "tests/fixtures/episode_00007.mcap";
-const NETWORKS: [&str; 3] = ["emp", "mp", "p"];
+const NETWORKS: [&str; 4] = ["emp", "mp", "ep", "p"];
 
 /// One run's forecasts: the tick stamps and, per tick, each probability's
 /// f32 bits in hex (NaN included: the daemon publishes NaN while not valid).
