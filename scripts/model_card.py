@@ -492,6 +492,26 @@ def accuracy_auc_rows(evals: dict, subset: str, groups) -> list[str]:
     return rows
 
 
+def per_horizon_rows(evals: dict) -> list[str]:
+    """EMP trained one network per horizon (`emp-perh-s1.hH`, paper protocol) against the
+    all-horizon EMP's seeds (`emp-pp`): accuracy (ROC-AUC) per horizon; nothing without them."""
+    perh = sorted((k for k in evals if k[0].startswith("emp-perh-") and k[1] == "paper"),
+                  key=lambda k: int(k[0].rsplit(".h", 1)[1]))
+    if not perh:
+        return []
+    all_h = evals.get(("emp-pp", "paper"))
+    seeds = len(all_h["models"]) if all_h else 0
+    rows = ["### One network per horizon (paper protocol, seed 1) against the all-horizon EMP "
+            f"({seeds} seeds), both calibrated; accuracy (ROC-AUC)", "",
+            "| horizon | per-horizon network | all-horizon EMP |", "| --- | --- | --- |"]
+    for key in perh:
+        h = protocol(evals[key], "paper")["horizons"][0]
+        full = horizon(all_h, "paper", h["horizon_ms"]) if all_h else None
+        rows.append(f"| {h['horizon_ms'] / 1000:g} s | {h['accuracy']['mean']:.3f} ({h['roc_auc']['mean']:.3f}) | "
+                    + (f"{fmt_ms(full['accuracy'])} ({fmt_ms(full['roc_auc'])})" if full else "-") + " |")
+    return rows + [""]
+
+
 def heldout_rows(evals: dict) -> list[str]:
     """The held-out set (`GROUP-heldout`, paper protocol): per network its seeds, accuracy per
     horizon, then ECE per horizon with its noise floor (mean of seeds)."""
@@ -571,17 +591,7 @@ def main() -> int:
     if lead_rows:
         lines += ["### Warnings by fall cause (`fall-guard warnings` on the test falls of that cause)", "",
                   *lead_rows, ""]
-    perh = sorted((k for k in evals if k[0].startswith("emp-perh-") and k[1] == "paper"),
-                  key=lambda k: int(k[0].rsplit(".h", 1)[1]))
-    if perh:
-        lines += ["### One network per horizon (paper protocol, seed 1) against the all-horizon EMP", "",
-                  "| horizon | per-horizon accuracy | all-horizon EMP accuracy (seeds) |", "| --- | --- | --- |"]
-        for key in perh:
-            h = protocol(evals[key], "paper")["horizons"][0]
-            full = horizon(evals[("emp", "paper")], "paper", h["horizon_ms"]) if ("emp", "paper") in evals else None
-            lines.append(f"| {h['horizon_ms'] / 1000:g} s | {h['accuracy']['mean']:.3f} | "
-                         f"{fmt_ms(full['accuracy']) if full else '-'} |")
-        lines.append("")
+    lines += per_horizon_rows(evals)
     lines += ["### The daemon's warnings (`fall-guard warnings`, streaming, thresholds chosen on validation)", "",
               *warnings_rows(kept, selected), "", *warning_checks(kept, selected), "",
               *latch_2s_rows(kept)]
