@@ -494,21 +494,23 @@ def accuracy_auc_rows(evals: dict, subset: str, groups) -> list[str]:
 
 
 def per_horizon_rows(evals: dict) -> list[str]:
-    """EMP trained one network per horizon (`emp-perh-s1.hH`, paper protocol) against the
-    all-horizon EMP's seeds (`emp-pp`): accuracy (ROC-AUC) per horizon; nothing without them."""
-    perh = sorted((k for k in evals if k[0].startswith("emp-perh-") and k[1] == "paper"),
+    """EMP trained one network per horizon (`emp-perh.hH`: horizon H's networks of every seed,
+    paper protocol) against the all-horizon EMP's seeds (`emp-pp`): accuracy (ROC-AUC) per
+    horizon, mean +- std over seeds; nothing without them."""
+    perh = sorted((k for k in evals if k[0].startswith("emp-perh.h") and k[1] == "paper"),
                   key=lambda k: int(k[0].rsplit(".h", 1)[1]))
     if not perh:
         return []
     all_h = evals.get(("emp-pp", "paper"))
     seeds = len(all_h["models"]) if all_h else 0
-    rows = ["### One network per horizon (paper protocol, seed 1) against the all-horizon EMP "
-            f"({seeds} seeds), both calibrated; accuracy (ROC-AUC)", "",
-            "| horizon | per-horizon network | all-horizon EMP |", "| --- | --- | --- |"]
+    rows = ["### One network per horizon against the all-horizon EMP (paper protocol, both calibrated; "
+            "accuracy (ROC-AUC), mean +- std over seeds)", "",
+            f"| horizon | per-horizon networks (seeds) | all-horizon EMP ({seeds} seeds) |", "| --- | --- | --- |"]
     for key in perh:
         h = protocol(evals[key], "paper")["horizons"][0]
         full = horizon(all_h, "paper", h["horizon_ms"]) if all_h else None
-        rows.append(f"| {h['horizon_ms'] / 1000:g} s | {h['accuracy']['mean']:.3f} ({h['roc_auc']['mean']:.3f}) | "
+        rows.append(f"| {h['horizon_ms'] / 1000:g} s | {fmt_ms(h['accuracy'])} ({fmt_ms(h['roc_auc'])}) "
+                    f"({len(evals[key]['models'])}) | "
                     + (f"{fmt_ms(full['accuracy'])} ({fmt_ms(full['roc_auc'])})" if full else "-") + " |")
     return rows + [""]
 

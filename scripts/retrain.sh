@@ -118,7 +118,7 @@ plan() {
     echo "emp-hist-pp-s$s --ablation EMP --seed $s --protocol paper --trajectory historical-only"
     echo "emp-real-pp-s$s --ablation EMP --seed $s --protocol paper --trajectory real-position"
   done
-  echo "emp-perh-s1 --ablation EMP --seed 1 --protocol paper --per-horizon"
+  for s in 1 2 3; do echo "emp-perh-s$s --ablation EMP --seed $s --protocol paper --per-horizon"; done
   # The vision encoder at the motion encoder's rate instead of the sim table's
   # 1e-6: whether the camera learns to see the ball coming once it can move.
   for s in 1 2 3; do echo "emp-vis-pp-s$s --ablation EMP --seed $s --protocol paper --vision-lr 1e-4"; done
@@ -425,12 +425,14 @@ step_evaluate() {
     SET="$DATA_ROOT/bycause/validation-collision" eval_seeds "$group" "$group-valcollision"
   done
   for group in ep-pp emp-hist-pp emp-real-pp emp-paper-pp; do eval_seeds "$group" "$group"; done
-  # EMP trained per horizon (paper protocol): each network, calibrated, on its
-  # own horizon's windows.
-  local f
-  for f in "$RUNS"/emp-perh-s1.h*.cal.bpk; do
-    [ -e "$f" ] || continue
-    eval_group "$(basename "$f" .cal.bpk)" paper "$f"
+  # EMP trained per horizon (paper protocol): per horizon H, the calibrated
+  # networks of every seed (emp-perh-sN.hH) on H's own windows.
+  local h f files
+  for h in $(find "$RUNS" -maxdepth 1 -name 'emp-perh-s*.h*.cal.bpk' \
+      | sed -E 's/.*\.h([0-9]+)\.cal\.bpk$/\1/' | sort -nu); do
+    files=()
+    for f in "$RUNS"/emp-perh-s*.h"$h".cal.bpk; do files+=("$f"); done
+    eval_group "emp-perh.h$h" paper "${files[@]}"
   done
   if [ -e "$RUNS/logreg-pp-s1.json" ]; then
     eval_group logreg paper "$RUNS/logreg-pp-s1.json"

@@ -133,13 +133,13 @@ def test_the_held_out_set_gets_its_own_ece_check_and_table():
 
 def test_each_per_horizon_network_sits_beside_the_all_horizon_emp_at_its_horizon():
     emp = report(["emp-pp-s1", "emp-pp-s2"], {500.0: [0.95, 0.97], 1000.0: [0.84, 0.86]})
-    h30 = report(["emp-perh-s1.h30"], {1000.0: [0.81]})
+    h30 = report(["emp-perh-s1.h30", "emp-perh-s2.h30"], {1000.0: [0.81, 0.83]})
     h15 = report(["emp-perh-s1.h15"], {500.0: [0.93]})
-    evals = {("emp-pp", "paper"): merged(emp), ("emp-perh-s1.h30", "paper"): merged(h30),
-             ("emp-perh-s1.h15", "paper"): merged(h15)}
+    evals = {("emp-pp", "paper"): merged(emp), ("emp-perh.h30", "paper"): merged(h30),
+             ("emp-perh.h15", "paper"): merged(h15)}
     rows = model_card.per_horizon_rows(evals)
-    assert "all-horizon EMP (2 seeds)" in rows[0]
-    # Shortest horizon first, whatever order the reports came in.
-    assert rows[4] == "| 0.5 s | 0.930 (0.930) | 0.960 +- 0.010 (0.960 +- 0.010) |"
-    assert rows[5] == "| 1 s | 0.810 (0.810) | 0.850 +- 0.010 (0.850 +- 0.010) |"
+    assert "all-horizon EMP (2 seeds)" in rows[2]
+    # Shortest horizon first, whatever order the reports came in; each with its own seeds.
+    assert rows[4] == "| 0.5 s | 0.930 +- 0.000 (0.930 +- 0.000) (1) | 0.960 +- 0.010 (0.960 +- 0.010) |"
+    assert rows[5] == "| 1 s | 0.820 +- 0.010 (0.820 +- 0.010) (2) | 0.850 +- 0.010 (0.850 +- 0.010) |"
     assert model_card.per_horizon_rows({("emp-pp", "paper"): merged(emp)}) == []
