@@ -283,10 +283,16 @@ step_calibrate() {
     log "calibrate $name"
     local protocol=deployment
     case $name in *-pp-*) protocol=paper ;; esac
-    "$FG" calibrate --model "$src" --data "$SET" --split validation --protocol "$protocol" \
-      --out "$cal.partial" --half >>"$RUNS/$name.log" 2>&1
-    mv "$cal.partial" "$cal"
+    calibrate_file "$src" "$cal" "$protocol" "$RUNS/$name.log"
   done
+}
+
+# calibrate_file SRC CAL PROTOCOL LOGFILE: SRC calibrated on the validation
+# split under PROTOCOL, written to CAL (through CAL.partial).
+calibrate_file() {
+  "$FG" calibrate --model "$1" --data "$SET" --split validation --protocol "$3" \
+    --out "$2.partial" --half >>"$4" 2>&1
+  mv "$2.partial" "$2"
 }
 
 # calibrate_per_horizon NAME: each network of a per-horizon run (NAME.hH.bpk)
@@ -299,9 +305,7 @@ calibrate_per_horizon() {
     cal="${f%.bpk}.cal.bpk"
     newer "$cal" "$f" && continue
     log "calibrate $(basename "$f" .bpk)"
-    "$FG" calibrate --model "$f" --data "$SET" --split validation --protocol paper \
-      --out "$cal.partial" --half >>"$RUNS/$1.log" 2>&1
-    mv "$cal.partial" "$cal"
+    calibrate_file "$f" "$cal" paper "$RUNS/$1.log"
   done
 }
 
