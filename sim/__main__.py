@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+from .cluster import ClusterError
 from .dataset import DatasetError, generate
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -39,6 +40,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated perturbation sigmas to draw from (default 0.005,0.01,0.035,0.04)")
     g.add_argument("--ball-probability", type=float, default=None,
                    help="share of episodes with a ball rolled at the robot (default 0.2)")
+    g.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run each plan group as a task on the Ray cluster at ADDRESS (host:port or auto; "
+                        "without ADDRESS: $RAY_ADDRESS, else a local one); the files are the same")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     f = sub.add_parser("fixtures", help="regenerate the committed test fixtures in tests/fixtures/")
     f.add_argument("--out", type=Path, default=FIXTURES_DIR)
@@ -71,15 +75,20 @@ def main(argv: list[str] | None = None) -> int:
             stats = generate(args.out, args.episodes, args.seed, args.jobs, args.duration,
                              progress=not args.quiet, sigmas=args.sigmas or SIGMAS,
                              hazard_probability=(HAZARD_PROBABILITY if args.ball_probability is None
-                                                 else args.ball_probability))
+                                                 else args.ball_probability),
+                             use_ray=args.ray is not None, ray_address=args.ray or None)
             cpu = cpu_seconds() - cpu0
             made = len(stats)
             falls = sum(s["fall_onset_tick"] is not None for s in stats)
             wall = time.perf_counter() - t0
             per_episode = round(sum(s["seconds"] for s in stats) / made, 2) if made else None
+            # On Ray the work runs in the cluster's worker processes, not in this one's children:
+            # only the workers' wall time per episode is known here.
+            on_ray = args.ray is not None
             print(json.dumps({"out": str(args.out), "made": made, "already_there": args.episodes - made,
-                              "falling": falls, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
-                              "cpu_s_per_episode": round(cpu / made, 2) if made else None,
+                              "falling": falls, "wall_s": round(wall, 1),
+                              "cpu_s": None if on_ray else round(cpu, 1),
+                              "cpu_s_per_episode": round(cpu / made, 2) if made and not on_ray else None,
                               "worker_wall_s_per_episode": per_episode}))
         elif args.command == "fixtures":
             if args.jobs < 1:
@@ -112,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise DatasetError("--reference DIR is required: the directory of the reference "
                                    "poppy_humanoid.pybullet.urdf and its meshes/ (see sim/README.md)")
             print(build(args.reference))
-    except DatasetError as e:
+    except (DatasetError, ClusterError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except (FileNotFoundError, ValueError, RuntimeError) as e:

@@ -135,7 +135,7 @@ def _write_manifest(path: Path, manifest: dict) -> None:
     os.replace(tmp, path)
 
 
-def _find_plan(out: str, base_seed: int, group: int, duration_s: float) -> dict:
+def find_plan(out: str, base_seed: int, group: int, duration_s: float) -> dict:
     """Search the plan of GROUP and write it to plans/ (.partial, then renamed)."""
     t0 = time.perf_counter()
     plan = search_plan(plan_rng(base_seed, group), duration_s, plan_id(base_seed, group))
@@ -154,7 +154,7 @@ def read_plan(out: Path, group: int) -> KeptPlan:
         raise DatasetError(f"{path}: unreadable plan ({e}); remove it and run again to search it anew") from e
 
 
-def _make_one(out: str, index: int, seed: int, duration_s: float, plan: dict,
+def make_one(out: str, index: int, seed: int, duration_s: float, plan: dict,
               sigmas: tuple[float, ...], hazard_probability: float) -> dict:
     t0 = time.perf_counter()
     ep = simulate_episode(seed, duration_s=duration_s, plan=KeptPlan.from_dict(plan), sigmas=sigmas,
@@ -185,21 +185,21 @@ def _make_all(out: Path, seed: int, episodes: int, duration_s: float, todo: list
     ready = [t for g in sorted(set(waiting) - set(missing_plans)) for t in episode_tasks(g)]
     if jobs == 1:
         for g in missing_plans:
-            _find_plan(str(out), seed, g, duration_s)
+            find_plan(str(out), seed, g, duration_s)
             ready += episode_tasks(g)
         for t in ready:
-            stats.append(_make_one(*t))
+            stats.append(make_one(*t))
             bar.update(1)
         return stats
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        pending = {pool.submit(_find_plan, str(out), seed, g, duration_s) for g in missing_plans}
-        pending |= {pool.submit(_make_one, *t) for t in ready}
+        pending = {pool.submit(find_plan, str(out), seed, g, duration_s) for g in missing_plans}
+        pending |= {pool.submit(make_one, *t) for t in ready}
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in done:
                 row = fut.result()
                 if "group" in row:
-                    pending |= {pool.submit(_make_one, *t) for t in episode_tasks(row["group"])}
+                    pending |= {pool.submit(make_one, *t) for t in episode_tasks(row["group"])}
                 else:
                     stats.append(row)
                     bar.update(1)
@@ -214,8 +214,13 @@ def cpu_seconds() -> float:
 
 def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: float = DURATION_S,
              progress: bool = True, sigmas: tuple[float, ...] = SIGMAS,
-             hazard_probability: float = HAZARD_PROBABILITY) -> list[dict]:
-    """Make the missing plans and episodes of the data set and (re)write its manifest; returns per-episode stats."""
+             hazard_probability: float = HAZARD_PROBABILITY, ray_address: str | None = None,
+             use_ray: bool = False) -> list[dict]:
+    """Make the missing plans and episodes of the data set and (re)write its manifest; returns per-episode stats.
+
+    With USE_RAY the plan groups run as tasks on the Ray cluster at RAY_ADDRESS
+    (``sim/cluster.py``; JOBS is then the cluster's affair); the files are the same.
+    """
     sigmas = tuple(float(x) for x in sigmas)
     check_args(out, episodes, seed, jobs, duration_s, sigmas, hazard_probability)
     manifest_path = out / "manifest.json"
@@ -256,7 +261,13 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
     missing_plans = [g for g in needed if not (out / "plans" / plan_name(g)).is_file()]
     bar = tqdm(total=episodes, initial=episodes - len(todo), unit="ep", disable=not progress,
                desc=f"generating {out} ({len(missing_plans)} plans to search)", file=sys.stderr)
-    stats = _make_all(out, seed, episodes, duration_s, todo, missing_plans, sigmas, hazard_probability, jobs, bar)
+    if use_ray:
+        from .cluster import make_all as make_all_on_ray
+        stats = make_all_on_ray(out, seed, episodes, duration_s, todo, missing_plans, sigmas, hazard_probability,
+                                ray_address, bar)
+    else:
+        stats = _make_all(out, seed, episodes, duration_s, todo, missing_plans, sigmas, hazard_probability, jobs,
+                          bar)
     bar.close()
     _write_manifest(manifest_path, manifest)
     return sorted(stats, key=lambda s: s["index"])
