@@ -1,5 +1,5 @@
-"""PyTorch eager peer of `fall-guard bench --train-only`: the same EMP lite
-network (docs/network.md, code: src/model/), the same
+"""PyTorch eager peer of `fall-guard-lab bench`: the same EMP lite
+network (docs/network.md, code: crates/runtime/src/model/), the same
 batch-4 Adam step on one thread, reporting training samples/s.
 
 Not part of the project's setup: run it from a throwaway venv with torch

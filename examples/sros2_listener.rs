@@ -16,8 +16,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use fall_guard::msgs::{Bool, DiagnosticArray, Float32MultiArray};
-use fall_guard::ros::{qos, RosNode, RosSettings};
+use fall_guard_runtime::msgs::{Bool, DiagnosticArray, Float32MultiArray};
+use fall_guard_runtime::ros::{qos, RosNode, RosSettings};
 use futures::{pin_mut, StreamExt};
 
 fn count<T>(

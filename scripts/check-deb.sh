@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Checks a fall-guard Debian package (scripts/deb.sh):
 #   - control fields, conffiles, maintainer scripts; every expected path with
-#     its mode; the binary is an executable for the package's architecture;
+#     its mode; the binary is an executable for the package's architecture,
+#     the robot's only (no lab binary, no training crate linked in);
 #   - the pieces agree: the unit's ExecStart and --config are packaged files,
 #     the package holds every network in models/ and every network the
 #     config names, the config's serial ports are the names the udev rule
@@ -84,6 +85,14 @@ dpkg-deb -x "$deb" "$root"
 (cd "$root" && md5sum --quiet -c "$tmp/control/md5sums") || fail "md5sums do not match"
 readelf -h "$root/usr/bin/fall-guard" | grep -q "Machine:.*$machine" || fail "usr/bin/fall-guard is not $machine"
 readelf -h "$root/usr/bin/fall-guard" | grep -q "Type:.*\(EXEC\|DYN\)" || fail "usr/bin/fall-guard is not an executable"
+# The robot's binary only: no lab binary, and none of the training crates
+# linked in (their source paths would be in the binary's panic messages).
+[ ! -e "$root/usr/bin/fall-guard-lab" ] || fail "the package ships the lab binary"
+for crate in fall-guard-lab plotters linfa indicatif; do
+  if grep -aq "/$crate-[0-9]\|crates/lab/src" "$root/usr/bin/fall-guard"; then
+    fail "usr/bin/fall-guard links $crate (training code on the robot)"
+  fi
+done
 
 # The pieces agree with each other.
 python3 - "$root" <<'EOF'

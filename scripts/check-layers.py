@@ -1,59 +1,40 @@
 #!/usr/bin/env python3
-"""The library's layers import only downwards: a check of `src/`.
+"""Inside each library crate, the modules import one another without a
+cycle: a check of `crates/runtime/src` and `crates/lab/src`.
 
-Every `crate::` path in a module's code (comments and `#[cfg(test)] mod
-tests` blocks left out) is an import of the unit it names. Units are the
-top-level modules, except `pipeline`, whose files are units of their own
-(the window sits below the model, the tick loop above it). Each unit
-belongs to one layer of LAYERS; a unit may import its own layer's units
-and those below, never one above, and the units may not form a cycle.
+Which crate may use which is Cargo's to guarantee (the robot's binary does
+not depend on the lab; `scripts/check-crates.sh`). Inside a crate, Cargo
+allows any module to import any other; this check keeps the top-level
+modules of each crate a directed graph without a cycle, which is what
+makes them layers: a module imports only the ones below it, and the order
+is the graph itself (printed by `--graph`, drawn in
+`docs/architecture.md`), not a list declared here.
 
-Usage: python3 scripts/check-layers.py [--graph] [--src DIR]   (exit 1 on a violation)
+Every `crate::` path (and `super::` path of a top-level file) in a module's
+code, comments and `#[cfg(test)] mod tests` blocks left out, is an import
+of the top-level module it names.
+
+Usage: python3 scripts/check-layers.py [--graph] [--src DIR ...]   (exit 1 on a cycle)
 """
 
 import os
 import re
 import sys
 
-SRC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src")
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+CRATES = [os.path.join(ROOT, "crates", c, "src") for c in ("runtime", "lab")]
+# A binary's files: above every module of the library beside them.
+BINARY = {"main", "cli"}
 
-# Lowest first. A unit is named by its module path; the longest match wins.
-LAYERS = [
-    ("base", ["clock", "robot", "msgs", "frame", "shutdown"]),
-    ("streams", ["streams"]),
-    ("ros", ["ros"]),
-    ("recording", ["recording"]),
-    ("window", ["pipeline::window"]),
-    ("model", ["model"]),
-    ("sources", ["sources"]),
-    ("config", ["config"]),
-    ("outputs", ["outputs"]),
-    ("pipeline", ["pipeline"]),
-    ("train", ["train"]),
-    ("daemon", ["daemon"]),
-]
-# The crate root and the binary are above every layer.
-TOP = {"crate", "main", "cli"}
-
-PATH = re.compile(r"\bcrate::((?:[a-z_][a-z0-9_]*)(?:::[a-z_][a-z0-9_]*)*)")
-GROUP = re.compile(r"\bcrate::\{([^}]*)\}")
+PATH = re.compile(r"\b(crate|super)::((?:[a-z_][a-z0-9_]*)(?:::[a-z_][a-z0-9_]*)*)")
+GROUP = re.compile(r"\b(crate|super)::\{([^}]*)\}")
 
 
-def module_of(path):
-    rel = os.path.relpath(path, SRC)[:-3].split(os.sep)
+def module_of(src, path):
+    rel = os.path.relpath(path, src)[:-3].split(os.sep)
     if rel[-1] in ("mod", "lib"):
         rel = rel[:-1]
-    return "::".join(rel) or "crate"
-
-
-def unit_of(module):
-    best = None
-    for layer, (name, prefixes) in enumerate(LAYERS):
-        for p in prefixes:
-            if module == p or module.startswith(p + "::"):
-                if best is None or len(p) > len(best[1]):
-                    best = (layer, p)
-    return best
+    return rel
 
 
 def code_of(text):
@@ -73,50 +54,44 @@ def code_of(text):
     return "".join(out)
 
 
-def imports(text):
+def imports(text, module, is_mod_file):
+    """The top-level modules `text` (the file of `module`) names."""
     code = code_of(text)
-    names = set(PATH.findall(code))
-    for group in GROUP.findall(code):
+    paths = [(k, p) for k, p in PATH.findall(code)]
+    for k, group in GROUP.findall(code):
         for item in group.split(","):
             item = item.strip()
             if item:
-                names.add(item.split("::{")[0].split(" as ")[0].strip())
+                paths.append((k, item.split("::{")[0].split(" as ")[0].strip()))
+    # `super` of a file `a/b.rs` is `a`; of `a/b/mod.rs`, `a` too.
+    parent = module[:-1] if not is_mod_file else module[:-1]
+    names = set()
+    for kind, p in paths:
+        parts = p.split("::")
+        full = parts if kind == "crate" else parent + parts
+        if full:
+            names.add(full[0])
     return names
 
 
-def main():
-    global SRC
-    if "--src" in sys.argv:
-        SRC = sys.argv[sys.argv.index("--src") + 1]
+def check(src, graph):
     edges = {}
-    problems = []
-    for root, _, files in os.walk(SRC):
+    for root, _, files in os.walk(src):
         for f in files:
-            if not f.endswith(".rs"):
+            if not f.endswith(".rs") or f == "tests.rs":
                 continue
             path = os.path.join(root, f)
-            module = module_of(path)
-            if module in TOP:
-                continue
-            if f == "tests.rs":
-                continue
-            src = unit_of(module)
-            if src is None:
-                problems.append(f"{module}: in no layer (add it to LAYERS)")
+            module = module_of(src, path)
+            if not module or module[0] in BINARY:
                 continue
             with open(path, encoding="utf-8") as fh:
-                names = imports(fh.read())
-            for name in sorted(names):
-                dst = unit_of(name)
-                if dst is None or dst[1] == src[1]:
-                    continue
-                edges.setdefault(src[1], {}).setdefault(dst[1], set()).add(module)
-                if dst[0] > src[0]:
-                    problems.append(
-                        f"{module} ({LAYERS[src[0]][0]}) imports {name} "
-                        f"({LAYERS[dst[0]][0]}): a layer above"
+                names = imports(fh.read(), module, f == "mod.rs")
+            for name in names:
+                if name != module[0] and name not in ("self", "super", "crate"):
+                    edges.setdefault(module[0], {}).setdefault(name, set()).add(
+                        "::".join(module)
                     )
-    # Cycles among units (Tarjan's strongly connected components).
+    # Cycles among top-level modules (Tarjan's strongly connected components).
     index, low, stack, on, comps = {}, {}, [], set(), []
 
     def strong(v):
@@ -140,21 +115,56 @@ def main():
             if len(comp) > 1:
                 comps.append(sorted(comp))
 
-    for v in sorted(set(edges) | {w for d in edges.values() for w in d}):
+    nodes = sorted(set(edges) | {w for d in edges.values() for w in d})
+    for v in nodes:
         if v not in index:
             strong(v)
+    problems = []
     for comp in comps:
-        problems.append("import cycle: " + " <-> ".join(comp))
-    if "--graph" in sys.argv:
-        for a in sorted(edges):
-            print(f"{a} -> {', '.join(sorted(edges[a]))}")
-    for p in problems:
-        print(p)
-    if problems:
-        print(f"{len(problems)} layer violation(s)", file=sys.stderr)
-        return 1
-    print(f"layers ok: {len(edges)} units import only downwards, no cycle")
-    return 0
+        inner = [
+            f"{a} -> {b} ({', '.join(sorted(edges[a][b]))})"
+            for a in comp
+            for b in sorted(edges.get(a, {}))
+            if b in comp
+        ]
+        problems.append("import cycle: " + " <-> ".join(comp) + ": " + "; ".join(inner))
+    name = os.path.relpath(src, ROOT)
+    if graph:
+        # Each module's height: 0 for a module that imports none, else one
+        # more than the highest it imports (a cycle leaves it unranked).
+        height = {}
+
+        def rank(v, seen=()):
+            if v in height:
+                return height[v]
+            if v in seen:
+                return 0
+            h = 1 + max((rank(w, seen + (v,)) for w in edges.get(v, {})), default=-1)
+            height[v] = h
+            return h
+
+        print(f"{name}:")
+        for v in sorted(nodes, key=lambda v: (rank(v), v)):
+            deps = ", ".join(sorted(edges.get(v, {})))
+            print(f"  [{rank(v)}] {v} -> {deps}" if deps else f"  [{rank(v)}] {v}")
+    return name, len(nodes), problems
+
+
+def main():
+    srcs = CRATES
+    if "--src" in sys.argv:
+        srcs = sys.argv[sys.argv.index("--src") + 1 :]
+        srcs = [s for s in srcs if not s.startswith("--")]
+    failed = False
+    for src in srcs:
+        name, n, problems = check(src, "--graph" in sys.argv)
+        for p in problems:
+            print(f"{name}: {p}")
+        if problems:
+            failed = True
+        else:
+            print(f"{name}: layers ok: {n} modules, no import cycle")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ Writes OUT/ (symbolic links and a manifest.json whose validation split holds
 them; train and test empty): every falling episode of SET's validation split,
 the non-falling validation episodes of SET at sigma <= 0.01 (walking), and
 the validation split of the walking set WALK (`sim generate --sigmas
-0.005,0.01 --ball-probability 0`). `fall-guard warnings --split validation
+0.005,0.01 --ball-probability 0`). `fall-guard-lab warnings --split validation
 --choose` on it bounds false alarms per minute of walking, as the daemon's
 figure is defined, not of the high-sigma episodes that come close to a
 fall and do not quite (an alarm there is no false alarm). The test figure

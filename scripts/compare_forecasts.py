@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Compares per-tick forecasts of two builds (`fall-guard eval --recording
+"""Compares per-tick forecasts of two builds (`fall-guard-lab eval --recording
 R --per-tick-out F`): DIR/<model>-aarch64.jsonl against DIR/<model>-native.jsonl.
 
 Fails when the files differ in ticks or stamps, when a probability is NaN

@@ -5,7 +5,7 @@
 
 Each --train / --validation / --test names a data set directory SRC and, after a colon, which of
 its splits go into that split of OUT (default: all three). OUT is a directory of symbolic links to
-the recordings and a manifest.json (written as .partial, then renamed), so that `fall-guard train`,
+the recordings and a manifest.json (written as .partial, then renamed), so that `fall-guard-lab train`,
 `calibrate`, `eval` and `warnings` read it like any data set. With one source the links keep the
 recordings' names; with several, each is prefixed by its source's directory name (two generated
 sets both hold episode_00000.mcap). An episode named twice, in one split or in two, is refused.

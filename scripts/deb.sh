@@ -17,7 +17,8 @@
 # Usage: scripts/deb.sh [--arch amd64|arm64] [--binary PATH] [--out DIR]
 #   --arch    Debian architecture (default: this machine's);
 #   --binary  package this fall-guard binary instead of building one. Without
-#             it: `cargo build --release` (arm64: the cross build of
+#             it: `cargo build --release --bin fall-guard`, the robot's binary
+#             only (the lab's `fall-guard-lab` is never packaged; arm64: the cross build of
 #             scripts/setup-cross.sh, RUSTC=/usr/bin/rustc, target dir
 #             $AARCH64_TARGET_DIR or target-aarch64);
 #   --out     output directory (default: dist).

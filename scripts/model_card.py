@@ -4,7 +4,7 @@
     model_card.py --reports DIR --keep models/card --out tables.md
 
 Reads, under DIR (this data directory's reports): eval-GROUP-PROTOCOL/metrics.json
-(`fall-guard eval`), warnings-ABL-SET-SPLIT.json (`fall-guard warnings`),
+(`fall-guard-lab eval`), warnings-ABL-SET-SPLIT.json (`fall-guard-lab warnings`),
 ABL-thresholds.json (chosen on scripts/choice_set.py's set, which holds the
 walking set's validation split: false alarms are counted on its train and
 test splits only), selected.txt, set-stats.json and walk-stats.json
@@ -94,7 +94,7 @@ def split_report(report: dict) -> dict[str, dict]:
 
 
 def mean_std(values: list[float]) -> dict:
-    """Mean and population standard deviation of the finite values (as `fall-guard eval`)."""
+    """Mean and population standard deviation of the finite values (as `fall-guard-lab eval`)."""
     v = [x for x in values if isinstance(x, (int, float)) and math.isfinite(x)]
     if not v:
         return {"mean": float("nan"), "std": float("nan")}
@@ -592,10 +592,10 @@ def main() -> int:
                   *camera_rows, ""]
     lead_rows = cause_lead_rows(kept, selected)
     if lead_rows:
-        lines += ["### Warnings by fall cause (`fall-guard warnings` on the test falls of that cause)", "",
+        lines += ["### Warnings by fall cause (`fall-guard-lab warnings` on the test falls of that cause)", "",
                   *lead_rows, ""]
     lines += per_horizon_rows(evals)
-    lines += ["### The daemon's warnings (`fall-guard warnings`, streaming, thresholds chosen on validation)", "",
+    lines += ["### The daemon's warnings (`fall-guard-lab warnings`, streaming, thresholds chosen on validation)", "",
               *warnings_rows(kept, selected), "", *warning_checks(kept, selected), "",
               *latch_2s_rows(kept)]
     a.out.write_text("\n".join(lines) + "\n")

@@ -5,26 +5,29 @@
 # did not fall, so every assertion on a valid tick is a false alarm. Prints a Markdown table
 # (models/README.md, "On a real Poppy walk").
 #
-# - every network: `fall-guard eval --recording --per-tick-out` (the daemon's windows, offline,
+# - every network: `fall-guard-lab eval --recording --per-tick-out` (the daemon's windows, offline,
 #   the input projection in int8 as the daemon holds it), with the config's latch (each network's trigger,
 #   release, release hold) applied here; EMP and EP need the camera, which the walk has not: reported as such;
 # - the daemon as deployed: `fall-guard replay --config tests/fixtures/real/replay.toml`
 #   (no camera: it runs MP), its own printed latch counted.
 #
-# Usage: cargo build --release && bash scripts/real_walk_figures.sh
-#        FALL_GUARD=path/to/fall-guard bash scripts/real_walk_figures.sh
+# Usage: cargo build --release --workspace && bash scripts/real_walk_figures.sh
+#        FALL_GUARD=path/to/fall-guard FALL_GUARD_LAB=path/to/fall-guard-lab bash scripts/real_walk_figures.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${FALL_GUARD:-target/release/fall-guard}
+LAB=${FALL_GUARD_LAB:-target/release/fall-guard-lab}
 REC=tests/fixtures/real/poppy_muffin_walk.mcap
 CONFIG=tests/fixtures/real/replay.toml
-[ -x "$BIN" ] || { echo "no $BIN: run cargo build --release first (or set FALL_GUARD)" >&2; exit 1; }
+for b in "$BIN" "$LAB"; do
+  [ -x "$b" ] || { echo "no $b: run cargo build --release --workspace first (or set FALL_GUARD, FALL_GUARD_LAB)" >&2; exit 1; }
+done
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 
 for model in models/*.bpk; do
   name=$(basename "$model" .bpk)
-  if ! "$BIN" eval --model "$model" --recording "$REC" --per-tick-out "$tmp/$name.jsonl" \
+  if ! "$LAB" eval --model "$model" --recording "$REC" --per-tick-out "$tmp/$name.jsonl" \
       --projection int8 > "$tmp/$name.log" 2>&1; then
     grep -m1 -o 'no messages on topic [^ ]*, which is needed' "$tmp/$name.log" > "$tmp/$name.why" \
       || tail -n 1 "$tmp/$name.log" > "$tmp/$name.why"

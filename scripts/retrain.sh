@@ -30,8 +30,8 @@
 #         reports; keep it outside the work tree.
 # Speed:  RETRAIN_JOBS generator processes (default: the core count);
 #         RETRAIN_PARALLEL trainings side by side (default 2);
-#         RETRAIN_DEVICE the training device (cpu, cuda, wgpu; a binary built
-#         with that feature, see docs/building.md).
+#         RETRAIN_DEVICE the training device (cpu, cuda, wgpu; a lab binary
+#         built with that feature, FALL_GUARD_LAB_BIN, see docs/building.md).
 # Scope:  RETRAIN_PAPER=1 also trains the `paper` configuration (last);
 #         RETRAIN_RUNS="emp-s1 mp-s1 ..." trains only those runs of the plan
 #         (the later steps use every run that exists), so that a machine
@@ -44,7 +44,7 @@ DATA_ROOT=${FALL_GUARD_DATA:-$HOME/fall-guard-data}
 JOBS=${RETRAIN_JOBS:-$(nproc)}
 PARALLEL=${RETRAIN_PARALLEL:-2}
 DEVICE=${RETRAIN_DEVICE:-cpu}
-FG=${FALL_GUARD_BIN:-$REPO/target/release/fall-guard}
+FG=${FALL_GUARD_LAB_BIN:-$REPO/target/release/fall-guard-lab}
 PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
 SET_NAME=simv5                     # the 2,000-episode set's name (generator 5)
 SET=$DATA_ROOT/$SET_NAME            # the 2,000-episode set (seed 1)
@@ -86,12 +86,12 @@ newer() {
 
 need_binary() {
   if [ ! -x "$FG" ]; then
-    log "building $FG (cargo build --release)"
-    cargo build --release --quiet
+    log "building $FG (cargo build --release -p fall-guard-lab)"
+    cargo build --release --quiet -p fall-guard-lab
   fi
 }
 
-# The training plan: NAME and the `fall-guard train` arguments. Order is
+# The training plan: NAME and the `fall-guard-lab train` arguments. Order is
 # priority (a cut drops from the end): EMP, MP and P seeds first, taken in
 # turn, so that a run stopped early still has two seeds of each to compare.
 plan() {
@@ -486,7 +486,7 @@ print(c['trigger'], c['release'])" "$1"
 }
 
 # latch_warnings MODEL THRESHOLDS.json HORIZON_MS SET:SPLIT OUT: the daemon's
-# path (`fall-guard warnings`) with the pair chosen in THRESHOLDS.json, on the
+# path (`fall-guard-lab warnings`) with the pair chosen in THRESHOLDS.json, on the
 # data set, the walking set (no choice is made on it) or the test falls of one
 # cause with the test walks; skipped while OUT is current (`current`).
 latch_warnings() {

@@ -3,7 +3,7 @@
 
     ship_thresholds.py --reports DIR [--horizon-ms MS] CONFIG.toml [CONFIG.toml ...]
 
-Reads DIR/selected.txt and DIR/ABL-thresholds.json (`fall-guard warnings
+Reads DIR/selected.txt and DIR/ABL-thresholds.json (`fall-guard-lab warnings
 --choose` on the validation split, from scripts/retrain.sh) and rewrites, in
 each config, `[model].trigger` / `release` (EMP's pair: the default) and the
 `[model.thresholds]` table (one `[trigger, release]` per network), and with

@@ -12,7 +12,7 @@ swell does not already tell the sigma.
 
 Each is a directory of symbolic links to SET's recordings with a manifest.json
 whose test split holds those episodes (train and validation empty), so that
-`fall-guard eval` and `warnings` score one cause at a time.
+`fall-guard-lab eval` and `warnings` score one cause at a time.
 validation-collision/ is the same for the validation split's collision falls
 and non-falling episodes: the camera's case where choices about the vision
 encoder may be made (the test split's never are). The cause is the

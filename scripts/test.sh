@@ -4,19 +4,22 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# The library's layers import only downwards, without a cycle
-# (docs/architecture.md).
+# The crate graph: the robot's binary links the runtime, never the lab nor
+# plotters, linfa or indicatif; inside each library crate the modules import
+# one another without a cycle (docs/architecture.md).
+bash scripts/check-crates.sh
 python3 scripts/check-layers.py
 
 # DDS Security (cargo feature `security`, docs/ros.md "Security"): secured
-# peers against the daemon. Only the DDS crates and fall-guard are built
+# peers against the daemon. Only the DDS crates and fall-guard's are built
 # again for it. First, so that target/debug/fall-guard (packaged by
 # scripts/test-deb.sh) is the default build's, made by the next line.
 cargo test --features security --test ros_security
 
-# The whole workspace: the product's tests, benches and example, and the
-# test kit (crates/testkit: the bus emulator, synthetic recordings and
-# windows the tests use; a dev-dependency, out of the shipped build).
+# The whole workspace: the robot binary's tests and example, the runtime's
+# (crates/runtime) and the lab's (crates/lab) tests and benches, and the
+# test kit (crates/testkit: the bus emulator and synthetic recordings the
+# tests use; a dev-dependency, out of the shipped build).
 cargo test --workspace --all-targets --no-fail-fast
 cargo test --workspace --doc
 

@@ -1,6 +1,7 @@
-//! The `fall-guard` command line: parses arguments (`cli.rs`, the only
-//! place that knows clap for the daemon's subcommands) and dispatches to the
-//! library; nothing else happens here.
+//! The robot's binary, `fall-guard`: parses arguments (`cli.rs`, the only
+//! place that knows clap for the daemon's subcommands), dispatches to the
+//! runtime (`fall_guard_runtime`) and prints what it returns. It depends on
+//! the runtime only: training is the lab's binary (`fall-guard-lab`).
 
 mod cli;
 
@@ -8,7 +9,8 @@ use anyhow::Result;
 use clap::Parser;
 
 use cli::{Cli, Command};
-use fall_guard::daemon;
+use fall_guard_runtime::daemon;
+use fall_guard_runtime::model::bench;
 
 /// Logs when `RUST_LOG` is unset: fall-guard at info; DDS (rustdds,
 /// ros2-client) only from warnings up, less two sources that say nothing an
@@ -47,11 +49,6 @@ fn main() -> Result<()> {
         .enable_all()
         .build()?;
     match cli.command {
-        Command::Train(args) => fall_guard::train::cli::run_train(&args.into())?,
-        Command::Eval(args) => fall_guard::train::cli::run_eval(&args.into())?,
-        Command::Warnings(args) => fall_guard::train::warning::run_warnings(&args.into())?,
-        Command::Half(args) => fall_guard::train::cli::run_half(&args.into())?,
-        Command::Calibrate(args) => fall_guard::train::calibrate::run_calibrate(&args.into())?,
         Command::Run(args) => {
             runtime.block_on(daemon::run(args.into()))?;
         }
@@ -79,10 +76,16 @@ fn main() -> Result<()> {
             None => eprintln!("{}: labelled as not falling", args.recording.display()),
         },
         Command::BenchDaemon(args) => {
-            runtime.block_on(fall_guard::daemon::bench::run(args.into()))?;
+            let report = runtime.block_on(daemon::bench::run(args.into()))?;
+            println!("{}", report.json());
         }
         Command::Bench(args) => {
-            fall_guard::train::bench::run_bench(&args.into())?;
+            let options = bench::BenchOptions::from(args);
+            eprintln!("input projection held {}", options.projection.name());
+            let report = bench::run_bench(&options)?;
+            for ablation in &report.ablations {
+                eprintln!("{}", ablation.summary());
+            }
         }
     }
     Ok(())

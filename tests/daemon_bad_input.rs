@@ -125,8 +125,10 @@ fn missing_recording_is_named() {
 
 #[test]
 fn network_with_a_trajectory_ablation_is_refused() {
-    use fall_guard::model::TrajectoryInput;
-    use fall_guard::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
+    use fall_guard_runtime::model::TrajectoryInput;
+    use fall_guard_runtime::model::{
+        cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta,
+    };
     let scene = Scene::new("x.mcap");
     write_recording(&scene.path("x.mcap"), 1, false, 40);
     let joints = robot_joints();

@@ -10,10 +10,10 @@
 mod daemon_common;
 
 use daemon_common::*;
-use fall_guard::model::{LoadedModel, ProjectionWeights};
-use fall_guard::msgs::DiagnosticArray;
-use fall_guard::pipeline::window::{EpisodeTicks, Streams, WindowSpec};
-use fall_guard::recording::{read_topic, topics, Recording};
+use fall_guard_runtime::model::{LoadedModel, ProjectionWeights};
+use fall_guard_runtime::msgs::DiagnosticArray;
+use fall_guard_runtime::recording::{read_topic, topics, Recording};
+use fall_guard_runtime::window::{EpisodeTicks, Streams, WindowSpec};
 
 fn spec() -> WindowSpec {
     WindowSpec {
@@ -101,7 +101,7 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
 /// recording with those frames already resized to the networks' 32x32.
 #[test]
 fn camera_frames_of_any_size_replay_as_their_resized_frames() {
-    use fall_guard::frame::{decode_compressed, encode_jpeg, encode_png, Frame};
+    use fall_guard_runtime::frame::{decode_compressed, encode_jpeg, encode_png, Frame};
     let scene = Scene::new("unused.mcap");
     let base = scene.path("base.mcap");
     write_recording(&base, 7, true, 60);
@@ -521,7 +521,7 @@ fn a_bad_message_in_a_recording_is_rejected_and_the_replay_goes_on() {
         if i == NAN {
             m.position[3] = f64::NAN;
         }
-        let mut bytes = fall_guard::msgs::encode_cdr(&m).expect("encode");
+        let mut bytes = fall_guard_runtime::msgs::encode_cdr(&m).expect("encode");
         if i == CUT {
             bytes.truncate(bytes.len() / 2);
         }

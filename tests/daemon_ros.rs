@@ -3,7 +3,7 @@
 //!
 //! - replaying the bundled falling fixture, it publishes one forecast per
 //!   tick; every forecast after the ring fills reaches an rclpy subscriber,
-//!   equal to what `fall-guard eval --recording` computes offline for the
+//!   equal to what `fall-guard-lab eval --recording` computes offline for the
 //!   same ticks, and `/fall_guard/fall_imminent` (asserted while the ring
 //!   fills) is on from a real warning before the fall;
 //! - run live with `/joint_states` and `/planned_trajectory` coming from an
@@ -186,24 +186,17 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
     let first_valid = valid[0].tick;
     assert!(lines.iter().all(|l| l.valid || l.tick < first_valid));
 
-    // The same episode offline, through `fall-guard eval`.
+    // The same episode offline, through the lab's `eval` (what
+    // `fall-guard-lab eval --recording --per-tick-out` runs).
     let per_tick = dir.path().join("eval.jsonl");
-    let eval = Command::new(env!("CARGO_BIN_EXE_fall-guard"))
-        .args(["eval", "--model"])
-        .arg(repo("models/emp.bpk"))
-        .arg("--recording")
-        .arg(repo(FALLING_FIXTURE))
-        .arg("--per-tick-out")
-        .arg(&per_tick)
+    fall_guard_lab::commands::run_eval(&fall_guard_lab::commands::EvalOptions::per_tick(
+        repo("models/emp.bpk"),
+        repo(FALLING_FIXTURE),
+        per_tick.clone(),
         // The input projection held as the daemon holds it by default.
-        .args(["--projection", "int8"])
-        .output()
-        .expect("run fall-guard eval");
-    assert!(
-        eval.status.success(),
-        "eval failed: {}",
-        String::from_utf8_lossy(&eval.stderr)
-    );
+        fall_guard_runtime::model::ProjectionWeights::Int8,
+    ))
+    .expect("offline per-tick forecasts");
     let offline: std::collections::HashMap<i64, Vec<f32>> = std::fs::read_to_string(&per_tick)
         .expect("per-tick output")
         .lines()
@@ -270,7 +263,7 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
                 .ok()
         })
         .expect("[model.thresholds].emp in config/replay.toml");
-    let onset_ns = fall_guard::recording::Recording::open(repo(FALLING_FIXTURE))
+    let onset_ns = fall_guard_runtime::recording::Recording::open(repo(FALLING_FIXTURE))
         .expect("falling fixture reads")
         .episode()
         .expect("episode metadata")
@@ -502,7 +495,7 @@ async fn record_label_and_replay_live_ros_streams() {
     );
 
     // The camera as published: the same bytes, format and header.
-    let rec = fall_guard::recording::Recording::open(&camera_out).expect("recording reads");
+    let rec = fall_guard_runtime::recording::Recording::open(&camera_out).expect("recording reads");
     assert!(rec.images.len() > 60, "{} frames", rec.images.len());
     assert!(
         rec.joint_states.len() > 60,
@@ -529,7 +522,7 @@ async fn record_label_and_replay_live_ros_streams() {
     );
 
     // The recording holds what the walker published, in the recording format.
-    let rec = fall_guard::recording::Recording::open(&out).expect("recording reads");
+    let rec = fall_guard_runtime::recording::Recording::open(&out).expect("recording reads");
     assert!(
         rec.joint_states.len() > 60,
         "{} joint states",
@@ -553,7 +546,8 @@ async fn record_label_and_replay_live_ros_streams() {
         "{}",
         String::from_utf8_lossy(&label.stderr)
     );
-    let rec = fall_guard::recording::Recording::open(&out).expect("labelled recording reads");
+    let rec =
+        fall_guard_runtime::recording::Recording::open(&out).expect("labelled recording reads");
     let start = rec.start_ns().expect("messages");
     let onset = rec
         .episode()
@@ -591,8 +585,8 @@ fn camera_jpeg(width: u32, height: u32) -> Vec<u8> {
     let rgb = (0..height)
         .flat_map(|y| (0..width).flat_map(move |x| [(x % 256) as u8, (y % 256) as u8, 90]))
         .collect();
-    let frame = fall_guard::frame::Frame::from_rgb(width, height, rgb).expect("frame");
-    fall_guard::frame::encode_jpeg(&frame, 85).expect("jpeg")
+    let frame = fall_guard_runtime::frame::Frame::from_rgb(width, height, rgb).expect("frame");
+    fall_guard_runtime::frame::encode_jpeg(&frame, 85).expect("jpeg")
 }
 
 /// Waits for a `/diagnostics` message whose model status says `valid` =
@@ -642,7 +636,7 @@ fn servo_config(
 async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
     let _side_by_side = ALONE.read().await;
     let _one_at_a_time = SERVO_BUSES.lock().await;
-    use fall_guard::robot::JointTable;
+    use fall_guard_runtime::robot::JointTable;
     use fall_guard_testkit::emulator::{Fault, PoppyBuses};
 
     let test = "servo_faults_make_forecasts_not_valid_and_the_daemon_recovers";
@@ -801,7 +795,7 @@ fn last_statuses(events: &[Value]) -> String {
 async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
     let _side_by_side = ALONE.read().await;
     let _one_at_a_time = SERVO_BUSES.lock().await;
-    use fall_guard::robot::JointTable;
+    use fall_guard_runtime::robot::JointTable;
     use fall_guard_testkit::emulator::{Fault, PoppyBuses};
 
     let test = "one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok";
@@ -1122,7 +1116,7 @@ async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
     let _one_at_a_time = SERVO_BUSES.lock().await;
     use std::sync::Arc;
 
-    use fall_guard::robot::JointTable;
+    use fall_guard_runtime::robot::JointTable;
     use fall_guard_testkit::emulator::PoppyBuses;
 
     let test = "a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read";

@@ -1,6 +1,6 @@
 //! Bad input on the live ROS 2 streams, against the real binary and an
 //! rclpy walker (`ros_peer.py walk --fault-file`), as a subscriber sees it
-//! (the input boundary, `sources/input.rs`, `docs/ros.md` "Input
+//! (the input boundary, `streams/input.rs`, `docs/ros.md` "Input
 //! boundary"):
 //!
 //! - future-stamped, then NaN `/joint_states`: every one rejected, the

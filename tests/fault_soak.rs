@@ -35,7 +35,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use fall_guard::robot::JointTable;
+use fall_guard_runtime::robot::JointTable;
 use fall_guard_testkit::emulator::{BusEmulator, PoppyBuses, ReplyNoise};
 use heard::{forecast_values, level, status_named, statuses};
 use serde_json::{json, Value};

@@ -2,21 +2,25 @@
 //! reference (`tests/fixtures/forecast_reference.json`): the daemon's path
 //! (`fall-guard replay --max-speed --out`, the embedded config: EMP and its
 //! fallbacks, input projection in int8; the real walk with its own config: MP)
-//! and the offline path (`fall-guard eval --recording --per-tick-out`) of each
-//! shipped network. A change that moves a single bit of any forecast fails
-//! here, naming the run, the first tick that moved and the largest change.
+//! and the offline path (`fall-guard-lab eval --recording --per-tick-out`,
+//! the lab's `commands::run_eval`, called here) of each shipped network. A
+//! change that moves a single bit of any forecast fails here, naming the
+//! run, the first tick that moved and the largest change.
 //!
 //! When the shipped networks change (or a change of numerics is intended and
 //! measured), write the reference again and commit it with the change:
 //! `FALL_GUARD_WRITE_REFERENCE=1 cargo test --test forecast_reference`.
-//! `FALL_GUARD_BIN` runs another build of the binary against the reference
-//! (another profile, or an earlier commit's).
+//! `FALL_GUARD_BIN` runs another build of the robot's binary against the
+//! reference (another profile, or an earlier commit's), `FALL_GUARD_LAB_BIN`
+//! another build of the lab's for the offline path.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use fall_guard::outputs::annotate::read_forecasts;
+use fall_guard_lab::commands::{run_eval, EvalOptions};
+use fall_guard_runtime::model::ProjectionWeights;
+use fall_guard_runtime::outputs::annotate::read_forecasts;
 
 const REFERENCE: &str = "tests/fixtures/forecast_reference.json";
 /// The recording the offline path forecasts with each network.
@@ -39,6 +43,10 @@ fn fall_guard(args: &[&str]) {
     let bin = std::env::var_os("FALL_GUARD_BIN")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_fall-guard")));
+    run(bin, args);
+}
+
+fn run(bin: PathBuf, args: &[&str]) {
     let out = Command::new(bin)
         .args(args)
         .current_dir(root())
@@ -83,15 +91,31 @@ fn replay(recording: &Path, config: Option<&Path>, scratch: &Path) -> Run {
 fn offline(network: &str, scratch: &Path) -> Run {
     let out = scratch.join(format!("{network}.jsonl"));
     let model = format!("models/{network}.bpk");
-    fall_guard(&[
-        "eval",
-        "--model",
-        &model,
-        "--recording",
-        OFFLINE_RECORDING,
-        "--per-tick-out",
-        out.to_str().expect("utf8"),
-    ]);
+    match std::env::var_os("FALL_GUARD_LAB_BIN") {
+        Some(lab) => run(
+            PathBuf::from(lab),
+            &[
+                "eval",
+                "--model",
+                &model,
+                "--recording",
+                OFFLINE_RECORDING,
+                "--per-tick-out",
+                out.to_str().expect("utf8"),
+            ],
+        ),
+        // What `fall-guard-lab eval` runs, with its defaults.
+        None => {
+            let report = run_eval(&EvalOptions::per_tick(
+                root().join(&model),
+                root().join(OFFLINE_RECORDING),
+                out.clone(),
+                ProjectionWeights::AsFile,
+            ))
+            .expect("the offline forecasts");
+            assert!(report.is_none(), "no split evaluated without --data");
+        }
+    }
     let text = std::fs::read_to_string(&out).expect("per-tick forecasts");
     let rows = text
         .lines()

@@ -15,11 +15,11 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use daemon_common::*;
-use fall_guard::model::{LoadedModel, ProjectionWeights};
-use fall_guard::msgs::DiagnosticArray;
-use fall_guard::outputs::annotate::read_forecasts;
-use fall_guard::pipeline::window::{EpisodeTicks, Streams};
-use fall_guard::recording::{read_topic, topics, Recording};
+use fall_guard_runtime::model::{LoadedModel, ProjectionWeights};
+use fall_guard_runtime::msgs::DiagnosticArray;
+use fall_guard_runtime::outputs::annotate::read_forecasts;
+use fall_guard_runtime::recording::{read_topic, topics, Recording};
+use fall_guard_runtime::window::{EpisodeTicks, Streams};
 
 fn fixture_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/real")

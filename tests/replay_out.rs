@@ -9,9 +9,9 @@ mod daemon_common;
 use std::collections::BTreeSet;
 
 use daemon_common::*;
-use fall_guard::msgs::{Bool, DiagnosticArray};
-use fall_guard::outputs::annotate::read_forecasts;
-use fall_guard::recording::{read_topic, topics, Recording};
+use fall_guard_runtime::msgs::{Bool, DiagnosticArray};
+use fall_guard_runtime::outputs::annotate::read_forecasts;
+use fall_guard_runtime::recording::{read_topic, topics, Recording};
 
 /// Every topic a panel of the layout reads (the part of a message path
 /// before the first `.`), from the keys Foxglove panels use for them.

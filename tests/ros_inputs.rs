@@ -13,14 +13,14 @@ mod support;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use fall_guard::msgs::CompressedImage;
-use fall_guard::pipeline::window::WindowSpec;
-use fall_guard::ros::RosNode;
-use fall_guard::shutdown::ShutdownTrigger;
-use fall_guard::sources::ros::{subscribe, CameraFeed, RosFeeds};
-use fall_guard::streams::input::InputLimits;
-use fall_guard::streams::sample::Sample;
-use fall_guard::streams::{stream, Stamped, StreamKind, StreamTap};
+use fall_guard_runtime::msgs::CompressedImage;
+use fall_guard_runtime::ros::RosNode;
+use fall_guard_runtime::shutdown::ShutdownTrigger;
+use fall_guard_runtime::sources::ros::{subscribe, CameraFeed, RosFeeds};
+use fall_guard_runtime::streams::input::InputLimits;
+use fall_guard_runtime::streams::sample::Sample;
+use fall_guard_runtime::streams::{stream, Stamped, StreamKind, StreamTap};
+use fall_guard_runtime::window::WindowSpec;
 use support::{domain_id, localhost_settings, rclpy_python, Peer};
 
 // The scenario of `ros_peer.py publish` (same numbers there).
@@ -93,7 +93,7 @@ async fn rclpy_inputs_arrive_in_their_feeds() {
     let (joints_feed, mut joints_tap) = stream::<Sample>(StreamKind::Joints, limits.clone());
     let (plan_feed, mut plans) = stream::<Sample>(StreamKind::Plan, limits.clone());
     let (camera_feed, mut camera) = stream::<Arc<CompressedImage>>(StreamKind::Camera, limits);
-    let topics = fall_guard::ros::TopicsConfig::default();
+    let topics = fall_guard_runtime::ros::TopicsConfig::default();
     let feeds = RosFeeds {
         joints: Some((topics.input(StreamKind::Joints).to_owned(), joints_feed)),
         camera: Some((

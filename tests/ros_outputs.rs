@@ -11,11 +11,11 @@ mod support;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use fall_guard::outputs::ros::{OutputTopics, RosOutputs};
-use fall_guard::outputs::{
+use fall_guard_runtime::outputs::ros::{OutputTopics, RosOutputs};
+use fall_guard_runtime::outputs::{
     DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, StreamDiagnostics,
 };
-use fall_guard::ros::{qos, RosNode, LATCHED_MAX_SAMPLES};
+use fall_guard_runtime::ros::{qos, RosNode, LATCHED_MAX_SAMPLES};
 use rustdds::dds::qos::HasQoSPolicy;
 use rustdds::policy::ResourceLimits;
 use serde_json::Value;
@@ -415,9 +415,9 @@ async fn rclpy_receives_republished_joint_states() {
     let mut events = Vec::new();
     let mut done = None;
     for i in 0..(30 * 30) {
-        let msg = fall_guard::msgs::JointState {
-            header: fall_guard::msgs::Header {
-                stamp: fall_guard::outputs::ros::ros_time(
+        let msg = fall_guard_runtime::msgs::JointState {
+            header: fall_guard_runtime::msgs::Header {
+                stamp: fall_guard_runtime::outputs::ros::ros_time(
                     1_000_000_000 + i64::from(i) * 33_000_000,
                 ),
                 frame_id: String::new(),

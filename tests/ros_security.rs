@@ -28,10 +28,12 @@ use std::process::Command;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use fall_guard::msgs::{DiagnosticArray, Float32MultiArray, JointState};
-use fall_guard::robot::JointTable;
-use fall_guard::ros::security::{check_enclave_files, plan, Plan, SecuritySettings, Strategy};
-use fall_guard::ros::{qos, RosNode, RosSettings};
+use fall_guard_runtime::msgs::{DiagnosticArray, Float32MultiArray, JointState};
+use fall_guard_runtime::robot::JointTable;
+use fall_guard_runtime::ros::security::{
+    check_enclave_files, plan, Plan, SecuritySettings, Strategy,
+};
+use fall_guard_runtime::ros::{qos, RosNode, RosSettings};
 use futures::{pin_mut, StreamExt};
 use support::{domain_id, localhost_settings};
 
@@ -438,7 +440,7 @@ async fn an_unsecured_joint_states_publisher_is_ignored() {
             .expect("joints status");
         assert_eq!(
             joints.level,
-            fall_guard::msgs::DiagnosticStatus::STALE,
+            fall_guard_runtime::msgs::DiagnosticStatus::STALE,
             "{joints:?}"
         );
     }

@@ -11,9 +11,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use fall_guard::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
-use fall_guard::recording::{topics, Recording, RecordingWriter};
-use fall_guard::robot::JointTable;
+use fall_guard_runtime::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
+use fall_guard_runtime::recording::{topics, Recording, RecordingWriter};
+use fall_guard_runtime::robot::JointTable;
 use fall_guard_testkit::emulator::PoppyBuses;
 use fall_guard_testkit::recordings::learnable_episode;
 
@@ -81,10 +81,10 @@ pub fn bundled_config_on(domain: u16) -> String {
 /// A 64 x 48 JPEG for a ROS 2 camera peer to publish, `dir/head.jpg`.
 pub fn write_head_jpeg(dir: &Path) -> PathBuf {
     let path = dir.join("head.jpg");
-    let frame = fall_guard::frame::Frame::solid(64, 48, [90, 120, 150]);
+    let frame = fall_guard_runtime::frame::Frame::solid(64, 48, [90, 120, 150]);
     std::fs::write(
         &path,
-        fall_guard::frame::encode_jpeg(&frame, 90).expect("jpeg"),
+        fall_guard_runtime::frame::encode_jpeg(&frame, 90).expect("jpeg"),
     )
     .expect("write jpeg");
     path
@@ -319,8 +319,8 @@ pub fn copy_without(src: &Path, dst: &Path, topic: &str, from_ns: i64, to_ns: i6
 }
 
 /// A joint state as recorded: its CDR bytes.
-pub fn joint_cdr(_index: usize, m: &fall_guard::msgs::JointState) -> Vec<u8> {
-    fall_guard::msgs::encode_cdr(m).expect("encode")
+pub fn joint_cdr(_index: usize, m: &fall_guard_runtime::msgs::JointState) -> Vec<u8> {
+    fall_guard_runtime::msgs::encode_cdr(m).expect("encode")
 }
 
 /// Copies `src` to `dst` with the bytes of the `index`th joint state
@@ -329,7 +329,7 @@ pub fn joint_cdr(_index: usize, m: &fall_guard::msgs::JointState) -> Vec<u8> {
 pub fn copy_with_joint_bytes(
     src: &Path,
     dst: &Path,
-    bytes: impl Fn(usize, &fall_guard::msgs::JointState) -> Vec<u8>,
+    bytes: impl Fn(usize, &fall_guard_runtime::msgs::JointState) -> Vec<u8>,
 ) {
     copy_edited(src, dst, |_, _| true, Clone::clone, bytes);
 }
@@ -339,7 +339,9 @@ pub fn copy_with_joint_bytes(
 pub fn copy_with_images(
     src: &Path,
     dst: &Path,
-    image: impl Fn(&fall_guard::msgs::CompressedImage) -> fall_guard::msgs::CompressedImage,
+    image: impl Fn(
+        &fall_guard_runtime::msgs::CompressedImage,
+    ) -> fall_guard_runtime::msgs::CompressedImage,
 ) {
     copy_edited(src, dst, |_, _| true, image, joint_cdr);
 }
@@ -348,8 +350,10 @@ fn copy_edited(
     src: &Path,
     dst: &Path,
     keep: impl Fn(&str, i64) -> bool,
-    image: impl Fn(&fall_guard::msgs::CompressedImage) -> fall_guard::msgs::CompressedImage,
-    joints: impl Fn(usize, &fall_guard::msgs::JointState) -> Vec<u8>,
+    image: impl Fn(
+        &fall_guard_runtime::msgs::CompressedImage,
+    ) -> fall_guard_runtime::msgs::CompressedImage,
+    joints: impl Fn(usize, &fall_guard_runtime::msgs::JointState) -> Vec<u8>,
 ) {
     let rec = Recording::open(src).expect("read");
     let mut w = RecordingWriter::create(dst).expect("create");
@@ -369,7 +373,7 @@ fn copy_edited(
                 let m = &rec.joint_states[i.0];
                 if keep(topics::JOINT_STATES, m.log_time_ns) {
                     let bytes = joints(i.0, &m.msg);
-                    w.write_cdr::<fall_guard::msgs::JointState>(
+                    w.write_cdr::<fall_guard_runtime::msgs::JointState>(
                         topics::JOINT_STATES,
                         m.log_time_ns,
                         &bytes,

@@ -13,7 +13,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use fall_guard::ros::{RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
+use fall_guard_runtime::ros::{RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
 use serde_json::Value;
 
 pub const REQUIRE_ENV: &str = "FALL_GUARD_REQUIRE_ROS";

@@ -45,11 +45,11 @@ use rustypot::servo::dynamixel::{ax, mx};
 use serialport::{SerialPort, TTYPort};
 use thiserror::Error;
 
-use fall_guard::robot::{JointTable, ServoModel};
-use fall_guard::sources::dynamixel::protocol::{
+use fall_guard_runtime::robot::{JointTable, ServoModel};
+use fall_guard_runtime::sources::dynamixel::protocol::{
     self, instruction, Packet, Scanned, BROADCAST_ID, USB2AX_ID,
 };
-use fall_guard::sources::dynamixel::DynamixelConfig;
+use fall_guard_runtime::sources::dynamixel::DynamixelConfig;
 
 /// Error bit 6 (instruction) of a protocol 1.0 status packet.
 const ERROR_INSTRUCTION: u8 = 1 << 6;

@@ -16,13 +16,13 @@ use std::path::Path;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-use fall_guard::clock::TickGrid;
-use fall_guard::frame::{encode_jpeg, Frame};
-use fall_guard::msgs::{
+use fall_guard_runtime::clock::TickGrid;
+use fall_guard_runtime::frame::{encode_jpeg, Frame};
+use fall_guard_runtime::msgs::{
     Bool, CompressedImage, Duration, Header, JointState, JointTrajectory, JointTrajectoryPoint,
     Time,
 };
-use fall_guard::recording::{topics, EpisodeMeta, RecordingError, RecordingWriter};
+use fall_guard_runtime::recording::{topics, EpisodeMeta, RecordingError, RecordingWriter};
 
 /// What the camera shows at one tick.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -267,7 +267,8 @@ pub fn learnable_episode(
     let mut plan_rad = Vec::with_capacity(n_ticks);
     let mut frames = Vec::with_capacity(n_ticks);
     // A plan the daemon accepts: inside each Poppy joint's limits.
-    let range = fall_guard::robot::JointTable::poppy_humanoid().ranges_rad(joint_names, 0.0);
+    let range =
+        fall_guard_runtime::robot::JointTable::poppy_humanoid().ranges_rad(joint_names, 0.0);
     for k in 0..n_ticks {
         let t = k as f32 / rate_hz as f32;
         let plan: Vec<f32> = (0..c)

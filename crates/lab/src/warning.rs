@@ -1,0 +1,394 @@
+//! What a safety engineer asks of the forecaster, measured the way the
+//! daemon runs it: every episode of a split is replayed tick by tick through
+//! the streaming forecaster (as `fall-guard-lab eval --recording`), the
+//! forecasts feed the daemon's own [`SafetyLatch`], and we count
+//!
+//! - on falling episodes: whether `fall_imminent` went true before the fall
+//!   onset, and the lead time (onset minus the first tick it went true);
+//! - on non-falling episodes: false alarms (latch off -> on) per minute.
+//!
+//! `fall-guard-lab warnings --choose` picks the trigger / release thresholds on
+//! one split (the validation split: never the test split), reporting the
+//! whole grid; `--trigger/--release` evaluates fixed thresholds (the test
+//! split, with the thresholds chosen on validation).
+
+use std::path::PathBuf;
+
+use crate::error::{refused, CommandResult, Doing};
+use serde::Serialize;
+
+use super::commands::{forecast_ticks, needs_of_model};
+use super::dataset::{load_episode, Dataset, Split};
+use fall_guard_runtime::model::LoadedModel;
+use fall_guard_runtime::outputs::latch::{release_hold_ticks, SafetyLatch};
+
+/// `fall-guard-lab warnings`.
+#[derive(Debug)]
+pub struct WarningsOptions {
+    /// Model file (EMP, MP, EP or P).
+    pub model: PathBuf,
+    /// Data set directory (recordings + manifest.json).
+    pub data: PathBuf,
+    /// Split to replay: choose thresholds on `validation`, report on `test`.
+    pub split: Split,
+    /// Horizon the latch watches, ms (one of the model's horizons).
+    pub horizon_ms: u32,
+    /// Latch on at or above this probability.
+    pub trigger: f32,
+    /// Latch off below this probability...
+    pub release: f32,
+    /// ... for this long, ms (`[model].release_hold_ms`; 0: at once).
+    pub release_hold_ms: u32,
+    /// Search the thresholds on this split instead (trigger 0.30..0.95,
+    /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
+    /// false-alarm rate is within --max-false-alarms-per-min.
+    pub choose: bool,
+    /// False-alarm budget for --choose, per minute of non-falling walking.
+    pub max_false_alarms_per_min: f64,
+    /// JSON report.
+    pub out: Option<PathBuf>,
+}
+
+/// The forecasts of one episode at the watched horizon.
+#[derive(Debug, Clone)]
+pub struct EpisodeForecasts {
+    pub name: String,
+    /// Tick stamps (ns) and probability at the horizon, once the window is full.
+    pub ticks: Vec<(i64, f32)>,
+    /// Fall onset stamp (ns), `None` for an episode that does not fall.
+    pub onset_ns: Option<i64>,
+}
+
+/// The warning figures of one threshold pair on a split.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct WarningStats {
+    pub trigger: f32,
+    pub release: f32,
+    pub falling_episodes: usize,
+    /// Falls with `fall_imminent` true before the onset.
+    pub warned: usize,
+    pub warned_share: f64,
+    /// Falls warned at least [`EARLY_LEAD_S`] before the onset.
+    pub warned_by_0_5s: usize,
+    pub warned_by_0_5s_share: f64,
+    /// Lead times of the warned falls, s.
+    pub lead_median_s: Option<f64>,
+    pub lead_p10_s: Option<f64>,
+    pub non_falling_episodes: usize,
+    /// Minutes of forecasts on non-falling episodes.
+    pub non_falling_minutes: f64,
+    pub false_alarms: u64,
+    pub false_alarms_per_min: f64,
+}
+
+/// The lead a warning needs for a safety node to brace in time, s.
+pub const EARLY_LEAD_S: f64 = 0.5;
+
+/// Nearest-rank quantile of sorted values.
+fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
+    if sorted.is_empty() {
+        return None;
+    }
+    let i = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+    Some(sorted[i])
+}
+
+/// Runs the daemon's latch over every episode's forecasts (released after
+/// `hold_ticks` ticks in a row below `release`).
+pub fn warning_stats(
+    episodes: &[EpisodeForecasts],
+    trigger: f32,
+    release: f32,
+    hold_ticks: usize,
+    tick_s: f64,
+) -> CommandResult<WarningStats> {
+    let mut leads = Vec::new();
+    let (mut falling, mut warned, mut calm, mut minutes, mut alarms) = (0, 0, 0, 0.0, 0u64);
+    for ep in episodes {
+        // The latch sees one probability: index 0 of a one-element forecast.
+        let mut latch = SafetyLatch::new(0, trigger, release)
+            .doing(|| format!("thresholds {trigger} / {release}"))?
+            .with_release_hold(hold_ticks)
+            .silent();
+        match ep.onset_ns {
+            Some(onset) => {
+                falling += 1;
+                let first = ep
+                    .ticks
+                    .iter()
+                    .take_while(|(stamp, _)| *stamp < onset)
+                    .find(|(_, p)| latch.update(&[*p], true));
+                if let Some((stamp, _)) = first {
+                    warned += 1;
+                    leads.push((onset - stamp) as f64 / 1e9);
+                }
+            }
+            None => {
+                calm += 1;
+                minutes += ep.ticks.len() as f64 * tick_s / 60.0;
+                for (_, p) in &ep.ticks {
+                    latch.update(&[*p], true);
+                }
+                alarms += latch.triggers();
+            }
+        }
+    }
+    leads.sort_by(f64::total_cmp);
+    let early = leads.iter().filter(|&&l| l >= EARLY_LEAD_S).count();
+    let share = |n: usize| {
+        if falling > 0 {
+            n as f64 / falling as f64
+        } else {
+            f64::NAN
+        }
+    };
+    Ok(WarningStats {
+        trigger,
+        release,
+        falling_episodes: falling,
+        warned,
+        warned_share: share(warned),
+        warned_by_0_5s: early,
+        warned_by_0_5s_share: share(early),
+        lead_median_s: quantile(&leads, 0.5),
+        lead_p10_s: quantile(&leads, 0.1),
+        non_falling_episodes: calm,
+        non_falling_minutes: minutes,
+        false_alarms: alarms,
+        false_alarms_per_min: if minutes > 0.0 {
+            alarms as f64 / minutes
+        } else {
+            f64::NAN
+        },
+    })
+}
+
+/// The threshold grid of `--choose`.
+pub fn threshold_grid() -> Vec<(f32, f32)> {
+    (0..=13)
+        .map(|i| {
+            let trigger = 0.30 + 0.05 * i as f32;
+            (trigger, (trigger - 0.3).max(0.05))
+        })
+        .collect()
+}
+
+/// The lowest trigger within the false-alarm budget (the most falls warned).
+pub fn choose(grid: &[WarningStats], max_false_alarms_per_min: f64) -> Option<&WarningStats> {
+    grid.iter()
+        .filter(|s| s.false_alarms_per_min <= max_false_alarms_per_min)
+        .min_by(|a, b| a.trigger.total_cmp(&b.trigger))
+}
+
+/// Replays every episode of the split through the streaming forecaster.
+pub fn forecast_split(
+    model: &LoadedModel,
+    data: &Dataset,
+    split: Split,
+    horizon_index: usize,
+) -> CommandResult<Vec<EpisodeForecasts>> {
+    let spec = model.meta.window_spec();
+    let needs = needs_of_model(&model.meta);
+    let mut out = Vec::new();
+    for path in data.paths(split) {
+        let episode =
+            load_episode(&path, &spec, needs).doing(|| format!("reading {}", path.display()))?;
+        let onset_ns = episode.fall_onset_tick.map(|t| episode.grid.stamp_ns(t));
+        let ticks = forecast_ticks(model, &episode)?
+            .into_iter()
+            .map(|(_, stamp_ns, p)| (stamp_ns, p[horizon_index]))
+            .collect();
+        out.push(EpisodeForecasts {
+            name: path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            ticks,
+            onset_ns,
+        });
+    }
+    Ok(out)
+}
+
+/// What `fall-guard-lab warnings` found: the latch's figures at each
+/// threshold pair, and the pair chosen (with `--choose`).
+#[derive(Debug, Clone)]
+pub struct WarningsReport {
+    /// The split replayed.
+    pub split: Split,
+    /// One row per threshold pair.
+    pub grid: Vec<WarningStats>,
+    /// Whether a pair was searched for (`--choose`).
+    pub searched: bool,
+    /// The pair chosen, if one keeps false alarms within the budget.
+    pub chosen: Option<WarningStats>,
+    /// The false-alarm budget of the search, per minute.
+    pub max_false_alarms_per_min: f64,
+}
+
+impl WarningsReport {
+    /// The figures as a Markdown table, and the choice.
+    pub fn table(&self) -> String {
+        let mut t = format!(
+            "| trigger | release | falls warned | warned >= {EARLY_LEAD_S} s ahead | lead median s | lead p10 s | false alarms / min |\n| --- | --- | --- | --- | --- | --- | --- |\n"
+        );
+        let opt = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.2}"));
+        for s in &self.grid {
+            t += &format!(
+                "| {:.2} | {:.2} | {}/{} ({:.0}%) | {} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) |\n",
+                s.trigger,
+                s.release,
+                s.warned,
+                s.falling_episodes,
+                100.0 * s.warned_share,
+                s.warned_by_0_5s,
+                100.0 * s.warned_by_0_5s_share,
+                opt(s.lead_median_s),
+                opt(s.lead_p10_s),
+                s.false_alarms_per_min,
+                s.false_alarms,
+                s.non_falling_minutes
+            );
+        }
+        if self.searched {
+            t += &match &self.chosen {
+                Some(c) => format!(
+                    "chosen on {}: trigger {:.2}, release {:.2} (false alarms <= {} / min)\n",
+                    self.split, c.trigger, c.release, self.max_false_alarms_per_min
+                ),
+                None => format!(
+                    "no threshold on the grid keeps false alarms within {} / min\n",
+                    self.max_false_alarms_per_min
+                ),
+            };
+        }
+        t
+    }
+}
+
+/// `fall-guard-lab warnings`: the latch's figures (a table the binary
+/// prints), written as JSON with `--out`.
+pub fn run_warnings(args: &WarningsOptions) -> CommandResult<WarningsReport> {
+    let model =
+        LoadedModel::load(&args.model).doing(|| format!("reading {}", args.model.display()))?;
+    let tick_s = 1.0 / model.meta.rate_hz;
+    let hold_ticks = release_hold_ticks(args.release_hold_ms, model.meta.rate_hz);
+    let horizons_ms = model.meta.horizons_ms();
+    let horizon_index = horizons_ms
+        .iter()
+        .position(|&h| h == args.horizon_ms)
+        .ok_or_else(|| {
+            refused(format!(
+                "--horizon-ms {}: the model's horizons are {horizons_ms:?} ms",
+                args.horizon_ms
+            ))
+        })?;
+    let data = Dataset::open(&args.data)?;
+    let episodes = forecast_split(&model, &data, args.split, horizon_index)?;
+    let pairs = if args.choose {
+        threshold_grid()
+    } else {
+        vec![(args.trigger, args.release)]
+    };
+    let grid = pairs
+        .iter()
+        .map(|&(t, r)| warning_stats(&episodes, t, r, hold_ticks, tick_s))
+        .collect::<CommandResult<Vec<_>>>()?;
+    let chosen = if args.choose {
+        choose(&grid, args.max_false_alarms_per_min).cloned()
+    } else {
+        None
+    };
+    if let Some(out) = &args.out {
+        let report = serde_json::json!({
+            "model": args.model,
+            "data": args.data,
+            "split": args.split.name(),
+            "horizon_ms": args.horizon_ms,
+            "release_hold_ms": args.release_hold_ms,
+            "grid": grid,
+            "chosen": chosen,
+            "max_false_alarms_per_min": args.max_false_alarms_per_min,
+        });
+        std::fs::write(out, serde_json::to_vec_pretty(&report)?)
+            .doing(|| format!("writing {}", out.display()))?;
+    }
+    Ok(WarningsReport {
+        split: args.split,
+        grid,
+        searched: args.choose,
+        chosen,
+        max_false_alarms_per_min: args.max_false_alarms_per_min,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn episode(ps: &[f32], onset_tick: Option<usize>) -> EpisodeForecasts {
+        let tick_ns = 33_333_333;
+        EpisodeForecasts {
+            name: "e".into(),
+            ticks: ps
+                .iter()
+                .enumerate()
+                .map(|(i, &p)| (i as i64 * tick_ns, p))
+                .collect(),
+            onset_ns: onset_tick.map(|t| t as i64 * tick_ns),
+        }
+    }
+
+    #[test]
+    fn lead_time_and_false_alarms_follow_the_latch() {
+        let tick_s = 1.0 / 30.0;
+        // Falls at tick 60; warned from tick 30 on: lead 1 s.
+        let mut warned = vec![0.1f32; 30];
+        warned.extend(vec![0.9f32; 40]);
+        // Falls at tick 60; only crosses after the onset: not warned.
+        let mut late = vec![0.1f32; 65];
+        late.extend(vec![0.9f32; 5]);
+        // Falls at tick 60; warned from tick 55 on: lead 0.17 s, too short to brace.
+        let mut short = vec![0.1f32; 55];
+        short.extend(vec![0.9f32; 15]);
+        // Does not fall; two separate alarms (released in between).
+        let mut calm = vec![0.1f32; 1800];
+        calm[100] = 0.8;
+        calm[101] = 0.2;
+        calm[500] = 0.75;
+        let eps = vec![
+            episode(&warned, Some(60)),
+            episode(&late, Some(60)),
+            episode(&short, Some(60)),
+            episode(&calm, None),
+        ];
+        let s = warning_stats(&eps, 0.7, 0.4, 1, tick_s).unwrap();
+        assert_eq!((s.falling_episodes, s.warned, s.warned_by_0_5s), (3, 2, 1));
+        assert!((s.warned_by_0_5s_share - 1.0 / 3.0).abs() < 1e-12);
+        // Leads 1 s and 0.17 s: the nearest-rank median is the shorter.
+        assert!(
+            (s.lead_median_s.unwrap() - 5.0 / 30.0).abs() < 1e-6,
+            "{s:?}"
+        );
+        assert_eq!(s.false_alarms, 2);
+        assert!((s.non_falling_minutes - 1.0).abs() < 1e-9);
+        assert!((s.false_alarms_per_min - 2.0).abs() < 1e-9);
+        // A higher trigger removes the alarms and the warning.
+        let s = warning_stats(&eps, 0.95, 0.5, 1, tick_s).unwrap();
+        assert_eq!((s.warned, s.warned_by_0_5s, s.false_alarms), (0, 0, 0));
+        assert!(s.lead_median_s.is_none());
+    }
+
+    #[test]
+    fn choose_takes_the_lowest_trigger_within_budget() {
+        let eps = vec![episode(&[0.1, 0.62, 0.1, 0.62, 0.1], None)];
+        let grid: Vec<WarningStats> = threshold_grid()
+            .into_iter()
+            .map(|(t, r)| warning_stats(&eps, t, r, 1, 1.0).unwrap())
+            .collect();
+        // 5 ticks of 1 s: one alarm is 12 per min, over budget up to trigger 0.6.
+        let c = choose(&grid, 1.0).unwrap();
+        assert!((c.trigger - 0.65).abs() < 1e-6, "{c:?}");
+        assert!(threshold_grid().iter().all(|(t, r)| r < t && *r >= 0.05));
+    }
+}
