@@ -32,6 +32,12 @@
 #         RETRAIN_PARALLEL trainings side by side (default 2);
 #         RETRAIN_DEVICE the training device (cpu, cuda, wgpu; a lab binary
 #         built with that feature, FALL_GUARD_LAB_BIN, see docs/building.md).
+# Cluster: RETRAIN_RAY=ADDRESS (a Ray head, HOST:PORT) runs the generation,
+#         every training, calibration and evaluation as Ray tasks instead
+#         (docs/retraining.md): the data directory on shared storage, the
+#         same checkout path on every node. RETRAIN_TRAIN_CPUS CPUs per
+#         training task (default 1), plus one GPU when RETRAIN_DEVICE is one.
+# Smoke:  RETRAIN_TRAIN_ARGS="--epochs 1" adds arguments to every training.
 # Scope:  RETRAIN_PAPER=1 also trains the `paper` configuration (last);
 #         RETRAIN_RUNS="emp-s1 mp-s1 ..." trains only those runs of the plan
 #         (the later steps use every run that exists), so that a machine
@@ -54,8 +60,45 @@ RUNS=$DATA_ROOT/runs
 REPORTS=$DATA_ROOT/reports
 LOG=$DATA_ROOT/retrain.log
 mkdir -p "$DATA_ROOT" "$RUNS" "$REPORTS"
+RAY=${RETRAIN_RAY:-}
+TRAIN_CPUS=${RETRAIN_TRAIN_CPUS:-1}
+case $DEVICE in cpu) TRAIN_GPUS=0 ;; *) TRAIN_GPUS=1 ;; esac
+# Every task on a cluster node finds the data directory at this same path.
+export FALL_GUARD_DATA=$DATA_ROOT
 
 log() { printf '%s %s\n' "$(date -u +%Y-%m-%dT%H:%M:%SZ)" "$*" | tee -a "$LOG" >&2; }
+
+# The variables a task run elsewhere needs from this shell (docs/retraining.md).
+TASK_ENV=(FALL_GUARD_DATA FALL_GUARD_LAB_BIN SIM_PYTHON RETRAIN_DEVICE RETRAIN_TRAIN_ARGS RETRAIN_PAPER
+          RETRAIN_RUNS RETRAIN_LATCH_MS RETRAIN_RELEASE_HOLD_MS)
+
+# job FUNCTION ARGS...: run one unit of a step's work (a calibration, an
+# evaluation, a warnings replay) now or, with RETRAIN_RAY, queue it as a
+# Ray task of one CPU; `run_jobs` runs the queue. The task calls this script
+# again (`task FUNCTION ARGS...`) with the SET this shell has now.
+JOBS_QUEUE=$DATA_ROOT/.ray-jobs.$$
+job() {
+  if [ -z "$RAY" ]; then "$@"; return; fi
+  printf '%s\n' "$(printf '%q ' env SET="$SET" bash "$REPO/scripts/retrain.sh" task "$@")" >>"$JOBS_QUEUE"
+}
+
+# run_tasks CPUS GPUS: the commands on stdin (one a line) as Ray tasks of
+# CPUS CPUs and GPUS GPUs each; fails when one of them failed.
+run_tasks() {
+  local envs=() v
+  for v in "${TASK_ENV[@]}"; do envs+=(--env "$v"); done
+  "$PY" "$REPO/scripts/ray_tasks.py" --address "$RAY" --cpus "$1" --gpus "$2" "${envs[@]}" | tee -a "$LOG" >&2
+}
+
+# run_jobs WHAT: the queued jobs (`job`), on Ray; nothing without RETRAIN_RAY.
+run_jobs() {
+  [ -n "$RAY" ] && [ -s "$JOBS_QUEUE" ] || return 0
+  log "$1: $(wc -l <"$JOBS_QUEUE") tasks on Ray ($RAY)"
+  local status=0
+  run_tasks 1 0 <"$JOBS_QUEUE" || status=$?
+  rm -f "$JOBS_QUEUE"
+  return $status
+}
 
 # The data sets every warnings report is made from (the latch's thresholds
 # are chosen on both, its figures taken on either).
@@ -191,16 +234,20 @@ run_file() {
   esac
 }
 
+# The generator's tasks on the cluster, with RETRAIN_RAY (`sim generate --ray`).
+GENERATE_ON=()
+[ -n "$RAY" ] && GENERATE_ON=(--ray "$RAY")
+
 step_data() {
   log "data: $SET (2,000 episodes, seed 1, $JOBS jobs)"
-  "$PY" -m sim generate --out "$SET" --episodes 2000 --seed 1 --jobs "$JOBS" --quiet >>"$LOG"
+  "$PY" -m sim generate --out "$SET" --episodes 2000 --seed 1 --jobs "$JOBS" "${GENERATE_ON[@]}" --quiet >>"$LOG"
   touch "$SET/.complete"
   log "data: $WALK (300 walking episodes, sigma 0.005/0.01, no ball, seed 3)"
-  "$PY" -m sim generate --out "$WALK" --episodes 300 --seed 3 --jobs "$JOBS" --sigmas 0.005,0.01 \
+  "$PY" -m sim generate --out "$WALK" --episodes 300 --seed 3 --jobs "$JOBS" "${GENERATE_ON[@]}" --sigmas 0.005,0.01 \
     --ball-probability 0 --quiet >>"$LOG"
   touch "$WALK/.complete"
   log "data: $HELDOUT (600 episodes, seed 11: plans no other set walks)"
-  "$PY" -m sim generate --out "$HELDOUT" --episodes 600 --seed 11 --jobs "$JOBS" --quiet >>"$LOG"
+  "$PY" -m sim generate --out "$HELDOUT" --episodes 600 --seed 11 --jobs "$JOBS" "${GENERATE_ON[@]}" --quiet >>"$LOG"
   touch "$HELDOUT/.complete"
   "$PY" -m sim stats "$SET" --counterfactual 150 --jobs "$JOBS" >"$REPORTS/set-stats.json.partial"
   mv "$REPORTS/set-stats.json.partial" "$REPORTS/set-stats.json"
@@ -224,7 +271,9 @@ train_one() {
   local t0=$SECONDS
   # --out .partial: the run writes there, checkpoints beside it; renamed when whole.
   local partial="${out%.*}.partial.${out##*.}"
-  if /usr/bin/time -v -o "$RUNS/$name.time.txt" "$FG" train --data "$SET" "$@" "${device[@]}" \
+  local extra=()
+  read -r -a extra <<<"${RETRAIN_TRAIN_ARGS:-}"
+  if /usr/bin/time -v -o "$RUNS/$name.time.txt" "$FG" train --data "$SET" "$@" "${extra[@]}" "${device[@]}" \
       --out "$partial" --trained-on "$TRAINED_ON" \
       --quiet >>"$RUNS/$name.log" 2>&1; then
     local f
@@ -245,10 +294,18 @@ step_train() {
   need_binary
   [ -e "$SET/.complete" ] || { log "train: the data set is not complete; run 'data' first"; return 1; }
   restore_shipped
-  log "train: $(train_plan | wc -l) runs, $PARALLEL at a time"
-  export -f train_one run_file newer log
-  export RUNS SET FG LOG DEVICE TRAINED_ON
-  train_plan | xargs -P "$PARALLEL" -L 1 bash -c 'train_one "$@"' _
+  if [ -n "$RAY" ]; then
+    log "train: $(train_plan | wc -l) runs on Ray ($RAY), $TRAIN_CPUS CPU and $TRAIN_GPUS GPU each"
+    local line
+    train_plan | while read -r line; do
+      printf '%s\n' "$(printf '%q ' bash "$REPO/scripts/retrain.sh" task train_one) $line"
+    done | run_tasks "$TRAIN_CPUS" "$TRAIN_GPUS"
+  else
+    log "train: $(train_plan | wc -l) runs, $PARALLEL at a time"
+    export -f train_one run_file newer log
+    export RUNS SET FG LOG DEVICE TRAINED_ON RETRAIN_TRAIN_ARGS
+    train_plan | xargs -P "$PARALLEL" -L 1 bash -c 'train_one "$@"' _
+  fi
   log "train: done"
 }
 
@@ -283,8 +340,9 @@ step_calibrate() {
     log "calibrate $name"
     local protocol=deployment
     case $name in *-pp-*) protocol=paper ;; esac
-    calibrate_file "$src" "$cal" "$protocol" "$RUNS/$name.log"
+    job calibrate_file "$src" "$cal" "$protocol" "$RUNS/$name.log"
   done
+  run_jobs calibrate
 }
 
 # calibrate_file SRC CAL PROTOCOL LOGFILE: SRC calibrated on the validation
@@ -305,7 +363,7 @@ calibrate_per_horizon() {
     cal="${f%.bpk}.cal.bpk"
     newer "$cal" "$f" && continue
     log "calibrate $(basename "$f" .bpk)"
-    calibrate_file "$f" "$cal" paper "$RUNS/$1.log"
+    job calibrate_file "$f" "$cal" paper "$RUNS/$1.log"
   done
 }
 
@@ -393,19 +451,19 @@ step_evaluate() {
   need_binary
   local group abl name loss
   # One eval reports both protocols (metrics.json `protocols`).
-  for group in emp mp p emp-pp mp-pp p-pp; do eval_seeds "$group" "$group"; done
+  for group in emp mp p emp-pp mp-pp p-pp; do job eval_seeds "$group" "$group"; done
   # Within the event episodes (the test episodes at sigma >= 0.035): whether
   # the plan and the camera add to the joints once an event is known to come.
   "$PY" "$REPO/scripts/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
   for group in emp mp p emp-pp mp-pp p-pp; do
-    SET="$DATA_ROOT/bycause/high-sigma" eval_seeds "$group" "$group-highsigma"
+    SET="$DATA_ROOT/bycause/high-sigma" job eval_seeds "$group" "$group-highsigma"
   done
   # The daemon's own path: warnings on test and on the long walking set, then
   # on the test falls of each cause with the test walks.
   local target
   for target in set:test walk:train walk:test collision:test perturbation:test; do
     while read -r abl name loss; do
-      warnings_one "$abl" "$name" "$target"
+      job warnings_one "$abl" "$name" "$target"
     done <"$REPORTS/selected.txt"
   done
   # The latch on the 2 s output of the paper-trained networks (the lowest
@@ -414,21 +472,21 @@ step_evaluate() {
   local g best
   for g in emp-pp mp-pp p-pp; do
     best=$(best_run "$g")
-    [ -n "$best" ] && warnings_2s "${best%% *}"
+    [ -n "$best" ] && job warnings_2s "${best%% *}"
   done
   # By fall cause: EMP and MP on the test falls of one cause with the test walks.
   local cause
   for cause in collision perturbation; do
     for group in emp mp emp-pp mp-pp p-pp emp-vis-pp; do
-      SET="$DATA_ROOT/bycause/$cause" eval_seeds "$group" "$group-$cause"
+      SET="$DATA_ROOT/bycause/$cause" job eval_seeds "$group" "$group-$cause"
     done
   done
   # The camera's case on validation (the validation collision falls with the
   # validation walks), where the vision encoder's settings are compared.
   for group in emp-pp mp-pp emp-vis-pp; do
-    SET="$DATA_ROOT/bycause/validation-collision" eval_seeds "$group" "$group-valcollision"
+    SET="$DATA_ROOT/bycause/validation-collision" job eval_seeds "$group" "$group-valcollision"
   done
-  for group in ep-pp emp-hist-pp emp-real-pp emp-paper-pp; do eval_seeds "$group" "$group"; done
+  for group in ep-pp emp-hist-pp emp-real-pp emp-paper-pp; do job eval_seeds "$group" "$group"; done
   # EMP trained per horizon (paper protocol): per horizon H, the calibrated
   # networks of every seed (emp-perh-sN.hH) on H's own windows.
   local h f files
@@ -436,17 +494,17 @@ step_evaluate() {
       | sed -E 's/.*\.h([0-9]+)\.cal\.bpk$/\1/' | sort -nu); do
     files=()
     for f in "$RUNS"/emp-perh-s*.h"$h".cal.bpk; do files+=("$f"); done
-    eval_group "emp-perh.h$h" paper "${files[@]}"
+    job eval_group "emp-perh.h$h" paper "${files[@]}"
   done
   if [ -e "$RUNS/logreg-pp-s1.json" ]; then
-    eval_group logreg paper "$RUNS/logreg-pp-s1.json"
+    job eval_group logreg paper "$RUNS/logreg-pp-s1.json"
   fi
   # The second test set (every episode of the held-out set): the test split's
   # 97 falls cannot tell an ECE of 0.03 from the noise; its ~300 can.
   if [ -e "$HELDOUT/.complete" ]; then
     "$PY" "$REPO/scripts/compose_set.py" "$DATA_ROOT/heldout-test" --test "$HELDOUT" >>"$LOG"
     for group in mp-pp p-pp emp-pp; do
-      SET="$DATA_ROOT/heldout-test" eval_seeds "$group" "$group-heldout"
+      SET="$DATA_ROOT/heldout-test" job eval_seeds "$group" "$group-heldout"
     done
   fi
   # The networks that shipped before, on the same test split, for contrast:
@@ -470,9 +528,10 @@ step_evaluate() {
   done
   for abl in emp mp p; do
     for tag in gen1 gen4; do
-      [ -e "$REPORTS/$tag-$abl.bpk" ] && eval_group "$tag-$abl" paper "$REPORTS/$tag-$abl.bpk"
+      [ -e "$REPORTS/$tag-$abl.bpk" ] && job eval_group "$tag-$abl" paper "$REPORTS/$tag-$abl.bpk"
     done
   done
+  run_jobs evaluate
 }
 
 # chosen_pair THRESHOLDS.json: "TRIGGER RELEASE", the chosen pair or, when none
@@ -561,6 +620,14 @@ step_ship() {
 }
 
 all_steps=(data train calibrate select thresholds evaluate card)
+# `task FUNCTION ARGS...`: one unit of work handed to a Ray task (`job`,
+# `step_train`), run where the task landed.
+if [ "${1:-}" = task ]; then
+  shift
+  declare -F "${1:-}" >/dev/null || { echo "unknown task '${1:-}'" >&2; exit 2; }
+  "$@"
+  exit
+fi
 if [ $# -eq 0 ]; then
   for s in "${all_steps[@]}"; do "step_$s"; done
   log "retrain: every step done; 'bash scripts/retrain.sh ship' copies the networks into models/"
