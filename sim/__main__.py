@@ -1,4 +1,4 @@
-"""Command line of the simulator: ``python -m sim {generate,fixtures,stats,strip,build-model,poppy-muffin}``.
+"""Command line of the simulator: ``python -m sim {generate,fixtures,stats,coverage,strip,build-model,poppy-muffin}``.
 
 Run from the repository root with the venv's Python (see sim/README.md).
 Arguments are checked before any work starts; a bad one ends with a message
@@ -58,6 +58,12 @@ def main(argv: list[str] | None = None) -> int:
     st.add_argument("--jobs", type=int, default=1, help="parallel worker processes for --counterfactual")
     m = sub.add_parser("build-model", help="rebuild sim/model/poppy_humanoid.urdf from the reference files")
     m.add_argument("--reference", type=Path, default=None)
+    cv = sub.add_parser("coverage", help="per joint: does the set's 0.1-99.9 percentile range hold a real walk")
+    cv.add_argument("directory", type=Path)
+    cv.add_argument("--real", type=Path, default=FIXTURES_DIR / "real" / "poppy_muffin_walk.mcap",
+                    help="the real recording (default tests/fixtures/real/poppy_muffin_walk.mcap)")
+    cv.add_argument("--max-episodes", type=int, default=None, help="read an even sample of this many episodes")
+    cv.add_argument("--markdown", action="store_true", help="print the table as Markdown instead of JSON")
     pm = sub.add_parser("poppy-muffin",
                         help="convert poppy-muffin's real-robot walk buffer to a recording (docs/real-recordings.md)")
     pm.add_argument("--buffers", type=Path, required=True, help="scripts/scratchbuf.real.pkl of poppy-muffin")
@@ -107,6 +113,12 @@ def main(argv: list[str] | None = None) -> int:
             if args.jobs < 1:
                 raise DatasetError(f"--jobs must be at least 1 (got {args.jobs})")
             print(json.dumps(summarise(args.directory, args.counterfactual, args.jobs), indent=2))
+        elif args.command == "coverage":
+            from .coverage import coverage, markdown
+            if args.max_episodes is not None and args.max_episodes < 1:
+                raise DatasetError(f"--max-episodes must be at least 1 (got {args.max_episodes})")
+            report = coverage(args.directory, args.real, args.max_episodes)
+            print(markdown(report) if args.markdown else json.dumps(report, indent=2))
         elif args.command == "poppy-muffin":
             from . import poppy_muffin as pmf
             if args.out is None and not args.tracking:

@@ -32,10 +32,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from .balance import KH, KHD, KR, KRD, LIMIT_RAD
 from .episode import (BACKGROUND_SIGMA_MAX, BACKGROUND_SIGMAS, DURATION_S, EVENT_GAIN, EVENT_KNOTS, EVENT_START_S,
-                      GENERATOR_VERSION, HAZARD_PROBABILITY, KNOT_TICKS, PERTURBATION_SCALE,
-                      PHYSICS_HZ, PLAN_STREAM, RATE_HZ, SIGMAS, VALIDATION_DRAWS, VALIDATION_SIGMA, KeptPlan,
-                      search_plan, simulate_episode)
+                      GENERATOR_VERSION, HAZARD_PROBABILITY, KNOT_TICKS, MIN_PROGRESS_M, OBSTACLE_DIST_M,
+                      OBSTACLE_KINDS, PERTURBATION_SCALE, PHYSICS_HZ, PLAN_STREAM, PUSH_DURATION_S, PUSH_IMPULSE_NS,
+                      PUSH_START_S, RATE_HZ, SIGMAS, VALIDATION_BACKGROUND_SIGMA, VALIDATION_DRAWS, VALIDATION_SIGMA,
+                      KeptPlan, outside_cause_probabilities, search_plan, simulate_episode)
 from .recording import write_episode
 from .robot import FALL_FRACTION, JOINT_NAMES, ROBOT_NAME
 
@@ -234,8 +236,14 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
         "knot_ticks": KNOT_TICKS, "perturbation_scale_rad": PERTURBATION_SCALE,
         "event": {"above_sigma": BACKGROUND_SIGMA_MAX, "background_sigmas": list(BACKGROUND_SIGMAS),
                   "knots": EVENT_KNOTS, "gain": EVENT_GAIN, "start_s": list(EVENT_START_S)},
-        "validation": {"draws": VALIDATION_DRAWS, "sigma": VALIDATION_SIGMA},
+        "validation": {"draws": VALIDATION_DRAWS, "sigma": VALIDATION_SIGMA,
+                       "background_sigma": VALIDATION_BACKGROUND_SIGMA, "min_progress_m": MIN_PROGRESS_M},
         "hazard_probability": hazard_probability,
+        # Pushes and obstacles come with the ball: none when hazard_probability is 0 (the walking set).
+        **outside_cause_probabilities(hazard_probability),
+        "push": {"start_s": list(PUSH_START_S), "impulse_ns": list(PUSH_IMPULSE_NS), "duration_s": PUSH_DURATION_S},
+        "obstacle": {"kinds": list(OBSTACLE_KINDS), "distance_m": {k: list(v) for k, v in OBSTACLE_DIST_M.items()}},
+        "balance": {"kh": KH, "khd": KHD, "kr": KR, "krd": KRD, "limit_rad": LIMIT_RAD},
         "plan_groups": groups, "episodes_per_plan": EPISODES_PER_PLAN,
     }
     if manifest_path.exists():

@@ -1,4 +1,4 @@
-"""One simulated episode (generator 5): plan search, perturbation, hazard, physics, camera, labels.
+"""One simulated episode (generator 6): plan search, perturbation, hazards, physics, camera, labels.
 
 Data enters as an episode seed (everything else is drawn from it) and leaves as
 an ``Episode``: per 30 Hz tick the measured joint angles (rad, pypot convention,
@@ -8,7 +8,10 @@ the start and 3 s past the end) and the metadata. ``recording.write_episode``
 turns it into an MCAP file.
 
 Time: physics runs at 240 Hz (8 steps per tick). Waypoint k applies at tick k;
-between waypoints the command is interpolated linearly at each physics step.
+between waypoints the command is interpolated linearly at each physics step,
+and the balance feedback (``balance.py``) corrects it there from the pelvis's
+measured pitch and roll: the published plan stays the planner's, the joints
+carry the corrections.
 
 Why falls happen, and what shows them coming:
 
@@ -24,10 +27,12 @@ Why falls happen, and what shows them coming:
   nothing in the joints foretells the fall; the event is in the published
   plan (one message a second, reaching 3 s ahead) 2-3 s before it acts, and
   the fall follows it by ~1.6 s (median).
-- **Plans that walk at low sigma.** A kept plan stays up unperturbed and
-  under ``VALIDATION_DRAWS`` knot perturbations at ``VALIDATION_SIGMA`` with
-  the paper's ramp (eq. 1, up to 1.5x that after 4 s: more than twice the
-  largest background sigma), so that falls without an event are rare. The
+- **Plans that walk at low sigma.** A kept plan walks ``MIN_PROGRESS_M`` in
+  10 s unperturbed and stays up under ``VALIDATION_DRAWS`` knot
+  perturbations: a background at ``VALIDATION_BACKGROUND_SIGMA`` (the largest
+  an episode has) from the start plus ``VALIDATION_SIGMA`` with the paper's
+  ramp (eq. 1, up to 1.5x that after 4 s), so that falls without an event
+  are rare. The
   search runs once per plan, on a bare floor (``search_plan``), and a kept
   plan serves several episodes (``sim.dataset``), each with its own room,
   start pose, ball and perturbation draw.
@@ -35,6 +40,13 @@ Why falls happen, and what shows them coming:
   launched from 1.4-2.0 m ahead inside the head camera's view, it reaches
   the robot about 1 s later. The camera sees it coming; the plan and the
   joints do not.
+- **A push on the trunk** in ``PUSH_PROBABILITY`` of the episodes: a force on
+  the chest for ``PUSH_DURATION_S`` at a random time, from a random
+  direction, of a random impulse. Nothing foretells it.
+- **An obstacle in the walking path** in ``OBSTACLE_PROBABILITY`` of the
+  episodes: a panel, a box or a low step placed ahead on the robot's start
+  heading, which the plan does not know of (the plan search ran on a bare
+  floor) and the camera sees as the robot walks to it.
 """
 
 from __future__ import annotations
@@ -48,9 +60,12 @@ import numpy as np
 import pybullet as pb
 from PIL import Image
 
+from .balance import KH, KHD, KR, KRD, LIMIT_RAD, Balance
 from .gait import GaitParams, gait_waypoints, standing_pose
 from .robot import FALL_FRACTION, JOINT_NAMES, PHYSICS_HZ, ROBOT_NAME, Robot
 from .scene import FLOOR_FRICTION, build_room
+from .sensors import (FRAME_DROP_PROBABILITY, FREEZE_START_PROBABILITY, MISS_PROBABILITY, READ_HZ,
+                      RETRY_PROBABILITY, camera_summary, draw_camera, draw_reads)
 
 RATE_HZ = 30
 STEPS_PER_TICK = PHYSICS_HZ // RATE_HZ
@@ -73,7 +88,7 @@ EVENT_START_S = (3.0, 7.5)
 #: The paper's ramp (eq. 1), used by the plan search's validation draws.
 RAMP_A = 90.0
 RAMP_B = 0.125
-GENERATOR_VERSION = 5
+GENERATOR_VERSION = 6
 #: One perturbation knot every this many ticks (1/3 s); rho counts physics steps.
 KNOT_TICKS = 10
 #: Radians of knot deviation per unit of eta (chosen by measurement, see sim/README.md).
@@ -81,10 +96,13 @@ PERTURBATION_SCALE = 0.5
 #: Joints the plan perturbation leaves alone: the head carries the camera.
 UNPERTURBED_JOINTS = ("head_z", "head_y")
 #: A kept plan survives this many knot perturbations at VALIDATION_SIGMA.
-VALIDATION_DRAWS = 10
+VALIDATION_DRAWS = 6
 VALIDATION_SIGMA = 0.015
-#: Validation draws leave the knots up to this tick (2 s) unperturbed: the ramp is below 1e-13 there.
-VALIDATION_FROM_TICK = 60
+#: ...on top of a background at this sigma from the start (the largest background an episode has),
+#: so that a kept plan walks at low sigma from its first step.
+VALIDATION_BACKGROUND_SIGMA = 0.010
+#: Validation draws leave the knots up to this tick (the start pose) unperturbed.
+VALIDATION_FROM_TICK = 0
 HAZARD_PROBABILITY = 0.2
 HAZARD_LAUNCH_S = (2.0, 7.5)
 HAZARD_DISTANCE_M = (1.4, 2.0)
@@ -97,7 +115,25 @@ COLLISION_FALL_WINDOW_TICKS = 2 * RATE_HZ
 MAX_PLAN_ATTEMPTS = 400
 #: Random stream of the plan search of an episode simulated alone (not in a data set).
 PLAN_STREAM = 31
-MIN_PROGRESS_M = 0.04                  # a kept 10 s plan walks at least this far along its heading
+MIN_PROGRESS_M = 0.25                  # a kept 10 s plan walks at least this far along its heading
+#: Pushes on the trunk: share of episodes, when (s), impulse (N s), how long the force lasts.
+PUSH_PROBABILITY = 0.15
+PUSH_START_S = (2.0, 8.0)
+PUSH_IMPULSE_NS = (0.3, 1.5)
+PUSH_DURATION_S = 0.1
+PUSH_LINK = "chest"
+#: Obstacles in the walking path: share of episodes, and per kind the distance of its near
+#: face ahead of the pelvis (m): a sill (a low bar across the path, which trips the feet), a
+#: box (shin to thigh high) and a panel (a wall-like board taller than the camera's view line).
+OBSTACLE_PROBABILITY = 0.15
+OBSTACLE_KINDS = ("sill", "box", "panel")
+OBSTACLE_DIST_M = {"sill": (0.1, 0.35), "box": (0.2, 0.45), "panel": (0.25, 0.5)}
+#: Random streams of the push and the obstacle (apart from the episode's own, so that
+#: forcing either leaves the rest of the episode as it was).
+PUSH_STREAM = 41
+OBSTACLE_STREAM = 43
+#: A fall is caused by a push or a contact when it follows it within this.
+CAUSE_WINDOW_TICKS = 2 * RATE_HZ
 CAMERA_FOV_DEG = 60.0
 CAMERA_PITCH_DOWN_DEG = 10.0           # camera axis below the head's forward direction
 JPEG_QUALITY = 90
@@ -123,6 +159,15 @@ class KeptPlan:
     def from_dict(d: dict) -> "KeptPlan":
         return KeptPlan(GaitParams(**d["params"]), int(d["attempts"]), float(d["progress_m"]),
                         str(d.get("plan_id", "")))
+
+
+def outside_cause_probabilities(hazard_probability: float) -> dict[str, float]:
+    """The push and obstacle probabilities of a set made with HAZARD_PROBABILITY (the ball's):
+    PUSH_PROBABILITY and OBSTACLE_PROBABILITY, or none when the ball is off (the walking set,
+    ``--ball-probability 0``, has no outside cause)."""
+    on = hazard_probability > 0
+    return {"push_probability": PUSH_PROBABILITY if on else 0.0,
+            "obstacle_probability": OBSTACLE_PROBABILITY if on else 0.0}
 
 
 def stamp_ns(tick: int) -> int:
@@ -258,6 +303,71 @@ class Hazard:
 
 
 @dataclass
+class Push:
+    """A push on the trunk: a horizontal force on the chest from TICK for PUSH_DURATION_S."""
+    tick: int
+    direction_rad: float      # where it pushes to, from the robot's facing at the push (0: forward, +: left)
+    impulse_ns: float         # N s (force x PUSH_DURATION_S)
+
+    @staticmethod
+    def sample(rng: np.random.Generator, n_ticks: int) -> "Push":
+        lo, hi = (int(s * RATE_HZ) for s in PUSH_START_S)
+        return Push(tick=int(rng.integers(lo, min(hi, max(lo + 1, n_ticks - RATE_HZ)))),
+                    direction_rad=float(rng.uniform(-math.pi, math.pi)),
+                    impulse_ns=float(rng.uniform(*PUSH_IMPULSE_NS)))
+
+    def as_dict(self) -> dict:
+        return {"tick": self.tick, "ns": stamp_ns(self.tick), "direction_rad": round(self.direction_rad, 6),
+                "impulse_ns": round(self.impulse_ns, 6), "duration_s": PUSH_DURATION_S, "link": PUSH_LINK}
+
+
+@dataclass
+class Obstacle:
+    """An obstacle the plan does not know of, DISTANCE_M ahead on the start heading."""
+    kind: str                 # "sill" (a low bar across the path), "box" (a crate), "panel" (a wall-like board)
+    distance_m: float
+    lateral_m: float
+    size_m: tuple[float, float, float]   # width (across the path), depth, height
+    yaw_rad: float            # from square to the path
+    rgb: tuple[float, float, float]
+
+    @staticmethod
+    def sample(rng: np.random.Generator) -> "Obstacle":
+        kind = str(rng.choice(OBSTACLE_KINDS))
+        size = {"sill": (rng.uniform(0.6, 1.0), rng.uniform(0.02, 0.06), rng.uniform(0.02, 0.07)),
+                "box": (rng.uniform(0.2, 0.45), rng.uniform(0.15, 0.35), rng.uniform(0.08, 0.35)),
+                "panel": (rng.uniform(0.5, 1.2), rng.uniform(0.03, 0.08), rng.uniform(0.5, 1.0))}[kind]
+        return Obstacle(kind=kind, distance_m=float(rng.uniform(*OBSTACLE_DIST_M[kind])),
+                        lateral_m=float(rng.uniform(-0.06, 0.06)), size_m=tuple(float(x) for x in size),
+                        yaw_rad=float(rng.uniform(-0.4, 0.4)),
+                        rgb=tuple(float(c) for c in rng.uniform(0.15, 0.95, 3)))
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+    def add(self, client: int, start_xy, direction) -> int:
+        """Build it: its nearest corner DISTANCE_M ahead of START_XY along DIRECTION (unit xy)."""
+        w, d, h = self.size_m
+        fwd = np.asarray(direction, dtype=float)
+        side = np.array([-fwd[1], fwd[0]])
+        reach = w / 2 * abs(math.sin(self.yaw_rad)) + d / 2 * abs(math.cos(self.yaw_rad))
+        xy = np.asarray(start_xy) + (self.distance_m + reach) * fwd + self.lateral_m * side
+        yaw = math.atan2(fwd[1], fwd[0]) + math.pi / 2 + self.yaw_rad
+        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[w / 2, d / 2, h / 2], physicsClientId=client)
+        vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[w / 2, d / 2, h / 2], rgbaColor=[*self.rgb, 1.0],
+                                   physicsClientId=client)
+        body = pb.createMultiBody(0, col, vis, basePosition=(xy[0], xy[1], h / 2),
+                                  baseOrientation=pb.getQuaternionFromEuler((0, 0, yaw)), physicsClientId=client)
+        pb.changeDynamics(body, -1, lateralFriction=0.9, physicsClientId=client)
+        # Points on its surface (corners, edge middles, face centres), for the camera's view test.
+        g = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
+                      if (x, y, z) != (0, 0, 0)], dtype=float) * np.array([w / 2, d / 2, h / 2])
+        r = np.array(pb.getMatrixFromQuaternion(pb.getQuaternionFromEuler((0, 0, yaw)))).reshape(3, 3)
+        self.surface = g @ r.T + np.array([xy[0], xy[1], h / 2])
+        return body
+
+
+@dataclass
 class Episode:
     seed: int
     sigma: float
@@ -290,6 +400,41 @@ class Episode:
     #: The tick at which the plan leaves its background for the event (the knot before the
     #: event's first); None: no event (sigma <= BACKGROUND_SIGMA_MAX).
     event_tick: int | None = None
+    push: Push | None = None
+    obstacle: Obstacle | None = None
+    #: First tick of contact with each thing touched but the floor ({name: tick}).
+    contacts: dict = field(default_factory=dict)
+    #: At the fall onset, the last tick of contact with each thing touched until then.
+    touching_at_onset: dict = field(default_factory=dict)
+    #: What the daemon would read (``sensors``): /joint_states messages (stamp ns, positions) at
+    #: the buses' cycle, and per tick the camera frame sent (-1: dropped); None: one per tick.
+    joint_messages: list | None = None
+    camera_sent: list | None = None
+    sensors: dict | None = None
+    #: Per tick, whether the obstacle was in the camera's view (None: no obstacle, or no camera).
+    obstacle_in_view: list | None = None
+
+    def obstacle_record(self) -> dict | None:
+        """The obstacle's parameters and when the camera first had it in view (ns; None: never)."""
+        if self.obstacle is None:
+            return None
+        d = {k: v for k, v in self.obstacle.as_dict().items() if k != "surface"}
+        if self.obstacle_in_view is not None:
+            seen = [k for k, v in enumerate(self.obstacle_in_view) if v]
+            d["first_in_view_ns"] = stamp_ns(seen[0]) if seen else None
+            d["ticks_in_view"] = len(seen)
+        return d
+
+    def cause_events(self) -> list[tuple[int, str]]:
+        """(tick, cause) of every outside cause: a push, a touch of the ball or furniture
+        ("collision"), of the obstacle ("obstacle"). A touch counts at its last tick before the
+        onset (a robot held by an obstacle for seconds falls because of it), named by its first."""
+        out = [(t, "obstacle" if name == "obstacle" else "collision") for name, t in self.contacts.items()]
+        out += [(t, "obstacle" if name == "obstacle" else "collision")
+                 for name, t in self.touching_at_onset.items() if t != self.contacts.get(name)]
+        if self.push is not None:
+            out.append((self.push.tick, "push"))
+        return sorted(out)
 
     @property
     def fall_threshold_m(self) -> float:
@@ -302,14 +447,30 @@ class Episode:
 
     @property
     def fall_cause(self) -> str | None:
-        """"collision" when the fall follows a contact within 2 s, else "perturbation"; None if no fall."""
+        """The cause of the fall: the last outside cause ("push", "obstacle" or "collision": the
+        ball or furniture) within 2 s before the onset, else "perturbation"; None if no fall."""
         onset = self.fall_onset_tick
         if onset is None:
             return None
-        c = self.first_contact_tick
-        if c is not None and 0 <= onset - c <= COLLISION_FALL_WINDOW_TICKS:
-            return "collision"
-        return "perturbation"
+        near = [(t, c) for t, c in self.cause_events() if 0 <= onset - t <= CAUSE_WINDOW_TICKS]
+        return near[-1][1] if near else "perturbation"
+
+    @property
+    def fall_cause_tick(self) -> int | None:
+        """When the fall's outside cause began (a push, the first touch of what it touched; None:
+        no fall, or a perturbation fall)."""
+        onset = self.fall_onset_tick
+        if onset is None:
+            return None
+        near = [(t, c) for t, c in self.cause_events() if 0 <= onset - t <= CAUSE_WINDOW_TICKS]
+        if not near:
+            return None
+        cause = near[-1][1]
+        if cause == "push":
+            return self.push.tick
+        names = [n for n in self.contacts if ("obstacle" if n == "obstacle" else "collision") == cause
+                 and 0 <= onset - self.touching_at_onset.get(n, self.contacts[n]) <= CAUSE_WINDOW_TICKS]
+        return min(self.contacts[n] for n in names) if names else near[-1][0]
 
     def plan_message_points(self, tick: int) -> tuple[int, np.ndarray]:
         """(first tick, waypoints) of the plan published at TICK: ticks tick-75 .. tick+90."""
@@ -341,6 +502,12 @@ class Episode:
             "progress_m": f"{self.progress_m:.3f}",
             "distance_m": f"{self.distance_m:.3f}",
             "hazard": json.dumps(self.hazard.as_dict() if self.hazard else None, sort_keys=True),
+            "push": json.dumps(self.push.as_dict() if self.push else None, sort_keys=True),
+            "obstacle": json.dumps(self.obstacle_record(), sort_keys=True),
+            "contacts_ns": json.dumps({k: stamp_ns(t) for k, t in self.contacts.items()}, sort_keys=True),
+            "sensors": json.dumps(self.sensors, sort_keys=True),
+            "balance": (f"pelvis pitch/roll feedback: hip_y += {KH:g}*pitch + {KHD:g}*pitch_rate (stance legs), "
+                        f"hip_x += {KR:g}*roll + {KRD:g}*roll_rate, each within +-{LIMIT_RAD:g} rad"),
             "scene": json.dumps(self.scene, sort_keys=True),
         }
         if self.event_tick is not None:
@@ -349,6 +516,8 @@ class Episode:
         if onset is not None:
             meta["fall_onset_ns"] = str(stamp_ns(onset))
             meta["fall_cause"] = self.fall_cause
+            if self.fall_cause_tick is not None:
+                meta["cause_ns"] = str(stamp_ns(self.fall_cause_tick))
         if self.first_contact_tick is not None:
             meta["first_contact_ns"] = str(stamp_ns(self.first_contact_tick))
             meta["contact_with"] = self.contact_with or ""
@@ -379,12 +548,26 @@ class HeadCamera:
         eye = pos + r @ self.eye_local
         # A face-down head would put the lens under the floor; a real lens stays above it.
         eye[2] = max(eye[2], 0.015)
+        self.axes = (eye, r @ self.fwd_local, r @ self.up_local)
         view = pb.computeViewMatrix(eye.tolist(), (eye + r @ self.fwd_local).tolist(), (r @ self.up_local).tolist())
         _, _, rgba, _, _ = pb.getCameraImage(
             FRAME_PX, FRAME_PX, view, self.projection, renderer=pb.ER_TINY_RENDERER, shadow=0,
             lightDirection=[0.4, -0.6, 1.0], flags=pb.ER_NO_SEGMENTATION_MASK,
             physicsClientId=self.robot.client)
         return np.asarray(rgba, dtype=np.uint8).reshape(FRAME_PX, FRAME_PX, 4)[:, :, :3]
+
+
+    def sees(self, points: np.ndarray) -> bool:
+        """Whether any of POINTS [n, 3] (world) lies in the last frame's field of view (occlusion
+        not considered: nothing stands between the robot and an obstacle in its path)."""
+        eye, fwd, up = self.axes
+        right = np.cross(fwd, up)
+        d = points - eye
+        z = d @ fwd
+        ok = z > 0.02
+        half = math.tan(math.radians(CAMERA_FOV_DEG / 2))
+        x, y = (d @ right)[ok] / z[ok], (d @ up)[ok] / z[ok]
+        return bool(((np.abs(x) <= half) & (np.abs(y) <= half)).any())
 
 
 def encode_jpeg(rgb: np.ndarray) -> bytes:
@@ -402,6 +585,15 @@ class _Run:
         self.frames: list[bytes] = []
         self.first_contact_tick: int | None = None
         self.contact_with: str | None = None
+        #: First and (so far) last tick of contact with each thing but the floor.
+        self.contacts: dict[str, int] = {}
+        self.last_contact: dict[str, int] = {}
+        #: At the onset, the last tick of contact with each thing touched until then.
+        self.touching_at_onset: dict[str, int] = {}
+        #: Per tick, whether the camera had the watched points in view.
+        self.in_view: list[bool] = []
+        #: Joint angles at the physics steps asked for (``read_steps``), by step (240 Hz from tick 0).
+        self.step_angles: dict[int, np.ndarray] = {}
         self.end_xy: np.ndarray | None = None
         #: First tick with the head below the fall threshold (None: stayed up).
         self.onset_tick: int | None = None
@@ -465,7 +657,8 @@ def _launch(ball: int, robot: Robot, hazard: Hazard, r0: np.ndarray, start_dir: 
 def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, threshold_m: float,
              stop_on_fall: bool, camera: HeadCamera | None, bodies: dict[int, str] | None = None,
              hazard: Hazard | None = None, ball: int | None = None, save_at: int | None = None,
-             resume: tuple[int, int] | None = None) -> _Run:
+             resume: tuple[int, int] | None = None, push: Push | None = None, balance: bool = True,
+             read_steps: set[int] | None = None, watch: np.ndarray | None = None) -> _Run:
     """Run PLAN (waypoints from tick 0) for N_TICKS; returns per-tick measurements.
 
     BODIES names the room's bodies (contacts with anything but the floor are
@@ -474,7 +667,11 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
     contacts included); RESUME (state id, tick) starts from such a state at
     that tick instead of from the start pose: the same as running from tick 0
     when PLAN equals the saved run's plan up to that tick. Measurements then
-    start at that tick.
+    start at that tick. PUSH pushes the chest at its tick. BALANCE: the
+    commands go through the balance feedback (``balance.Balance``).
+    READ_STEPS: keep the joint angles at these physics steps (``_Run.step_angles``;
+    step m is the state m / 240 s after tick 0), for the servo buses' reads.
+    WATCH: points [n, 3] whose view by the camera is recorded per tick (``_Run.in_view``).
     """
     k0 = 0
     if resume is None:
@@ -482,11 +679,19 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
         for _ in range(SETTLE_STEPS):
             robot.command(plan[0])
             pb.stepSimulation(physicsClientId=world.client)
+        _, quat = pb.getBasePositionAndOrientation(robot.body, physicsClientId=world.client)
+        # The pelvis's rotation standing at the start: the balance feedback's upright.
+        robot.upright_r0 = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
     else:
         pb.restoreState(resume[0], physicsClientId=world.client)
         k0 = resume[1]
     _, quat = pb.getBasePositionAndOrientation(robot.body, physicsClientId=world.client)
     r0 = np.array(pb.getMatrixFromQuaternion(quat)).reshape(3, 3)
+    feedback = None
+    if balance:
+        feedback = Balance(plan)
+        feedback.start(robot.body, world.client, robot.upright_r0, robot.start_dir)
+    push_steps: dict[int, tuple] = {}
     run = _Run()
     walked_xy: list[np.ndarray] = []
     for k in range(k0, n_ticks):
@@ -494,27 +699,52 @@ def _rollout(world: World, robot: Robot, plan: np.ndarray, n_ticks: int, thresho
             run.saved = pb.saveState(physicsClientId=world.client)
         if hazard is not None and ball is not None and k == hazard.launch_tick:
             _launch(ball, robot, hazard, r0, robot.start_dir, bodies or {})
+        if push is not None and k == push.tick:
+            fwd = _facing_xy(robot, r0, robot.start_dir)
+            c, s = math.cos(push.direction_rad), math.sin(push.direction_rad)
+            towards = np.array([c * fwd[0] - s * fwd[1], s * fwd[0] + c * fwd[1]])
+            force = (push.impulse_ns / PUSH_DURATION_S) * towards
+            n_push = int(round(PUSH_DURATION_S * PHYSICS_HZ))
+            push_steps = {k * STEPS_PER_TICK + i: (float(force[0]), float(force[1]), 0.0) for i in range(n_push)}
         walked_xy.append(robot.base_xy())
         run.joints.append(robot.joint_angles())
+        if read_steps is not None and k * STEPS_PER_TICK in read_steps:
+            run.step_angles[k * STEPS_PER_TICK] = run.joints[-1]
         h = robot.head_height_m()
         run.heights.append(h)
         if h < threshold_m and run.onset_tick is None:
             run.onset_tick = k
+            run.touching_at_onset = dict(run.last_contact)
             run.end_xy = walked_xy[max(0, k - k0 - RATE_HZ)]
-        if bodies is not None and run.first_contact_tick is None:
+        if bodies is not None:
             for contact in pb.getContactPoints(bodyA=robot.body, physicsClientId=world.client):
                 other = bodies.get(contact[2], "ball" if contact[2] == ball else "body")
-                if other != "floor":
-                    run.first_contact_tick, run.contact_with = k, other
-                    break
+                if other == "floor":
+                    continue
+                if other not in run.contacts:
+                    run.contacts[other] = k
+                    if run.first_contact_tick is None:
+                        run.first_contact_tick, run.contact_with = k, other
+                run.last_contact[other] = k
         if camera is not None:
             run.frames.append(encode_jpeg(camera.frame()))
+            if watch is not None:
+                run.in_view.append(camera.sees(watch))
         if stop_on_fall and run.onset_tick is not None:
             break
         step = (plan[k + 1] - plan[k]) / STEPS_PER_TICK
         for s in range(1, STEPS_PER_TICK + 1):
-            robot.command(plan[k] + s * step)
+            target = plan[k] + s * step
+            robot.command(target if feedback is None else np.clip(feedback.correct(k, target), robot.lo, robot.hi))
+            force = push_steps.get(k * STEPS_PER_TICK + s - 1)
+            if force is not None:
+                pb.applyExternalForce(robot.body, robot.link_by_name[PUSH_LINK], force,
+                                      pb.getLinkState(robot.body, robot.link_by_name[PUSH_LINK],
+                                                      physicsClientId=world.client)[0],
+                                      pb.WORLD_FRAME, physicsClientId=world.client)
             pb.stepSimulation(physicsClientId=world.client)
+            if read_steps is not None and s < STEPS_PER_TICK and k * STEPS_PER_TICK + s in read_steps:
+                run.step_angles[k * STEPS_PER_TICK + s] = robot.joint_angles()
     if run.end_xy is None:
         run.end_xy = robot.base_xy()
     return run
@@ -539,10 +769,14 @@ def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_i
     VALIDATION_SIGMA (each validation run stops at its first fall, and the
     candidate at its first failed run).
 
-    The floor is the room's (same friction), and the furniture stands at least
-    1 m ahead where no kept plan reaches (the farthest walks ~0.3 m in 10 s),
-    so a plan kept here walks in any room and from any start pose: one search
-    serves several episodes.
+    Every run goes through the balance feedback, as the episodes do. A kept
+    plan walks MIN_PROGRESS_M or more in 10 s (the farthest ~0.6 m; the
+    furniture stands 1 m or more ahead). The floor is the room's (same
+    friction), so a plan kept here walks in any room and from any start pose:
+    one search serves several episodes. The validation draws add a
+    background of VALIDATION_BACKGROUND_SIGMA from the start to the paper's
+    ramp at VALIDATION_SIGMA, so that the plan walks at low sigma from its
+    first step.
     """
     n_ticks = int(round(duration_s * RATE_HZ))
     n_plan = n_ticks + PLAN_FUTURE_TICKS + 1
@@ -559,9 +793,8 @@ def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_i
         initial_state = pb.saveState(physicsClientId=world.client)
 
         # The validation draws perturb the knots after VALIDATION_FROM_TICK only
-        # (before it the ramp is below 1e-13 at VALIDATION_SIGMA), so each draw
-        # starts from the unperturbed run's state at that tick: the same
-        # simulation, without re-running its first seconds.
+        # (the start pose), so each draw starts from the unperturbed run's state
+        # at that tick: the same simulation, without settling again.
         from_tick = min(VALIDATION_FROM_TICK, n_ticks - 1)
         still = knot_ticks(n_plan) <= from_tick
 
@@ -581,7 +814,10 @@ def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_i
             for _ in range(VALIDATION_DRAWS if ok else 0):
                 eta = rng.normal(0.0, VALIDATION_SIGMA, (n_knots, len(JOINT_NAMES)))
                 eta[still] = 0.0
-                plan = np.clip(cand_plan + knot_deviation(eta, VALIDATION_SIGMA, n_plan), lo, hi)
+                background = rng.normal(0.0, VALIDATION_BACKGROUND_SIGMA, (n_knots, len(JOINT_NAMES)))
+                background[still] = 0.0
+                plan = np.clip(cand_plan + knot_deviation(eta, VALIDATION_SIGMA, n_plan)
+                               + smooth_knots(PERTURBATION_SCALE * background, n_plan), lo, hi)
                 if not stays_up(plan, resume=(saved, from_tick))[0]:
                     ok = False
                     break
@@ -598,7 +834,10 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
                      render: bool = True, gait: bool = True, hazard: bool | None = None,
                      counterfactual_lead_ticks: int | None = None, counterfactual_draw: int = 1,
                      plan: KeptPlan | None = None, hazard_probability: float = HAZARD_PROBABILITY,
-                     sigmas: tuple[float, ...] = SIGMAS, counterfactual_walking: bool = False) -> Episode:
+                     sigmas: tuple[float, ...] = SIGMAS, counterfactual_walking: bool = False,
+                     push_probability: float | None = None, obstacle_probability: float | None = None,
+                     push: bool | Push | None = None, obstacle: bool | Obstacle | None = None,
+                     daemon_view: bool = True) -> Episode:
     """Simulate the episode of SEED. SIGMA None draws it from SIGMAS; 0 means unperturbed.
 
     A given SIGMA skips that draw, so the rest of the episode differs from the
@@ -610,6 +849,12 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
     episode alone, from the episode's seed. GAIT False keeps the standing pose
     (for the standing test). HAZARD None draws whether a ball is rolled at the
     robot (HAZARD_PROBABILITY); True or False forces it.
+    PUSH and OBSTACLE: None draws each (PUSH_PROBABILITY and OBSTACLE_PROBABILITY
+    unless given, both 0 when HAZARD_PROBABILITY is 0: ``outside_cause_probabilities``;
+    from random streams of their own, so forcing either changes nothing else);
+    True or False forces it; a ``Push`` or an ``Obstacle`` forces that one.
+    DAEMON_VIEW: record the joints as the servo buses deliver them and the camera
+    with its drops and freezes (``sensors``); False: every tick's joints and frame.
     COUNTERFACTUAL_LEAD_TICKS: when the episode falls, run it again with the
     perturbation knots from onset - lead on redrawn (draw COUNTERFACTUAL_DRAW)
     and record that run's onset. The knots are redrawn from their own
@@ -627,6 +872,20 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
     # Drawn before anything else, so that forcing it leaves the rest of the episode as it was.
     hazard_drawn = bool(rng.uniform() < hazard_probability)
     with_hazard = hazard_drawn if hazard is None else hazard
+    defaults = outside_cause_probabilities(hazard_probability)
+    push_probability = defaults["push_probability"] if push_probability is None else push_probability
+    obstacle_probability = (defaults["obstacle_probability"] if obstacle_probability is None
+                            else obstacle_probability)
+    push_rng = np.random.default_rng([seed, PUSH_STREAM])
+    push_drawn = bool(push_rng.uniform() < push_probability)
+    the_push = Push.sample(push_rng, n_ticks) if (push_drawn if push is None else push) else None
+    if isinstance(push, Push):
+        the_push = push
+    obstacle_rng = np.random.default_rng([seed, OBSTACLE_STREAM])
+    obstacle_drawn = bool(obstacle_rng.uniform() < obstacle_probability)
+    the_obstacle = Obstacle.sample(obstacle_rng) if (obstacle_drawn if obstacle is None else obstacle) else None
+    if isinstance(obstacle, Obstacle):
+        the_obstacle = obstacle
     if gait and plan is None:
         plan = search_plan(np.random.default_rng([seed, PLAN_STREAM]), duration_s)
     if plan is not None and gait:
@@ -650,6 +909,8 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
         robot.start_xy, robot.start_yaw, robot.start_dir = start_xy, yaw, direction
         camera = HeadCamera(robot) if render else None
         lo, hi = joint_limits(robot)
+        if the_obstacle is not None:
+            bodies[the_obstacle.add(world.client, start_xy, direction)] = "obstacle"
         initial_state = pb.saveState(physicsClientId=world.client)
 
         def perturbed(eta: np.ndarray) -> np.ndarray:
@@ -667,8 +928,11 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
         full_plan = np.vstack([np.tile(final[0], (PLAN_PAST_TICKS, 1)), final])
         event_tick = int(knot_ticks(n_plan)[event_knot - 1]) if event_knot is not None else None
 
+        reads = draw_reads(seed, n_ticks, RATE_HZ) if daemon_view else None
         pb.restoreState(initial_state, physicsClientId=world.client)
-        run = _rollout(world, robot, final, n_ticks, threshold, False, camera, bodies, haz, ball)
+        run = _rollout(world, robot, final, n_ticks, threshold, False, camera, bodies, haz, ball, push=the_push,
+                       read_steps=reads.physics_steps() if reads is not None else None,
+                       watch=the_obstacle.surface if the_obstacle is not None else None)
         if sigma == 0:
             progress = float((robot.base_xy() - start_xy) @ direction)
         distance = float(np.linalg.norm(run.end_xy - start_xy))
@@ -682,12 +946,21 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
             cf_eta[redraw] = cf_rng.normal(0.0, 1.0, (int(redraw.sum()), len(JOINT_NAMES))) * (background if counterfactual_walking else amp[redraw, None])
             pb.restoreState(initial_state, physicsClientId=world.client)
             cf_run = _rollout(world, robot, perturbed(cf_eta), n_ticks, threshold, True, None,
-                              bodies, haz, ball)
+                              bodies, haz, ball, push=the_push)
             cf_onset = cf_run.onset_tick
     finally:
         world.close()
     heights = np.array(run.heights)
     fallen = np.maximum.accumulate(heights < threshold)
+    joint_messages = camera_sent = sensors = None
+    if daemon_view:
+        joint_messages = reads.messages(run.step_angles, run.joints[0])
+        camera_sent = draw_camera(seed, n_ticks) if render else None
+        sensors = {"joint_read_hz": READ_HZ, "miss_probability": MISS_PROBABILITY,
+                   "retry_probability": RETRY_PROBABILITY, **reads.summary()}
+        if camera_sent is not None:
+            sensors.update({"frame_drop_probability": FRAME_DROP_PROBABILITY,
+                            "freeze_start_probability": FREEZE_START_PROBABILITY, **camera_summary(camera_sent)})
     return Episode(seed=seed, sigma=sigma, params=params, n_ticks=n_ticks, joints_rad=np.array(run.joints),
                    plan_rad=full_plan, head_height_m=heights, fallen=fallen, jpeg_frames=run.frames,
                    standing_head_height_m=standing, scene=scene, plan_attempts=attempts,
@@ -695,8 +968,11 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
                    contact_with=run.contact_with, distance_m=distance,
                    counterfactual_onset_tick=cf_onset, counterfactual_from_tick=cf_from,
                    plan_id=plan.plan_id if plan is not None else "", background_sigma=background,
-                   event_tick=event_tick)
+                   event_tick=event_tick, push=the_push, obstacle=the_obstacle, contacts=dict(run.contacts),
+                   touching_at_onset=dict(run.touching_at_onset),
+                   joint_messages=joint_messages, camera_sent=camera_sent, sensors=sensors,
+                   obstacle_in_view=run.in_view if the_obstacle is not None and render else None)
 
 
-__all__ = ["Episode", "Hazard", "KeptPlan", "search_plan", "simulate_episode", "stamp_ns", "perturbation_factor",
+__all__ = ["Episode", "Hazard", "Push", "Obstacle", "KeptPlan", "search_plan", "simulate_episode", "stamp_ns", "perturbation_factor",
            "knot_deviation", "smooth_knots", "knot_sigmas", "SIGMAS", "RATE_HZ", "JOINT_NAMES", "GENERATOR_VERSION"]

@@ -86,8 +86,25 @@ def write_episode(path: Path, episode) -> None:
             seq[topic] += 1
 
         plan_every = episode.plan_period_ticks
+        # The joints at the buses' cycle (what the daemon reads), merged in time order with
+        # the ticks' messages; or one message a tick.
+        reads = getattr(episode, "joint_messages", None)
+        sent = getattr(episode, "camera_sent", None)
+        r = 0
+
+        def put_joints(ns: int, positions) -> None:
+            put(TOPIC_JOINTS, {
+                "header": header(ns, "base"),
+                "name": names,
+                "position": [float(a) for a in positions],
+                "velocity": [], "effort": [],
+            }, ns)
+
         for k in range(episode.n_ticks):
             now_ns = stamp_ns(k)
+            while reads is not None and r < len(reads) and reads[r][0] <= now_ns:
+                put_joints(*reads[r])
+                r += 1
             if k % plan_every == 0:
                 first, points = episode.plan_message_points(k)
                 put(TOPIC_PLAN, {
@@ -99,17 +116,15 @@ def write_episode(path: Path, episode) -> None:
                         "time_from_start": ros_time(stamp_ns(first + i) - stamp_ns(first)),
                     } for i, row in enumerate(points)],
                 }, now_ns)
-            put(TOPIC_JOINTS, {
-                "header": header(now_ns, "base"),
-                "name": names,
-                "position": [float(a) for a in episode.joints_rad[k]],
-                "velocity": [], "effort": [],
-            }, now_ns)
-            put(TOPIC_CAMERA, {
-                "header": header(now_ns, "head_camera"),
-                "format": "jpeg",
-                "data": episode.jpeg_frames[k],
-            }, now_ns)
+            if reads is None:
+                put_joints(now_ns, episode.joints_rad[k])
+            frame = k if sent is None else sent[k]
+            if frame >= 0:
+                put(TOPIC_CAMERA, {
+                    "header": header(now_ns, "head_camera"),
+                    "format": "jpeg",
+                    "data": episode.jpeg_frames[frame],
+                }, now_ns)
             put(TOPIC_FALLEN, {"data": bool(episode.fallen[k])}, now_ns)
         # mcap_ros2's Writer has no metadata call; its inner mcap Writer does.
         writer._writer.add_metadata(METADATA_NAME, episode.metadata())

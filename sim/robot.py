@@ -64,6 +64,9 @@ class Robot:
             pb.getJointInfo(self.body, j, physicsClientId=client)[10] for j in self.joint_indices])
         # The per-step command's constant arguments, made once (the command runs 2,400 times an episode).
         self._forces = self.max_force.tolist()
+        #: Joint limits (rad, model order): the balance feedback's corrections stay inside them.
+        self.lo = np.array([pb.getJointInfo(self.body, j, physicsClientId=client)[8] for j in self.joint_indices])
+        self.hi = np.array([pb.getJointInfo(self.body, j, physicsClientId=client)[9] for j in self.joint_indices])
         self._zero_velocities = [0.0] * len(self.joint_indices)
         self._position_gains = [POSITION_GAIN] * len(self.joint_indices)
         self._velocity_gains = [VELOCITY_GAIN] * len(self.joint_indices)

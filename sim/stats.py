@@ -62,8 +62,45 @@ def _set_sigmas(directory: Path) -> tuple[float, ...]:
         return SIGMAS
 
 
+def _set_probabilities(directory: Path) -> dict[str, float]:
+    """The ball, push and obstacle probabilities the set was made with (its manifest), or the defaults."""
+    from .episode import HAZARD_PROBABILITY, OBSTACLE_PROBABILITY, PUSH_PROBABILITY
+    try:
+        g = json.loads((directory / "manifest.json").read_text())["generator"]
+    except (OSError, ValueError, KeyError, TypeError):
+        g = {}
+    return {"hazard_probability": float(g.get("hazard_probability", HAZARD_PROBABILITY)),
+            "push_probability": float(g.get("push_probability", PUSH_PROBABILITY)),
+            "obstacle_probability": float(g.get("obstacle_probability", OBSTACLE_PROBABILITY))}
+
+
+#: The outside causes, and the simulate_episode switch that takes each out.
+CAUSE_SWITCH = {"push": "push", "obstacle": "obstacle", "collision": "hazard"}
+
+
+def cause_counterfactual(seed: int, sigma: float, duration_s: float, cause: str, plan: dict | None = None,
+                         sigmas: tuple[float, ...] | None = None, probabilities: dict | None = None) -> dict:
+    """Re-simulate one generated fall with its outside CAUSE and without it (no camera).
+
+    The episode without the push, the obstacle or the ball is the same episode
+    (those have random streams of their own, or are drawn whether used or not).
+    """
+    from .episode import SIGMAS, KeptPlan, simulate_episode
+    kw = dict(duration_s=duration_s, render=False, plan=KeptPlan.from_dict(plan) if plan else None,
+              sigmas=sigmas or SIGMAS, **(probabilities or {}))
+    ep = simulate_episode(seed, **kw)
+    if ep.sigma != sigma:
+        raise ValueError(f"episode seed {seed}: re-simulated sigma {ep.sigma} is not the recorded {sigma}")
+    without = simulate_episode(seed, **kw, **{CAUSE_SWITCH[cause]: False})
+    onset, cf = ep.fall_onset_tick, without.fall_onset_tick
+    return {"seed": seed, "cause": cause, "reproduced": ep.fall_cause == cause, "onset_tick": onset,
+            "without_onset_tick": cf, "averted": onset is not None and cf is None,
+            "moved": onset is not None and cf is not None and abs(cf - onset) > COUNTERFACTUAL_MOVE_TICKS}
+
+
 def counterfactual(seed: int, sigma: float, duration_s: float, draw: int = 1, plan: dict | None = None,
-                   sigmas: tuple[float, ...] | None = None, walking: bool = False) -> dict:
+                   sigmas: tuple[float, ...] | None = None, walking: bool = False,
+                   probabilities: dict | None = None) -> dict:
     """Re-simulate one generated episode (no camera) and its counterfactual; what happened to the fall.
 
     ``generate`` lets each episode draw its sigma, so the re-simulation does
@@ -76,7 +113,7 @@ def counterfactual(seed: int, sigma: float, duration_s: float, draw: int = 1, pl
     ep = simulate_episode(seed, duration_s=duration_s, render=False,
                           counterfactual_lead_ticks=COUNTERFACTUAL_LEAD_TICKS, counterfactual_draw=draw,
                           plan=KeptPlan.from_dict(plan) if plan else None, sigmas=sigmas or SIGMAS,
-                          counterfactual_walking=walking)
+                          counterfactual_walking=walking, **(probabilities or {}))
     if ep.sigma != sigma:
         raise ValueError(f"episode seed {seed}: re-simulated sigma {ep.sigma} is not the recorded {sigma}; "
                          "was it made by `sim generate` with this generator?")
@@ -100,6 +137,9 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
             "onset_s": int(meta["fall_onset_ns"]) / 1e9 if "fall_onset_ns" in meta else None,
             "event_s": int(meta["event_ns"]) / 1e9 if "event_ns" in meta else None,
             "cause": meta.get("fall_cause"),
+            "cause_s": int(meta["cause_ns"]) / 1e9 if "cause_ns" in meta else None,
+            "push": json.loads(meta.get("push", "null") or "null") is not None,
+            "obstacle": (json.loads(meta.get("obstacle", "null") or "null") or {}).get("kind"),
             "hazard": hazard is not None and hazard.get("launched", True),
             "launch_s": (int(hazard["launch_ns"]) / 1e9
                          if hazard is not None and hazard.get("launched", True) and "launch_ns" in hazard else None),
@@ -130,6 +170,20 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
             "distance_m_not_falling": _spread([r["distance_m"] for r in rs if r["onset_s"] is None], 3),
         }
     falls = [r for r in rows if r["onset_s"] is not None]
+    causes = {}
+    for cause, has in (("perturbation", lambda r: True), ("collision", lambda r: r["hazard"]),
+                       ("push", lambda r: r["push"]), ("obstacle", lambda r: r["obstacle"] is not None)):
+        mine = [r for r in falls if r["cause"] == cause]
+        causes[cause] = {
+            "falls": len(mine), "share_of_falls": round(len(mine) / len(falls), 3) if falls else None,
+            "episodes_with_it": sum(bool(has(r)) for r in rows),
+            "cause_to_onset_s": _spread([r["onset_s"] - r["cause_s"] for r in mine if r["cause_s"] is not None], 2),
+        }
+    causes["obstacle"]["by_kind"] = {
+        k: {"episodes": sum(r["obstacle"] == k for r in rows),
+            "obstacle_falls": sum(r["obstacle"] == k and r["cause"] == "obstacle" for r in falls)}
+        for k in sorted({r["obstacle"] for r in rows if r["obstacle"]})}
+    plain = [r for r in rows if not (r["hazard"] or r["push"] or r["obstacle"])]
     launch_leads = [r["onset_s"] - r["launch_s"] for r in falls
                     if r["cause"] == "collision" and r["launch_s"] is not None]
     summary = {
@@ -150,14 +204,35 @@ def summarise(directory: Path, counterfactual_n: int = 0, jobs: int = 1) -> dict
         "onset_s": _spread([r["onset_s"] for r in falls], 2),
         "distance_m": _spread([r["distance_m"] for r in rows], 3),
         "distance_m_not_falling": _spread([r["distance_m"] for r in rows if r["onset_s"] is None], 3),
+        "causes": causes,
+        "episodes_without_outside_cause": len(plain),
+        "distance_m_not_falling_without_outside_cause": _spread(
+            [r["distance_m"] for r in plain if r["onset_s"] is None], 3),
         "plan_progress_m": _spread([r["progress_m"] for r in rows], 3),
         "distinct_plans": len({r["plan"]["plan_id"] for r in rows if r["plan"]}),
     }
     if counterfactual_n > 0:
         picks = [r for r in falls if r["cause"] == "perturbation"][:counterfactual_n]
         sigmas = _set_sigmas(directory)
+        probabilities = _set_probabilities(directory)
+        for cause in CAUSE_SWITCH:
+            mine = [r for r in falls if r["cause"] == cause][:counterfactual_n]
+            args = [(r["seed"], float(r["sigma"]), r["duration_s"], cause, r["plan"], sigmas, probabilities)
+                    for r in mine]
+            if jobs > 1 and args:
+                with ProcessPoolExecutor(max_workers=jobs) as pool:
+                    results = list(pool.map(cause_counterfactual, *zip(*args)))
+            else:
+                results = [cause_counterfactual(*a) for a in args]
+            changed = [r for r in results if r["averted"] or r["moved"]]
+            causes[cause]["counterfactual_without_it"] = {
+                "falls_tried": len(results), "reproduced": sum(r["reproduced"] for r in results),
+                "averted": sum(r["averted"] for r in results), "moved": sum(r["moved"] for r in results),
+                "share_averted_or_moved": round(len(changed) / len(results), 3) if results else None,
+            }
         for key, walking in (("counterfactual", False), ("counterfactual_walking", True)):
-            args = [(r["seed"], float(r["sigma"]), r["duration_s"], 1, r["plan"], sigmas, walking) for r in picks]
+            args = [(r["seed"], float(r["sigma"]), r["duration_s"], 1, r["plan"], sigmas, walking, probabilities)
+                    for r in picks]
             if jobs > 1:
                 with ProcessPoolExecutor(max_workers=jobs) as pool:
                     results = list(pool.map(counterfactual, *zip(*args)))
