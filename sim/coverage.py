@@ -17,7 +17,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from mcap_ros2.reader import read_ros2_messages
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
 from .robot import JOINT_NAMES
 
@@ -28,13 +29,14 @@ PERCENTILES = (0.1, 99.9)
 def joint_positions(path: Path) -> np.ndarray:
     """Every /joint_states message of PATH as rows [n, 25] (rad, model order; NaN: not in the message)."""
     rows = []
-    for m in read_ros2_messages(str(path), topics=[TOPIC_JOINTS]):
-        msg = m.ros_msg
-        row = np.full(len(JOINT_NAMES), np.nan)
-        for name, pos in zip(msg.name, msg.position):
-            if name in JOINT_NAMES:
-                row[JOINT_NAMES.index(name)] = pos
-        rows.append(row)
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, _, _, msg in reader.iter_decoded_messages(topics=[TOPIC_JOINTS], log_time_order=True):
+            row = np.full(len(JOINT_NAMES), np.nan)
+            for name, pos in zip(msg.name, msg.position):
+                if name in JOINT_NAMES:
+                    row[JOINT_NAMES.index(name)] = pos
+            rows.append(row)
     if not rows:
         raise ValueError(f"{path}: no {TOPIC_JOINTS} messages")
     return np.array(rows)
