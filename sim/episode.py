@@ -122,12 +122,15 @@ PUSH_START_S = (2.0, 8.0)
 PUSH_IMPULSE_NS = (0.3, 1.5)
 PUSH_DURATION_S = 0.1
 PUSH_LINK = "chest"
-#: Obstacles in the walking path: share of episodes, and per kind the distance of its near
-#: face ahead of the pelvis (m): a sill (a low bar across the path, which trips the feet), a
-#: box (shin to thigh high) and a panel (a wall-like board taller than the camera's view line).
+#: Obstacles in the walking path: share of episodes, and per kind the distance of its nearest
+#: corner ahead of the pelvis (m): a sill (a low bar across the path, which trips the feet), a
+#: box (shin to thigh high), a panel (a wall-like board taller than the camera's view line) and
+#: a table (its top at chest height: the legs walk under it, the chest and arms hit its edge).
 OBSTACLE_PROBABILITY = 0.15
-OBSTACLE_KINDS = ("sill", "box", "panel")
-OBSTACLE_DIST_M = {"sill": (0.1, 0.35), "box": (0.2, 0.45), "panel": (0.25, 0.5)}
+OBSTACLE_KINDS = ("sill", "box", "panel", "table")
+OBSTACLE_DIST_M = {"sill": (0.1, 0.35), "box": (0.2, 0.45), "panel": (0.25, 0.5), "table": (0.12, 0.3)}
+#: A table's top and legs are this thick (m).
+TABLE_BOARD_M = 0.03
 #: Random streams of the push and the obstacle (apart from the episode's own, so that
 #: forcing either leaves the rest of the episode as it was).
 PUSH_STREAM = 41
@@ -324,7 +327,8 @@ class Push:
 @dataclass
 class Obstacle:
     """An obstacle the plan does not know of, DISTANCE_M ahead on the start heading."""
-    kind: str                 # "sill" (a low bar across the path), "box" (a crate), "panel" (a wall-like board)
+    kind: str                 # "sill" (a low bar across the path), "box" (a crate), "panel" (a wall-like
+                              # board), "table" (size: width, depth, height of the top)
     distance_m: float
     lateral_m: float
     size_m: tuple[float, float, float]   # width (across the path), depth, height
@@ -336,7 +340,8 @@ class Obstacle:
         kind = str(rng.choice(OBSTACLE_KINDS))
         size = {"sill": (rng.uniform(0.6, 1.0), rng.uniform(0.02, 0.06), rng.uniform(0.02, 0.07)),
                 "box": (rng.uniform(0.2, 0.45), rng.uniform(0.15, 0.35), rng.uniform(0.08, 0.35)),
-                "panel": (rng.uniform(0.5, 1.2), rng.uniform(0.03, 0.08), rng.uniform(0.5, 1.0))}[kind]
+                "panel": (rng.uniform(0.5, 1.2), rng.uniform(0.03, 0.08), rng.uniform(0.5, 1.0)),
+                "table": (rng.uniform(0.6, 1.0), rng.uniform(0.4, 0.7), rng.uniform(0.4, 0.62))}[kind]
         return Obstacle(kind=kind, distance_m=float(rng.uniform(*OBSTACLE_DIST_M[kind])),
                         lateral_m=float(rng.uniform(-0.06, 0.06)), size_m=tuple(float(x) for x in size),
                         yaw_rad=float(rng.uniform(-0.4, 0.4)),
@@ -353,17 +358,29 @@ class Obstacle:
         reach = w / 2 * abs(math.sin(self.yaw_rad)) + d / 2 * abs(math.cos(self.yaw_rad))
         xy = np.asarray(start_xy) + (self.distance_m + reach) * fwd + self.lateral_m * side
         yaw = math.atan2(fwd[1], fwd[0]) + math.pi / 2 + self.yaw_rad
-        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[w / 2, d / 2, h / 2], physicsClientId=client)
-        vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[w / 2, d / 2, h / 2], rgbaColor=[*self.rgb, 1.0],
-                                   physicsClientId=client)
-        body = pb.createMultiBody(0, col, vis, basePosition=(xy[0], xy[1], h / 2),
+        if self.kind == "table":
+            # A top at height h and four legs at its corners, in the body's frame (centre on the floor).
+            t = TABLE_BOARD_M
+            parts = [((w / 2, d / 2, t / 2), (0.0, 0.0, h - t / 2))]
+            parts += [((t / 2, t / 2, (h - t) / 2), (sx * (w / 2 - t / 2), sy * (d / 2 - t / 2), (h - t) / 2))
+                      for sx in (-1, 1) for sy in (-1, 1)]
+        else:
+            parts = [((w / 2, d / 2, h / 2), (0.0, 0.0, h / 2))]
+        col = pb.createCollisionShapeArray([pb.GEOM_BOX] * len(parts), halfExtents=[p[0] for p in parts],
+                                           collisionFramePositions=[p[1] for p in parts], physicsClientId=client)
+        vis = pb.createVisualShapeArray([pb.GEOM_BOX] * len(parts), halfExtents=[p[0] for p in parts],
+                                        visualFramePositions=[p[1] for p in parts],
+                                        rgbaColors=[[*self.rgb, 1.0]] * len(parts), physicsClientId=client)
+        body = pb.createMultiBody(0, col, vis, basePosition=(xy[0], xy[1], 0.0),
                                   baseOrientation=pb.getQuaternionFromEuler((0, 0, yaw)), physicsClientId=client)
         pb.changeDynamics(body, -1, lateralFriction=0.9, physicsClientId=client)
         # Points on its surface (corners, edge middles, face centres), for the camera's view test.
+        # (A table's: its top's.)
+        z0, hz = (h - TABLE_BOARD_M / 2, TABLE_BOARD_M / 2) if self.kind == "table" else (h / 2, h / 2)
         g = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
-                      if (x, y, z) != (0, 0, 0)], dtype=float) * np.array([w / 2, d / 2, h / 2])
+                      if (x, y, z) != (0, 0, 0)], dtype=float) * np.array([w / 2, d / 2, hz])
         r = np.array(pb.getMatrixFromQuaternion(pb.getQuaternionFromEuler((0, 0, yaw)))).reshape(3, 3)
-        self.surface = g @ r.T + np.array([xy[0], xy[1], h / 2])
+        self.surface = g @ r.T + np.array([xy[0], xy[1], z0])
         return body
 
 
