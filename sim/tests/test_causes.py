@@ -138,3 +138,24 @@ def test_the_daemons_view_of_joints_and_camera():
     sent = draw_camera(1, 3000)
     assert 0 < sum(s < 0 for s in sent) < 100 and sum(0 <= s != k for k, s in enumerate(sent)) > 0
     assert seen.metadata()["sensors"] and json.loads(seen.metadata()["sensors"])["joint_read_hz"] == 50
+
+
+def test_a_table_is_a_top_on_four_legs_ahead_of_the_robot():
+    import pybullet as pb
+
+    from sim.episode import TABLE_BOARD_M, World
+
+    world = World()
+    try:
+        world.add_floor()
+        table = Obstacle("table", 0.2, 0.0, (0.8, 0.5, 0.5), 0.0, (0.5, 0.5, 0.5))
+        body = table.add(world.client, (0.0, 0.0), (0.0, -1.0))
+        shapes = pb.getCollisionShapeData(body, -1, physicsClientId=world.client)
+        lo, hi = pb.getAABB(body, -1, physicsClientId=world.client)
+    finally:
+        world.close()
+    assert len(shapes) == 5  # the top and four legs
+    assert abs(hi[2] - 0.5) < 1e-3 and abs(lo[2]) < 1e-3
+    # Its nearest edge 0.2 m ahead (facing -y), centred on the path; the camera's points on its top.
+    assert abs(hi[1] + 0.2) < 1e-3 and abs(lo[1] + 0.7) < 1e-3 and abs(lo[0] + hi[0]) < 1e-6
+    assert np.all(table.surface[:, 2] >= 0.5 - TABLE_BOARD_M - 1e-9)
