@@ -2,13 +2,13 @@
 //! settings (`ROS_SECURITY_ENABLE`, `ROS_SECURITY_STRATEGY`,
 //! `ROS_SECURITY_KEYSTORE`, `ROS_DOMAIN_ID`,
 //! `ROS_AUTOMATIC_DISCOVERY_RANGE`), to check a keystore by hand or to give
-//! a secured daemon a subscriber to encrypt for (`scripts/bench-security.sh`).
+//! a secured daemon a subscriber to encrypt for (`scripts/security/bench-security.sh`).
 //! Node `/fall_guard_monitor`, enclave `/fall_guard_monitor` unless
 //! `ROS_SECURITY_ENCLAVE_OVERRIDE` names another; prints what it received
 //! once a second for SECONDS (default 10):
 //!
 //! ```sh
-//! ROS_SECURITY_ENABLE=true ROS_SECURITY_STRATEGY=Enforce ROS_SECURITY_KEYSTORE=/tmp/ks \
+//! ROS_SECURITY_ENABLE=true ROS_SECURITY_STRATEGY=Enforce ROS_SECURITY_KEYSTORE=out/ks \
 //!   cargo run --release --features security --example sros2_listener -- 30
 //! ```
 

@@ -47,6 +47,9 @@ cd "$(dirname "$0")/.."
 REPO=$(pwd)
 
 DATA_ROOT=${FALL_GUARD_DATA:-$HOME/fall-guard-data}
+# The lab names what lies here relative to it in its reports and model files,
+# and every task on a cluster node finds the data directory at this same path.
+export FALL_GUARD_DATA=$DATA_ROOT
 JOBS=${RETRAIN_JOBS:-$(nproc)}
 PARALLEL=${RETRAIN_PARALLEL:-2}
 DEVICE=${RETRAIN_DEVICE:-cpu}
@@ -63,8 +66,6 @@ mkdir -p "$DATA_ROOT" "$RUNS" "$REPORTS"
 RAY=${RETRAIN_RAY:-}
 TRAIN_CPUS=${RETRAIN_TRAIN_CPUS:-1}
 case $DEVICE in cpu) TRAIN_GPUS=0 ;; *) TRAIN_GPUS=1 ;; esac
-# Every task on a cluster node finds the data directory at this same path.
-export FALL_GUARD_DATA=$DATA_ROOT
 
 log() { printf '%s %s\n' "$(date -u +%Y-%m-%dT%H:%M:%SZ)" "$*" | tee -a "$LOG" >&2; }
 
@@ -111,12 +112,15 @@ DATA_SETS=("$SET/.complete" "$WALK/.complete")
 current() {
   local out=$1 model=$2 horizon=$3; shift 3
   newer "$out" "$model" "${DATA_SETS[@]}" "$@" || return 1
+  # The report names its model relative to the data directory (an
+  # absolute path in a report written before that is taken too).
   "$PY" -c "
-import json, sys
+import json, os, sys
 r = json.load(open(sys.argv[1]))
-sys.exit(0 if r.get('model') == sys.argv[2] and r.get('horizon_ms') == int(sys.argv[3])
+named = os.path.realpath(os.path.join(sys.argv[5], r.get('model') or ''))
+sys.exit(0 if named == os.path.realpath(sys.argv[2]) and r.get('horizon_ms') == int(sys.argv[3])
          and r.get('release_hold_ms') == int(sys.argv[4]) else 1)" \
-    "$out" "$model" "$horizon" "$HOLD_MS"
+    "$out" "$model" "$horizon" "$HOLD_MS" "$DATA_ROOT"
 }
 
 # newer OUT IN...: OUT exists and is newer than every IN.

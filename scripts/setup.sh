@@ -3,7 +3,7 @@
 #   - system packages for the build: libudev-dev (serialport), libclang-dev
 #     (nokhwa's V4L2 bindings), nasm (burn's image codecs), pkg-config,
 #     libssl-dev and openssl (the `security` feature's OpenSSL, and the
-#     test keystore of scripts/sros2-keystore.sh);
+#     test keystore of scripts/security/sros2-keystore.sh);
 #   - the two Python environments (scripts/setup-python.sh): sim/.venv for
 #     the simulator, .venv with rclpy (PyPI wheels) for the ROS 2 tests.
 # Needs root or sudo for the packages; skips them when they are installed.

@@ -7,13 +7,13 @@ cd "$(dirname "$0")/.."
 # The crate graph: the robot's binary links the runtime, never the lab nor
 # plotters, linfa or indicatif; inside each library crate the modules import
 # one another without a cycle (docs/architecture.md).
-bash scripts/check-crates.sh
-python3 scripts/check-layers.py
+bash scripts/checks/check-crates.sh
+python3 scripts/checks/check-layers.py
 
 # DDS Security (cargo feature `security`, docs/ros.md "Security"): secured
 # peers against the daemon. Only the DDS crates and fall-guard's are built
 # again for it. First, so that target/debug/fall-guard (packaged by
-# scripts/test-deb.sh) is the default build's, made by the next line.
+# scripts/package/test-deb.sh) is the default build's, made by the next line.
 cargo test --features security --test ros_security
 
 # The whole workspace: the robot binary's tests and example, the runtime's

@@ -21,7 +21,7 @@
 //! `FALL_GUARD_SOAK_S` (default 120): how long the faults go on; under
 //! 600 s each kind comes once, with short durations; from 600 s on, faults
 //! of every kind follow each other at random for that long
-//! (`scripts/fault-soak.sh` runs an hour). `FALL_GUARD_SOAK_SEED` (default
+//! (`scripts/measure/fault-soak.sh` runs an hour). `FALL_GUARD_SOAK_SEED` (default
 //! 1): the schedule. `FALL_GUARD_SOAK_REPORT`: where the JSON report goes.
 
 mod daemon_common;

@@ -1,8 +1,8 @@
 //! The crates are the architecture (`docs/architecture.md`): the robot's
 //! binary never reaches the lab, nor plotters, linfa or indicatif
-//! (`scripts/check-crates.sh`, on `cargo tree`), and inside each library
+//! (`scripts/checks/check-crates.sh`, on `cargo tree`), and inside each library
 //! crate the modules import one another without a cycle
-//! (`scripts/check-layers.py`). Each check passes on the repository and
+//! (`scripts/checks/check-layers.py`). Each check passes on the repository and
 //! fails, naming what is wrong, on a graph that breaks it.
 
 use std::path::{Path, PathBuf};
@@ -22,7 +22,7 @@ fn output(command: &mut Command) -> (bool, String) {
 fn layers(srcs: &[&Path]) -> (bool, String) {
     output(
         Command::new("python3")
-            .arg(root().join("scripts/check-layers.py"))
+            .arg(root().join("scripts/checks/check-layers.py"))
             .arg("--src")
             .args(srcs),
     )
@@ -93,7 +93,7 @@ fn an_import_back_up_or_a_cycle_is_named() {
 fn crates(args: &[&str]) -> (bool, String) {
     output(
         Command::new("bash")
-            .arg(root().join("scripts/check-crates.sh"))
+            .arg(root().join("scripts/checks/check-crates.sh"))
             .args(args)
             .env("CARGO", env!("CARGO")),
     )

@@ -1,7 +1,7 @@
 //! DDS Security (SROS2, cargo feature `security`): the daemon (the real
 //! binary) started with `ROS_SECURITY_ENABLE=true`,
 //! `ROS_SECURITY_STRATEGY=Enforce` and a keystore made by
-//! `scripts/sros2-keystore.sh`, against secured ros2-client peers in this
+//! `scripts/security/sros2-keystore.sh`, against secured ros2-client peers in this
 //! process (their own enclaves), all on 127.0.0.1, one DDS domain per test:
 //!
 //! - a peer permitted to read the outputs receives the forecasts (numbers,
@@ -43,10 +43,10 @@ fn repo(path: &str) -> PathBuf {
 
 fn keystore_script(args: &[&str]) {
     let out = Command::new("bash")
-        .arg(repo("scripts/sros2-keystore.sh"))
+        .arg(repo("scripts/security/sros2-keystore.sh"))
         .args(args)
         .output()
-        .expect("run scripts/sros2-keystore.sh");
+        .expect("run scripts/security/sros2-keystore.sh");
     assert!(
         out.status.success(),
         "sros2-keystore.sh {args:?}: {}",

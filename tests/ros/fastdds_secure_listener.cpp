@@ -1,7 +1,7 @@
 // A Fast DDS 2.9 (Debian's libfastrtps) subscriber of /fall_guard/forecast
 // with DDS Security from one SROS2 enclave directory, on 127.0.0.1 only.
 // Build (Debian 12: apt install libfastrtps-dev g++):
-//   g++ -std=c++17 -O1 tests/ros/fastdds_secure_listener.cpp -o /tmp/fastdds_secure_listener -lfastrtps -lfastcdr
+//   g++ -std=c++17 -O1 tests/ros/fastdds_secure_listener.cpp -o out/fastdds_secure_listener -lfastrtps -lfastcdr
 // Usage: fastdds_secure_listener ENCLAVE_DIR DOMAIN SECONDS [open]
 // ("open": no security, to show that an open peer gets nothing).
 // Not part of the test suite: the interop check of docs/ros.md, "Security".

@@ -14,7 +14,7 @@ use std::path::PathBuf;
 use crate::error::{refused, CommandResult, Doing};
 
 use super::commands::{needs_of_model, SplitWindows, EVAL_BATCH};
-use super::dataset::{Dataset, Split};
+use super::dataset::{data_name, Dataset, Split};
 use super::fit::for_each_batch;
 use super::metrics::ece;
 use super::sampler::Protocol;
@@ -548,7 +548,7 @@ pub fn run_calibrate(args: &CalibrateOptions) -> CommandResult<CalibrateReport> 
     let fitted_on = format!(
         "{} split of {}, {} windows ({} draws per episode, sampler seed {}, {} protocol)",
         split.name(),
-        args.data.display(),
+        data_name(&args.data),
         logits.len(),
         args.draws.max(1),
         args.sample_seed,

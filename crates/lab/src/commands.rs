@@ -19,7 +19,7 @@ use super::fit::{
 };
 use super::logreg::LogRegModel;
 use super::plots;
-use crate::dataset::{Dataset, Split};
+use crate::dataset::{data_name, Dataset, Split};
 use crate::error::TrainError;
 use crate::sampler::{labels_at, Protocol, SamplerConfig, SamplerError, WindowSampler};
 use fall_guard_runtime::model::{
@@ -916,8 +916,8 @@ pub fn run_eval(args: &EvalOptions) -> CommandResult<Option<EvalReport>> {
             .iter()
             .map(|m| Predictions {
                 model: match m {
-                    AnyModel::Network(m) => m.path.display().to_string(),
-                    AnyModel::LogReg(_, p) => p.display().to_string(),
+                    AnyModel::Network(m) => data_name(&m.path),
+                    AnyModel::LogReg(_, p) => data_name(p),
                 },
                 probabilities: Vec::with_capacity(windows.len()),
             })
@@ -951,7 +951,7 @@ pub fn run_eval(args: &EvalOptions) -> CommandResult<Option<EvalReport>> {
         }
     }
     let rep = EvalReport::new(
-        paths.iter().map(|p| p.display().to_string()).collect(),
+        paths.iter().map(|p| data_name(p)).collect(),
         &ablation_name,
         split.name(),
         sections,

@@ -222,3 +222,59 @@ pub fn load_episode_as(
     }
     Ok(EpisodeTicks::from_recording_as(&rec, spec, storage)?)
 }
+
+/// The data directory: `$FALL_GUARD_DATA`, else `~/fall-guard-data` (as
+/// `scripts/retrain.sh` has it).
+pub fn data_dir() -> Option<PathBuf> {
+    std::env::var_os("FALL_GUARD_DATA")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join("fall-guard-data")))
+}
+
+/// `path` as a report or a model file names it: relative to the data
+/// directory ([`data_dir`]) when it lies there, so that a file made from
+/// the data names no machine; else as given.
+pub fn data_name(path: &Path) -> String {
+    name_under(path, data_dir().as_deref())
+}
+
+/// `path` relative to `dir` when it lies there, else as given.
+fn name_under(path: &Path, dir: Option<&Path>) -> String {
+    let canonical = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    if let Some(dir) = dir {
+        if let Ok(rel) = canonical(path).strip_prefix(canonical(dir)) {
+            if !rel.as_os_str().is_empty() {
+                return rel.display().to_string();
+            }
+        }
+    }
+    path.display().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_path_in_the_data_directory_is_named_relative_to_it() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let data = dir.path().join("data");
+        std::fs::create_dir_all(data.join("runs")).expect("mkdir");
+        let run = data.join("runs/emp-s1.bpk");
+        std::fs::write(&run, b"x").expect("write");
+        assert_eq!(name_under(&run, Some(&data)), "runs/emp-s1.bpk");
+        // Not yet written: named by its path alone.
+        assert_eq!(name_under(&data.join("simv5"), Some(&data)), "simv5");
+        // Outside it, or no data directory: as given.
+        let elsewhere = dir.path().join("elsewhere.bpk");
+        assert_eq!(
+            name_under(&elsewhere, Some(&data)),
+            elsewhere.display().to_string()
+        );
+        assert_eq!(
+            name_under(Path::new("models/emp.bpk"), None),
+            "models/emp.bpk"
+        );
+        assert_eq!(name_under(&data, Some(&data)), data.display().to_string());
+    }
+}

@@ -129,7 +129,7 @@ pub fn predict(model: &LoadedModel, windows: &[LabeledWindow]) -> Result<Predict
         probabilities.push(model.forecast_arrays(&w.joints, &w.plan, &w.frames)?);
     }
     Ok(Predictions {
-        model: model.path.display().to_string(),
+        model: crate::dataset::data_name(&model.path),
         probabilities,
     })
 }

@@ -18,9 +18,9 @@ use crate::error::{refused, CommandResult, Doing};
 use serde::Serialize;
 
 use super::commands::{forecast_ticks, needs_of_model};
-use super::dataset::{load_episode, Dataset, Split};
+use super::dataset::{data_name, load_episode, Dataset, Split};
 use fall_guard_runtime::model::LoadedModel;
-use fall_guard_runtime::outputs::latch::{release_hold_ticks, SafetyLatch};
+use fall_guard_runtime::outputs::latch::{release_hold_ticks, SafetyLatch, Thresholds};
 
 /// `fall-guard-lab warnings`.
 #[derive(Debug)]
@@ -106,8 +106,9 @@ pub fn warning_stats(
     let (mut falling, mut warned, mut calm, mut minutes, mut alarms) = (0, 0, 0, 0.0, 0u64);
     for ep in episodes {
         // The latch sees one probability: index 0 of a one-element forecast.
-        let mut latch = SafetyLatch::new(0, trigger, release)
-            .doing(|| format!("thresholds {trigger} / {release}"))?
+        let thresholds = Thresholds::new(trigger, release)
+            .doing(|| format!("thresholds {trigger} / {release}"))?;
+        let mut latch = SafetyLatch::new(0, thresholds)
             .with_release_hold(hold_ticks)
             .silent();
         match ep.onset_ns {
@@ -301,8 +302,8 @@ pub fn run_warnings(args: &WarningsOptions) -> CommandResult<WarningsReport> {
     };
     if let Some(out) = &args.out {
         let report = serde_json::json!({
-            "model": args.model,
-            "data": args.data,
+            "model": data_name(&args.model),
+            "data": data_name(&args.data),
             "split": args.split.name(),
             "horizon_ms": args.horizon_ms,
             "release_hold_ms": args.release_hold_ms,

@@ -4,7 +4,7 @@
 //! Inception convolution folded at several periods, and the classifier's
 //! input projection. Random weights: the cost does not depend on them.
 //!
-//! `cargo bench --bench model_parts`; medians in
+//! `cargo bench -p fall-guard-runtime --bench model_parts`; medians in
 //! `target/criterion/<group>/<name>/new/estimates.json`. `fall-guard bench`
 //! gives the whole tick; this says where it goes.
 

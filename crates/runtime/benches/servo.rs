@@ -3,7 +3,7 @@
 //! emulator answering at once (reader + pty cost) and with 1 Mbaud wire time
 //! simulated (what a real bus adds, USB latency not included).
 //!
-//! `cargo bench --bench servo`; medians in
+//! `cargo bench -p fall-guard-runtime --bench servo`; medians in
 //! `target/criterion/read_cycle_25_joints/<mode>_<wire>/new/estimates.json`.
 
 use std::time::Duration;

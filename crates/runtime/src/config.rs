@@ -19,6 +19,8 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use thiserror::Error;
 
+use crate::outputs::latch::{LatchError, Thresholds};
+
 /// The default replay configuration, compiled into the binary.
 pub const EMBEDDED_REPLAY_CONFIG: &str = include_str!("../../../config/replay.toml");
 /// The name the embedded default reports in errors.
@@ -187,6 +189,16 @@ impl NetworkThresholds {
         .filter_map(|(a, key, pair)| pair.map(|p| (a, key, p)))
         .collect()
     }
+}
+
+/// The safety latch's pairs of `[model]`, checked
+/// ([`Config::latch_thresholds`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LatchThresholds {
+    /// `[model].trigger`, `[model].release`: for a network without its own.
+    pub default: Thresholds,
+    /// `[model.thresholds]`: each network's own.
+    pub per_network: Vec<(crate::model::Ablation, Thresholds)>,
 }
 
 /// `[model].fallbacks`: when the fallback networks are in memory.
@@ -514,6 +526,42 @@ impl Config {
     }
 
     /// Checks that need nothing but the file.
+    /// The safety latch's pairs, each made by [`Thresholds::new`] (the one
+    /// check of a pair); a bad one is named by its key. Checked when the
+    /// config is loaded, so that a loaded config's pairs are good.
+    pub fn latch_thresholds(&self) -> Result<LatchThresholds, ConfigError> {
+        let m = &self.model;
+        let default = Thresholds::new(m.trigger, m.release).map_err(|e| match e {
+            LatchError::OutOfRange { which, value } => self.value_error(
+                &format!("[model].{which}"),
+                format!("expected a probability in [0, 1], got {value}"),
+            ),
+            LatchError::NotBelow { trigger, release } => self.value_error(
+                "[model].release",
+                format!("expected below [model].trigger = {trigger} (hysteresis), got {release}"),
+            ),
+        })?;
+        let per_network = m
+            .thresholds
+            .pairs()
+            .into_iter()
+            .map(|(network, key, [trigger, release])| {
+                Thresholds::new(trigger, release)
+                    .map(|t| (network, t))
+                    .map_err(|e| {
+                        self.value_error(
+                            key,
+                            format!("expected [trigger, release]: {e}, got [{trigger}, {release}]"),
+                        )
+                    })
+            })
+            .collect::<Result<_, _>>()?;
+        Ok(LatchThresholds {
+            default,
+            per_network,
+        })
+    }
+
     fn validate(&self) -> Result<(), ConfigError> {
         if self.robot.name.trim().is_empty() {
             return Err(self.value_error("[robot].name", "must not be empty"));
@@ -530,40 +578,7 @@ impl Config {
         if let Err(e) = crate::clock::TickGrid::new(self.robot.tick_rate_hz) {
             return Err(self.value_error("[robot].tick_rate_hz", e.to_string()));
         }
-        let m = &self.model;
-        for (key, p) in [
-            ("[model].trigger", m.trigger),
-            ("[model].release", m.release),
-        ] {
-            if !(0.0..=1.0).contains(&p) {
-                return Err(
-                    self.value_error(key, format!("expected a probability in [0, 1], got {p}"))
-                );
-            }
-        }
-        if m.release >= m.trigger {
-            return Err(self.value_error(
-                "[model].release",
-                format!(
-                    "expected below [model].trigger = {} (hysteresis), got {}",
-                    m.trigger, m.release
-                ),
-            ));
-        }
-        for (_, key, [trigger, release]) in m.thresholds.pairs() {
-            if !((0.0..=1.0).contains(&trigger)
-                && (0.0..=1.0).contains(&release)
-                && release < trigger)
-            {
-                return Err(self.value_error(
-                    key,
-                    format!(
-                        "expected [trigger, release], both in [0, 1], release below trigger \
-                         (hysteresis), got [{trigger}, {release}]"
-                    ),
-                ));
-            }
-        }
+        self.latch_thresholds()?;
         let s = &self.streams;
         for (key, ms) in [
             ("[streams].joints_stale_ms", s.joints_stale_ms),

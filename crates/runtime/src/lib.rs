@@ -9,7 +9,7 @@
 //! recorder). The daemon wires them per command. Training is another crate
 //! (`fall-guard-lab`), built on this one: it cuts its windows with the same
 //! `window` code the daemon uses, and this crate never depends on it.
-//! Modules import only downwards (`scripts/check-layers.py`).
+//! Modules import only downwards (`scripts/checks/check-layers.py`).
 
 pub mod clock;
 pub mod config;

@@ -62,6 +62,22 @@ pub struct BenchReport {
     pub pacing: String,
 }
 
+/// `path` relative to the current directory when it lies there (a report
+/// that names no machine), else as given.
+fn relative_to_here(path: &std::path::Path) -> String {
+    let canonical = |p: &std::path::Path| std::fs::canonicalize(p).ok();
+    match (
+        canonical(path),
+        std::env::current_dir().ok().as_deref().and_then(canonical),
+    ) {
+        (Some(p), Some(here)) => match p.strip_prefix(&here) {
+            Ok(rel) if !rel.as_os_str().is_empty() => rel.display().to_string(),
+            _ => path.display().to_string(),
+        },
+        _ => path.display().to_string(),
+    }
+}
+
 impl BenchReport {
     /// The report as pretty-printed JSON (what `--json` writes and the
     /// command prints).
@@ -189,7 +205,7 @@ pub async fn run(args: BenchDaemonOptions) -> Result<BenchReport, ServiceError> 
         .map(|r| *r)
         .unwrap_or_else(|_| RssFigures::new(rss_first));
     let report = BenchReport {
-        recording: recording.display().to_string(),
+        recording: relative_to_here(&recording),
         wall_s,
         passes,
         ticks: counters.ticks,
@@ -304,7 +320,7 @@ impl LatencyHistogram {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::forecast::percentiles_ms;
+    use crate::pipeline::inference::percentiles_ms;
 
     #[test]
     fn histogram_quantiles_are_within_one_bucket_of_the_exact_ones() {

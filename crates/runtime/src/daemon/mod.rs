@@ -18,9 +18,9 @@ use thiserror::Error;
 use crate::clock::ReplayClock;
 use crate::config::{Config, ConfigError};
 use crate::daemon::replay::replay_samples;
-use crate::outputs::latch::{LatchError, SafetyLatch};
+use crate::outputs::latch::SafetyLatch;
 use crate::outputs::recorder::Recorder;
-use crate::pipeline::forecast::{ablation_name, ForecastError, ModelSet};
+use crate::pipeline::models::{ablation_name, ForecastError, ModelSet};
 use crate::pipeline::tick::{LiveTaps, StreamSlot, TickCounters, TickSettings};
 use crate::recording::RecordingError;
 use crate::robot::JointTable;
@@ -42,12 +42,6 @@ pub enum ServiceError {
     Recording(#[from] RecordingError),
     #[error(transparent)]
     Window(#[from] WindowError),
-    #[error("{key}: {source}")]
-    Latch {
-        key: &'static str,
-        #[source]
-        source: LatchError,
-    },
     #[error("{0}")]
     Source(String),
     #[error("{0}")]
@@ -126,18 +120,14 @@ pub fn latch_for(config: &Config, models: &ModelSet) -> Result<SafetyLatch, Serv
         config.model.release_hold_ms,
         models.spec().rate_hz,
     );
-    let mut latch = SafetyLatch::new(index, config.model.trigger, config.model.release)
-        .map_err(|source| ServiceError::Latch {
-            key: "[model].release",
-            source,
-        })?
-        .with_release_hold(hold_ticks);
-    for (network, key, pair) in config.model.thresholds.pairs() {
-        latch = latch
-            .with_network(network, pair[0], pair[1])
-            .map_err(|source| ServiceError::Latch { key, source })?;
-    }
-    Ok(latch)
+    let thresholds = config.latch_thresholds()?;
+    let latch = SafetyLatch::new(index, thresholds.default).with_release_hold(hold_ticks);
+    Ok(thresholds
+        .per_network
+        .into_iter()
+        .fold(latch, |latch, (network, pair)| {
+            latch.with_network(network, pair)
+        }))
 }
 
 /// The tick settings of `config` for streams with these sources

@@ -19,7 +19,7 @@ use crate::daemon::ServiceError;
 use crate::msgs::{CompressedImage, Header, JointState};
 use crate::outputs::ros::{ros_time, OutputTopics, RosOutputs};
 use crate::outputs::{publish_imminent_change, published_probabilities, ForecastOutput, OutputBus};
-use crate::pipeline::forecast::ModelSet;
+use crate::pipeline::models::ModelSet;
 use crate::ros::{RosError, RosNode, RosSettings, DISCOVERY_RANGE_ENV, DOMAIN_ID_ENV};
 use crate::shutdown::Shutdown;
 use crate::sources::ros::{CameraFeed, RosFeeds};

@@ -26,20 +26,59 @@ use thiserror::Error;
 
 use crate::model::Ablation;
 
+/// A pair that is not a latch's.
 #[derive(Debug, Error, PartialEq)]
 pub enum LatchError {
-    #[error(
-        "release threshold {release} must be below the trigger threshold {trigger}, both in [0, 1]"
-    )]
-    Thresholds { trigger: f32, release: f32 },
+    /// `which` (`trigger` or `release`) is not a probability.
+    #[error("{which}: expected a probability in [0, 1], got {value}")]
+    OutOfRange { which: &'static str, value: f32 },
+    /// No hysteresis.
+    #[error("release {release} must be below trigger {trigger} (hysteresis)")]
+    NotBelow { trigger: f32, release: f32 },
+}
+
+/// The pair of a latch: on at or above `trigger`, off below `release`. Made
+/// by [`Thresholds::new`] only, the one check of a pair (both in [0, 1],
+/// `release` below `trigger`): the config's pairs (`Config::latch_thresholds`)
+/// and those of `fall-guard-lab warnings` go through it, and the latch takes
+/// the checked value.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Thresholds {
+    trigger: f32,
+    release: f32,
+}
+
+impl Thresholds {
+    /// `trigger` and `release`, checked.
+    pub fn new(trigger: f32, release: f32) -> Result<Thresholds, LatchError> {
+        for (which, value) in [("trigger", trigger), ("release", release)] {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(LatchError::OutOfRange { which, value });
+            }
+        }
+        if release >= trigger {
+            return Err(LatchError::NotBelow { trigger, release });
+        }
+        Ok(Thresholds { trigger, release })
+    }
+
+    /// On at or above this.
+    pub fn trigger(self) -> f32 {
+        self.trigger
+    }
+
+    /// Off below this.
+    pub fn release(self) -> f32 {
+        self.release
+    }
 }
 
 /// Hysteresis on one horizon's fall probability.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SafetyLatch {
     horizon_index: usize,
-    trigger: f32,
-    release: f32,
+    /// The pair in use.
+    thresholds: Thresholds,
     imminent: bool,
     /// Number of off -> on transitions on a probability since start (an
     /// assertion for lack of a valid forecast is not counted).
@@ -49,9 +88,9 @@ pub struct SafetyLatch {
     /// Log each switch (the daemon); off for offline analysis.
     log: bool,
     /// The pair given to `new`, for a network without its own.
-    default: (f32, f32),
+    default: Thresholds,
     /// Pairs chosen for one network.
-    per_network: Vec<(Ablation, (f32, f32))>,
+    per_network: Vec<(Ablation, Thresholds)>,
     /// Valid ticks in a row below `release` that release the latch (>= 1).
     release_hold_ticks: usize,
     /// Valid ticks in a row below `release` so far while on.
@@ -63,36 +102,21 @@ pub fn release_hold_ticks(ms: u32, rate_hz: f64) -> usize {
     (f64::from(ms) * rate_hz / 1000.0 - 1e-9).ceil().max(0.0) as usize
 }
 
-fn check(trigger: f32, release: f32) -> Result<(), LatchError> {
-    let in_unit = |p: f32| (0.0..=1.0).contains(&p);
-    if in_unit(trigger) && in_unit(release) && release < trigger {
-        Ok(())
-    } else {
-        Err(LatchError::Thresholds { trigger, release })
-    }
-}
-
 impl SafetyLatch {
     /// A latch watching `probabilities[horizon_index]`, off at start.
-    pub fn new(
-        horizon_index: usize,
-        trigger: f32,
-        release: f32,
-    ) -> Result<SafetyLatch, LatchError> {
-        check(trigger, release)?;
-        Ok(SafetyLatch {
+    pub fn new(horizon_index: usize, thresholds: Thresholds) -> SafetyLatch {
+        SafetyLatch {
             horizon_index,
-            trigger,
-            release,
+            thresholds,
             imminent: false,
             triggers: 0,
             blind: false,
             log: true,
-            default: (trigger, release),
+            default: thresholds,
             per_network: Vec::new(),
             release_hold_ticks: 1,
             below: 0,
-        })
+        }
     }
 
     /// The same latch released only after `ticks` valid ticks in a row
@@ -104,33 +128,25 @@ impl SafetyLatch {
 
     /// The same latch with `network`'s own pair, used while that network
     /// makes the forecasts.
-    pub fn with_network(
-        mut self,
-        network: Ablation,
-        trigger: f32,
-        release: f32,
-    ) -> Result<SafetyLatch, LatchError> {
-        check(trigger, release)?;
+    pub fn with_network(mut self, network: Ablation, thresholds: Thresholds) -> SafetyLatch {
         self.per_network.retain(|(a, _)| *a != network);
-        self.per_network.push((network, (trigger, release)));
-        Ok(self)
+        self.per_network.push((network, thresholds));
+        self
     }
 
     /// Use the pair of `network` (its own, else the default) from the next
     /// update on; the latch's state is kept.
     pub fn select(&mut self, network: Ablation) {
-        let (trigger, release) = self
+        self.thresholds = self
             .per_network
             .iter()
             .find(|(a, _)| *a == network)
             .map_or(self.default, |(_, pair)| *pair);
-        self.trigger = trigger;
-        self.release = release;
     }
 
-    /// The pair in use (trigger, release).
-    pub fn thresholds(&self) -> (f32, f32) {
-        (self.trigger, self.release)
+    /// The pair in use.
+    pub fn thresholds(&self) -> Thresholds {
+        self.thresholds
     }
 
     /// The same latch without a log line per switch (offline replays of many episodes).
@@ -160,18 +176,18 @@ impl SafetyLatch {
             return true;
         };
         self.blind = false;
-        if self.imminent && p < self.release {
+        if self.imminent && p < self.thresholds.release {
             self.below += 1;
         } else {
             self.below = 0;
         }
-        if !self.imminent && p >= self.trigger {
+        if !self.imminent && p >= self.thresholds.trigger {
             self.imminent = true;
             self.triggers += 1;
             if self.log {
                 tracing::warn!(
                     probability = p,
-                    trigger = self.trigger,
+                    trigger = self.thresholds.trigger,
                     "fall imminent: latch on"
                 );
             }
@@ -181,7 +197,7 @@ impl SafetyLatch {
             if self.log {
                 tracing::info!(
                     probability = p,
-                    release = self.release,
+                    release = self.thresholds.release,
                     "fall no longer imminent: latch off"
                 );
             }
@@ -206,13 +222,17 @@ impl SafetyLatch {
 mod tests {
     use super::*;
 
+    fn pair(trigger: f32, release: f32) -> Thresholds {
+        Thresholds::new(trigger, release).expect("valid")
+    }
+
     fn run(latch: &mut SafetyLatch, ps: &[f32]) -> Vec<bool> {
         ps.iter().map(|&p| latch.update(&[0.0, p], true)).collect()
     }
 
     #[test]
     fn triggers_at_threshold_and_releases_only_below_release() {
-        let mut latch = SafetyLatch::new(1, 0.7, 0.4).expect("valid");
+        let mut latch = SafetyLatch::new(1, pair(0.7, 0.4));
         let states = run(
             &mut latch,
             &[0.1, 0.69, 0.7, 0.5, 0.41, 0.4, 0.39, 0.6, 0.69, 0.71],
@@ -229,9 +249,7 @@ mod tests {
     /// count again); the assertion is never delayed.
     #[test]
     fn the_release_hold_delays_a_release_never_an_assertion() {
-        let mut latch = SafetyLatch::new(1, 0.7, 0.4)
-            .expect("valid")
-            .with_release_hold(3);
+        let mut latch = SafetyLatch::new(1, pair(0.7, 0.4)).with_release_hold(3);
         let states = run(
             &mut latch,
             &[0.1, 0.75, 0.2, 0.3, 0.5, 0.2, 0.1, 0.3, 0.2, 0.8],
@@ -251,15 +269,13 @@ mod tests {
             "three valid below in a row"
         );
         // 0 and 1 both release at the first tick below.
-        let mut latch = SafetyLatch::new(1, 0.7, 0.4)
-            .expect("valid")
-            .with_release_hold(0);
+        let mut latch = SafetyLatch::new(1, pair(0.7, 0.4)).with_release_hold(0);
         assert_eq!(run(&mut latch, &[0.8, 0.3]), [true, false]);
     }
 
     #[test]
     fn hovering_around_the_trigger_does_not_chatter() {
-        let mut latch = SafetyLatch::new(1, 0.5, 0.3).expect("valid");
+        let mut latch = SafetyLatch::new(1, pair(0.5, 0.3));
         let states = run(&mut latch, &[0.49, 0.51, 0.49, 0.51, 0.49, 0.51]);
         assert_eq!(states, [false, true, true, true, true, true]);
         assert_eq!(latch.triggers(), 1);
@@ -267,7 +283,7 @@ mod tests {
 
     #[test]
     fn invalid_or_nan_forecasts_assert_until_a_valid_one_is_below_release() {
-        let mut latch = SafetyLatch::new(0, 0.5, 0.3).expect("valid");
+        let mut latch = SafetyLatch::new(0, pair(0.5, 0.3));
         // Blind from the start (the ring filling): asserted.
         assert!(latch.update(&[0.0], false));
         assert!(latch.update(&[], true));
@@ -288,33 +304,55 @@ mod tests {
 
     #[test]
     fn each_network_uses_its_own_pair_and_the_state_survives_a_switch() {
-        let mut latch = SafetyLatch::new(0, 0.5, 0.3)
-            .expect("valid")
-            .with_network(Ablation::EMP, 0.7, 0.4)
-            .expect("valid");
+        let mut latch =
+            SafetyLatch::new(0, pair(0.5, 0.3)).with_network(Ablation::EMP, pair(0.7, 0.4));
         latch.select(Ablation::EMP);
-        assert_eq!(latch.thresholds(), (0.7, 0.4));
+        assert_eq!(latch.thresholds(), pair(0.7, 0.4));
         // 0.6 is below EMP's trigger.
         assert!(!latch.update(&[0.6], true));
         // MP has no pair of its own: the default; 0.6 triggers it.
         latch.select(Ablation::MP);
-        assert_eq!(latch.thresholds(), (0.5, 0.3));
+        assert_eq!(latch.thresholds(), pair(0.5, 0.3));
         assert!(latch.update(&[0.6], true));
         // Back to EMP while on: released only below EMP's release.
         latch.select(Ablation::EMP);
         assert!(latch.update(&[0.45], true));
         assert!(!latch.update(&[0.35], true));
         assert_eq!(latch.triggers(), 1);
-        assert!(SafetyLatch::new(0, 0.5, 0.3)
-            .expect("valid")
-            .with_network(Ablation::P, 0.3, 0.5)
-            .is_err());
     }
 
     #[test]
-    fn rejects_release_not_below_trigger() {
-        assert!(SafetyLatch::new(0, 0.5, 0.5).is_err());
-        assert!(SafetyLatch::new(0, 1.5, 0.5).is_err());
-        assert!(SafetyLatch::new(0, 0.5, -0.1).is_err());
+    fn a_pair_is_checked_where_it_is_made() {
+        assert_eq!(
+            Thresholds::new(0.5, 0.5),
+            Err(LatchError::NotBelow {
+                trigger: 0.5,
+                release: 0.5
+            })
+        );
+        assert_eq!(
+            Thresholds::new(0.3, 0.5),
+            Err(LatchError::NotBelow {
+                trigger: 0.3,
+                release: 0.5
+            })
+        );
+        assert_eq!(
+            Thresholds::new(1.5, 0.5),
+            Err(LatchError::OutOfRange {
+                which: "trigger",
+                value: 1.5
+            })
+        );
+        assert!(matches!(
+            Thresholds::new(0.5, -0.1),
+            Err(LatchError::OutOfRange {
+                which: "release",
+                ..
+            })
+        ));
+        assert!(Thresholds::new(f32::NAN, 0.1).is_err());
+        let t = pair(0.7, 0.4);
+        assert_eq!((t.trigger(), t.release()), (0.7, 0.4));
     }
 }

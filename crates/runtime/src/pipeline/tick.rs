@@ -22,10 +22,9 @@ use crate::outputs::{
     CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, OutputBus,
     StreamDiagnostics, ERROR_WINDOW_S,
 };
-use crate::pipeline::forecast::{
-    ablation_name, best_configured, percentiles_ms, Freshness, Inference, InferenceJob, JointsAt,
-    ModelChoice, ModelSet,
-};
+use crate::pipeline::choice::{best_configured, Freshness, JointsAt, ModelChoice};
+use crate::pipeline::inference::{percentiles_ms, Inference, InferenceJob};
+use crate::pipeline::models::{ablation_name, ModelSet};
 use crate::shutdown::Shutdown;
 use crate::streams::input::Seq;
 use crate::streams::sample::Sample;

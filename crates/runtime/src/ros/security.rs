@@ -199,7 +199,7 @@ pub fn plan(security: Option<&SecuritySettings>) -> Result<Plan, RosError> {
             Strategy::Enforce => Err(RosError::SecurityFile {
                 path: dir,
                 reason: format!(
-                    "enclave {} not found in the keystore (create it, e.g. with scripts/sros2-keystore.sh)",
+                    "enclave {} not found in the keystore (create it, e.g. with scripts/security/sros2-keystore.sh)",
                     s.enclave
                 ),
             }),

@@ -331,10 +331,10 @@ const HEALTH_PERIOD: Duration = Duration::from_millis(500);
 /// bus ([`ServoHealth`]).
 ///
 /// ```no_run
-/// # use fall_guard::robot::JointTable;
-/// # use fall_guard::sources::dynamixel::{DynamixelConfig, DynamixelSource};
-/// # use fall_guard::streams::{stream, StreamKind, input::InputLimits};
-/// # use fall_guard::streams::sample::Sample;
+/// # use fall_guard_runtime::robot::JointTable;
+/// # use fall_guard_runtime::sources::dynamixel::{DynamixelConfig, DynamixelSource};
+/// # use fall_guard_runtime::streams::{stream, StreamKind, input::InputLimits};
+/// # use fall_guard_runtime::streams::sample::Sample;
 /// let (shutdown_tx, shutdown_rx) = tokio::sync::watch::channel(false);
 /// let config = DynamixelConfig::poppy("/dev/ttyACM0", "/dev/ttyACM1");
 /// let (feed, tap) = stream::<Sample>(StreamKind::Joints, InputLimits::shapes(25, 0));
@@ -343,7 +343,7 @@ const HEALTH_PERIOD: Duration = Duration::from_millis(500);
 /// let stats = source.stats.snapshot();          // the raw bus counters
 /// shutdown_tx.send(true).ok();
 /// source.join();
-/// # Ok::<(), fall_guard::sources::dynamixel::DynamixelError>(())
+/// # Ok::<(), fall_guard_runtime::sources::dynamixel::DynamixelError>(())
 /// ```
 pub struct DynamixelSource {
     /// Counters of the buses (the stream's diagnostics are made from them).

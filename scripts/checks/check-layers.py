@@ -3,7 +3,7 @@
 cycle: a check of `crates/runtime/src` and `crates/lab/src`.
 
 Which crate may use which is Cargo's to guarantee (the robot's binary does
-not depend on the lab; `scripts/check-crates.sh`). Inside a crate, Cargo
+not depend on the lab; `scripts/checks/check-crates.sh`). Inside a crate, Cargo
 allows any module to import any other; this check keeps the top-level
 modules of each crate a directed graph without a cycle, which is what
 makes them layers: a module imports only the ones below it, and the order
@@ -14,14 +14,14 @@ Every `crate::` path (and `super::` path of a top-level file) in a module's
 code, comments and `#[cfg(test)] mod tests` blocks left out, is an import
 of the top-level module it names.
 
-Usage: python3 scripts/check-layers.py [--graph] [--src DIR ...]   (exit 1 on a cycle)
+Usage: python3 scripts/checks/check-layers.py [--graph] [--src DIR ...]   (exit 1 on a cycle)
 """
 
 import os
 import re
 import sys
 
-ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
 CRATES = [os.path.join(ROOT, "crates", c, "src") for c in ("runtime", "lab")]
 # A binary's files: above every module of the library beside them.
 BINARY = {"main", "cli"}

@@ -14,17 +14,17 @@
 #                                              created by the postinst
 #   /usr/share/doc/fall-guard/                 README, daemon and ROS docs, copyright
 #
-# Usage: scripts/deb.sh [--arch amd64|arm64] [--binary PATH] [--out DIR]
+# Usage: scripts/package/deb.sh [--arch amd64|arm64] [--binary PATH] [--out DIR]
 #   --arch    Debian architecture (default: this machine's);
 #   --binary  package this fall-guard binary instead of building one. Without
 #             it: `cargo build --release --bin fall-guard`, the robot's binary
 #             only (the lab's `fall-guard-lab` is never packaged; arm64: the cross build of
-#             scripts/setup-cross.sh, RUSTC=/usr/bin/rustc, target dir
+#             scripts/cross/setup-cross.sh, RUSTC=/usr/bin/rustc, target dir
 #             $AARCH64_TARGET_DIR or target-aarch64);
 #   --out     output directory (default: dist).
 # Maintainer field: $DEBFULLNAME <$DEBEMAIL> when set.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 
 host_arch=$(dpkg --print-architecture)
 arch=$host_arch

@@ -5,10 +5,10 @@
 # beside the load average, so that growth can be told from warm-up and from
 # the page cache. A benchmark, not a test: run it on an otherwise idle
 # machine. Figures: docs/performance.md, "The 1-hour soak".
-#   scripts/soak.sh [SECONDS] [OUT_PREFIX] [bench-daemon options, e.g. --config C]
+#   scripts/measure/soak.sh [SECONDS] [OUT_PREFIX] [bench-daemon options, e.g. --config C]
 # Writes OUT_PREFIX.json (bench-daemon's report) and OUT_PREFIX-rss-per-minute.txt.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 duration="${1:-3600}"
 prefix="${2:-out/soak-${duration}s}"
 shift $(($# < 2 ? $# : 2))

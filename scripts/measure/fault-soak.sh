@@ -4,7 +4,7 @@
 # emulated Poppy buses, with a ROS 2 planner and camera (rclpy peers), and
 # its JSON report.
 #
-#   bash scripts/fault-soak.sh [SECONDS [SEED [REPORT]]]
+#   bash scripts/measure/fault-soak.sh [SECONDS [SEED [REPORT]]]
 #
 # SECONDS: how long the faults go on (default 3600); SEED: the schedule
 # (default 1); REPORT: where the report goes (default
@@ -14,7 +14,7 @@
 # profile: dependencies at opt-level 3, fall-guard at 1) instead of a
 # release build.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 seconds=${1:-3600}
 seed=${2:-1}
 report=${3:-$PWD/fault-soak-$seed-${seconds}s.json}

@@ -9,7 +9,7 @@
 #     libudev-dev:arm64 (serialport's libudev);
 #   - qemu-user: runs the aarch64 tests and binaries on this machine;
 #   - dpkg-dev (dpkg-shlibdeps), systemd (systemd-analyze, systemd-sysusers)
-#     and udev (udevadm) for scripts/deb.sh and scripts/check-deb.sh.
+#     and udev (udevadm) for scripts/package/deb.sh and scripts/package/check-deb.sh.
 # Needs root or sudo.
 set -euo pipefail
 
@@ -39,7 +39,7 @@ fi
 
 # bookworm-security carries rustc-web 1.96; bookworm itself has 1.85, older
 # than the crate's rust-version.
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 need=$(sed -n 's/^rust-version = "\(.*\)"$/\1/p' Cargo.toml)
 have=$(/usr/bin/rustc -V | cut -d' ' -f2)
 if [ "$(printf '%s\n%s\n' "$need" "$have" | sort -V | head -1)" != "$need" ]; then

@@ -11,10 +11,10 @@
 # - the daemon as deployed: `fall-guard replay --config tests/fixtures/real/replay.toml`
 #   (no camera: it runs MP), its own printed latch counted.
 #
-# Usage: cargo build --release --workspace && bash scripts/real_walk_figures.sh
-#        FALL_GUARD=path/to/fall-guard FALL_GUARD_LAB=path/to/fall-guard-lab bash scripts/real_walk_figures.sh
+# Usage: cargo build --release --workspace && bash scripts/measure/real_walk_figures.sh
+#        FALL_GUARD=path/to/fall-guard FALL_GUARD_LAB=path/to/fall-guard-lab bash scripts/measure/real_walk_figures.sh
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 BIN=${FALL_GUARD:-target/release/fall-guard}
 LAB=${FALL_GUARD_LAB:-target/release/fall-guard-lab}
 REC=tests/fixtures/real/poppy_muffin_walk.mcap

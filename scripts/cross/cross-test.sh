@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # fall-guard on the robot's architecture, checked on this machine (after
-# scripts/setup-cross.sh):
+# scripts/cross/setup-cross.sh):
 #   1. cross-builds the robot's binary, the lab's and the runtime's test
 #      harnesses for aarch64-unknown-linux-gnu with all default features
 #      (Flex backend, V4L2 camera, Jazzy), in one profile (dev: dependencies
@@ -31,9 +31,9 @@
 # The aarch64 build goes to $AARCH64_TARGET_DIR (default target-aarch64),
 # outputs to $OUT_DIR (default out/cross). The binary is
 # $AARCH64_TARGET_DIR/aarch64-unknown-linux-gnu/<debug|cross-ci>/fall-guard,
-# where scripts/test-deb.sh (with the same CROSS_CI) packages it.
+# where scripts/package/test-deb.sh (with the same CROSS_CI) packages it.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 
 target=aarch64-unknown-linux-gnu
 aarch64_dir="${AARCH64_TARGET_DIR:-$PWD/target-aarch64}"
@@ -104,5 +104,5 @@ timed run_arm_lab eval --model models/emp.bpk --recording "$recording" --project
   --per-tick-out "$out/emp-int8-aarch64.jsonl"
 "$native_bin" eval --model models/emp.bpk --recording "$recording" --projection int8 \
   --per-tick-out "$out/emp-int8-native.jsonl"
-python3 scripts/compare_forecasts.py --tolerance "$tolerance" "$out" "${networks[@]}" emp-int8
+python3 scripts/cross/compare_forecasts.py --tolerance "$tolerance" "$out" "${networks[@]}" emp-int8
 echo "cross-test: done in $SECONDS s ($(uptime | sed 's/.*load/load/'))"

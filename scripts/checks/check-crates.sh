@@ -9,12 +9,12 @@
 # and no anyhow: checked on the sources, since ros2-client and rustypot
 # depend on clap themselves.
 #
-# Usage: scripts/check-crates.sh [--tree FILE PACKAGE]
+# Usage: scripts/checks/check-crates.sh [--tree FILE PACKAGE]
 #   --tree checks the dependency list in FILE (one crate name a line, as
 #   `cargo tree -e normal --prefix none` writes it) as PACKAGE's instead of
 #   running cargo: what the test of this script feeds it.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 CARGO=${CARGO:-cargo}
 
 # PACKAGE: the crates it must never reach.

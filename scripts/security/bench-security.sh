@@ -3,7 +3,7 @@
 # (the bundled recording at real time, 30 ticks a second, publishing on
 # ROS 2) with one listener of its outputs (examples/sros2_listener.rs:
 # forecast, fall_imminent, /diagnostics), open and then secured with a
-# keystore from scripts/sros2-keystore.sh, back to back, PAIRS times. The
+# keystore from scripts/security/sros2-keystore.sh, back to back, PAIRS times. The
 # daemon's CPU time (utime + stime, /proc/PID/stat) is read once a second;
 # the first 5 s (start, discovery, the handshake) are left out.
 #
@@ -12,11 +12,11 @@
 # bench-daemon's sensor-to-publish latency p50 / p99, and what the listener
 # received (both modes must deliver). All traffic on 127.0.0.1.
 #
-# Usage: scripts/bench-security.sh [--duration-s 60] [--pairs 2] [--out DIR]
+# Usage: scripts/security/bench-security.sh [--duration-s 60] [--pairs 2] [--out DIR]
 # Builds: cargo build --release --features security --bin fall-guard
 # --example sros2_listener (both modes run that one binary).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 
 duration=60 pairs=2 out=""
 while [ $# -gt 0 ]; do
@@ -36,7 +36,7 @@ bin="$target/fall-guard" listener="$target/examples/sros2_listener"
 
 keystore="$out/keystore"
 rm -rf "$keystore"
-bash scripts/sros2-keystore.sh fall-guard "$keystore" >/dev/null
+bash scripts/security/sros2-keystore.sh fall-guard "$keystore" >/dev/null
 
 clk=$(getconf CLK_TCK)
 domain=$((100 + $$ % 100))

@@ -27,12 +27,12 @@
 # is the node's full name, as sros2 has it).
 #
 # Usage:
-#   scripts/sros2-keystore.sh init KEYSTORE [--domains MIN-MAX] [--data-protection NONE|SIGN|ENCRYPT]
+#   scripts/security/sros2-keystore.sh init KEYSTORE [--domains MIN-MAX] [--data-protection NONE|SIGN|ENCRYPT]
 #       the CAs and the governance (kept when present; default domains 0-232,
 #       data protection NONE: see below)
-#   scripts/sros2-keystore.sh enclave KEYSTORE ENCLAVE [--publish T,...] [--subscribe T,...] [--domains MIN-MAX]
+#   scripts/security/sros2-keystore.sh enclave KEYSTORE ENCLAVE [--publish T,...] [--subscribe T,...] [--domains MIN-MAX]
 #       one enclave (an absolute name, /fall_guard) granted those ROS topics
-#   scripts/sros2-keystore.sh fall-guard KEYSTORE [--namespace /NS] [--domains MIN-MAX]
+#   scripts/security/sros2-keystore.sh fall-guard KEYSTORE [--namespace /NS] [--domains MIN-MAX]
 #       init, then the daemon's enclave and two peers' (topics of docs/ros.md
 #       under the namespace):
 #         <NS>/fall_guard          the daemon: publishes its outputs and

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Checks a fall-guard Debian package (scripts/deb.sh):
+# Checks a fall-guard Debian package (scripts/package/deb.sh):
 #   - control fields, conffiles, maintainer scripts; every expected path with
 #     its mode; the binary is an executable for the package's architecture,
 #     the robot's only (no lab binary, no training crate linked in);
@@ -19,9 +19,9 @@
 # config and networks, and last `apt-get purge` (the config goes with it).
 # Changes the system with --install: use it in CI or on a scratch machine.
 #
-# Usage: scripts/check-deb.sh [--install] dist/fall-guard_*.deb
+# Usage: scripts/package/check-deb.sh [--install] dist/fall-guard_*.deb
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 
 install=0
 if [ "${1:-}" = "--install" ]; then

@@ -1,18 +1,18 @@
 #!/usr/bin/env bash
 # The Debian packages as CI builds and checks them: amd64 from the native
 # binary the tests built, and arm64 from the aarch64 binary
-# scripts/cross-test.sh built when there is one (a release build of each
-# would add two more full builds to CI; `scripts/deb.sh` alone builds
+# scripts/cross/cross-test.sh built when there is one (a release build of each
+# would add two more full builds to CI; `scripts/package/deb.sh` alone builds
 # release binaries). The aarch64 binary is the dev-profile one
 # (target-aarch64/aarch64-unknown-linux-gnu/debug/fall-guard), or with
 # CROSS_CI=1 the one of the lean cross build (`CROSS_CI=1
-# scripts/cross-test.sh`: profile cross-ci, no V4L2 camera, so that arm64
+# scripts/cross/cross-test.sh`: profile cross-ci, no V4L2 camera, so that arm64
 # package checks the packaging; it is not one to ship). Each package goes
-# through scripts/check-deb.sh; with FALL_GUARD_DEB_INSTALL=1 (CI) the
+# through scripts/package/check-deb.sh; with FALL_GUARD_DEB_INSTALL=1 (CI) the
 # amd64 one is also installed, checked and purged, which changes this
 # system.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 
 native="${CARGO_TARGET_DIR:-target}/debug/fall-guard"
 aarch64_profile=debug
@@ -23,19 +23,19 @@ out="${OUT_DIR:-out/deb}"
 
 host=$(dpkg --print-architecture)
 [ "$host" = amd64 ] || { echo "expects an amd64 build machine, not $host" >&2; exit 1; }
-amd64_deb=$(bash scripts/deb.sh --arch amd64 --binary "$native" --out "$out")
+amd64_deb=$(bash scripts/package/deb.sh --arch amd64 --binary "$native" --out "$out")
 debs=("$amd64_deb")
 if [ -x "$aarch64" ]; then
-  arm64_deb=$(bash scripts/deb.sh --arch arm64 --binary "$aarch64" --out "$out")
-  bash scripts/check-deb.sh "$arm64_deb"
+  arm64_deb=$(bash scripts/package/deb.sh --arch arm64 --binary "$aarch64" --out "$out")
+  bash scripts/package/check-deb.sh "$arm64_deb"
   debs+=("$arm64_deb")
 else
-  echo "(no $aarch64: arm64 package not built; scripts/cross-test.sh builds it)"
+  echo "(no $aarch64: arm64 package not built; scripts/cross/cross-test.sh builds it)"
 fi
 if [ "${FALL_GUARD_DEB_INSTALL:-0}" = 1 ]; then
-  bash scripts/check-deb.sh --install "$amd64_deb"
+  bash scripts/package/check-deb.sh --install "$amd64_deb"
 else
-  bash scripts/check-deb.sh "$amd64_deb"
+  bash scripts/package/check-deb.sh "$amd64_deb"
   echo "(not installed: FALL_GUARD_DEB_INSTALL=1 installs, checks and purges it)"
 fi
 ls -l "${debs[@]}"
