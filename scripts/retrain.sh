@@ -55,7 +55,7 @@ PARALLEL=${RETRAIN_PARALLEL:-2}
 DEVICE=${RETRAIN_DEVICE:-cpu}
 FG=${FALL_GUARD_LAB_BIN:-$REPO/target/release/fall-guard-lab}
 PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
-SET_NAME=simv5                     # the 2,000-episode set's name (generator 5)
+SET_NAME=simv6                     # the 2,000-episode set's name (generator 6)
 SET=$DATA_ROOT/$SET_NAME            # the 2,000-episode set (seed 1)
 WALK=$DATA_ROOT/walk                # low sigma, no ball: false alarms per minute
 HELDOUT=$DATA_ROOT/heldout          # a second test set, of its own seed (11) and plans
@@ -193,7 +193,7 @@ LATCH_MS=${RETRAIN_LATCH_MS:-2000}
 # The latch releases after this long below release (`[model].release_hold_ms`
 # of the shipped configs; it delays a release, never an assertion).
 HOLD_MS=${RETRAIN_RELEASE_HOLD_MS:-1000}
-TRAINED_ON="$SET_NAME (sim generator 5, 2,000 episodes, seed 1; simulated data)"
+TRAINED_ON="$SET_NAME (sim generator 6, 2,000 episodes, seed 1; simulated data)"
 
 # The shipped networks are calibrated runs of this plan: in a data directory
 # without their run, put them back (RUNS/NAME.cal.bpk and NAME.done), with the
