@@ -25,7 +25,7 @@ cargo test --workspace --doc
 
 if [ -x sim/.venv/bin/python ]; then
   # The simulator, and the retrain's scripts (model card, subsets by cause).
-  sim/.venv/bin/python -m pytest -q sim/tests scripts/tests
+  sim/.venv/bin/python -m pytest -q sim/tests scripts/retrain/tests
 else
   echo "sim/.venv missing: run 'bash scripts/setup-python.sh' first" >&2
   exit 1

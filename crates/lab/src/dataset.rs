@@ -224,7 +224,7 @@ pub fn load_episode_as(
 }
 
 /// The data directory: `$FALL_GUARD_DATA`, else `~/fall-guard-data` (as
-/// `scripts/retrain.sh` has it).
+/// `scripts/retrain/retrain.sh` has it).
 pub fn data_dir() -> Option<PathBuf> {
     std::env::var_os("FALL_GUARD_DATA")
         .map(PathBuf::from)

@@ -6,8 +6,8 @@ import json
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "scripts"))
+REPO = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(REPO / "scripts" / "retrain"))
 sys.path.insert(0, str(REPO))
 import ball_in_view  # noqa: E402
 from sim.stats import read_episode_metadata  # noqa: E402

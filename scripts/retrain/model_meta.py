@@ -5,7 +5,7 @@
     model_meta.py MODEL.bpk json         the whole ModelMeta JSON
     model_meta.py MODEL.bpk KEY          a top-level key (ablation, seed, best_epoch, ...)
 
-Standard library only: the pipeline (scripts/retrain.sh) selects networks with it.
+Standard library only: the pipeline (scripts/retrain/retrain.sh) selects networks with it.
 """
 
 from __future__ import annotations

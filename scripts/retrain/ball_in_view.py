@@ -25,7 +25,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from sim.episode import RATE_HZ  # noqa: E402
 from sim.stats import read_episode_metadata  # noqa: E402
 from sim.strip import camera_frames  # noqa: E402

@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 FIXTURES = REPO / "tests" / "fixtures"
 
 
@@ -15,7 +15,7 @@ def test_the_subsets_hold_each_cause_with_the_walks(tmp_path):
     # The fixtures' test split: episode 6 walks (sigma 0.01), episode 7 falls
     # by collision (sigma 0.035); validation: 4 walks, 5 falls by perturbation.
     out = tmp_path / "bycause"
-    subprocess.run([sys.executable, str(REPO / "scripts" / "subset_by_cause.py"), str(FIXTURES), str(out)],
+    subprocess.run([sys.executable, str(REPO / "scripts" / "retrain" / "subset_by_cause.py"), str(FIXTURES), str(out)],
                    check=True, capture_output=True)
 
     def test_split(name: str) -> list[str]:

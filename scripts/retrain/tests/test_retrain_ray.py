@@ -19,8 +19,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
-RETRAIN = REPO / "scripts" / "retrain.sh"
+REPO = Path(__file__).resolve().parents[3]
+RETRAIN = REPO / "scripts" / "retrain" / "retrain.sh"
 FIXTURES = REPO / "tests" / "fixtures"
 LAB = Path(os.environ.get("FALL_GUARD_LAB_BIN", REPO / "target" / "debug" / "fall-guard-lab"))
 REQUIRED = os.environ.get("FALL_GUARD_REQUIRE_RAY") == "1"

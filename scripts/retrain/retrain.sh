@@ -12,11 +12,11 @@
 #             test and on the long walking set, by fall cause, at high sigma
 #   card      the model card's tables from those reports; the results are kept
 #             per run in models/card/ (commit it), so that seeds trained in
-#             different data directories add up (scripts/model_card.py)
+#             different data directories add up (scripts/retrain/model_card.py)
 #   ship      copy the selected networks (f16) into models/, each network's
-#             thresholds into config/ (scripts/ship_thresholds.py)
+#             thresholds into config/ (scripts/retrain/ship_thresholds.py)
 #
-# `bash scripts/retrain.sh` runs every step in turn; `bash scripts/retrain.sh
+# `bash scripts/retrain/retrain.sh` runs every step in turn; `bash scripts/retrain/retrain.sh
 # STEP` runs one. Stop it at any point and run it again: every step writes
 # its outputs as .partial and renames them, a step whose output exists and
 # is newer than its inputs is skipped, the generator resumes where it
@@ -43,7 +43,7 @@
 #         (the later steps use every run that exists), so that a machine
 #         that cannot hold the whole plan in one sitting ships what it has.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 REPO=$(pwd)
 
 DATA_ROOT=${FALL_GUARD_DATA:-$HOME/fall-guard-data}
@@ -80,7 +80,7 @@ TASK_ENV=(FALL_GUARD_DATA FALL_GUARD_LAB_BIN SIM_PYTHON RETRAIN_DEVICE RETRAIN_T
 JOBS_QUEUE=$DATA_ROOT/.ray-jobs.$$
 job() {
   if [ -z "$RAY" ]; then "$@"; return; fi
-  printf '%s\n' "$(printf '%q ' env SET="$SET" bash "$REPO/scripts/retrain.sh" task "$@")" >>"$JOBS_QUEUE"
+  printf '%s\n' "$(printf '%q ' env SET="$SET" bash "$REPO/scripts/retrain/retrain.sh" task "$@")" >>"$JOBS_QUEUE"
 }
 
 # run_tasks CPUS GPUS: the commands on stdin (one a line) as Ray tasks of
@@ -88,7 +88,7 @@ job() {
 run_tasks() {
   local envs=() v
   for v in "${TASK_ENV[@]}"; do envs+=(--env "$v"); done
-  "$PY" "$REPO/scripts/ray_tasks.py" --address "$RAY" --cpus "$1" --gpus "$2" "${envs[@]}" | tee -a "$LOG" >&2
+  "$PY" "$REPO/scripts/retrain/ray_tasks.py" --address "$RAY" --cpus "$1" --gpus "$2" "${envs[@]}" | tee -a "$LOG" >&2
 }
 
 # run_jobs WHAT: the queued jobs (`job`), on Ray; nothing without RETRAIN_RAY.
@@ -114,13 +114,7 @@ current() {
   newer "$out" "$model" "${DATA_SETS[@]}" "$@" || return 1
   # The report names its model relative to the data directory (an
   # absolute path in a report written before that is taken too).
-  "$PY" -c "
-import json, os, sys
-r = json.load(open(sys.argv[1]))
-named = os.path.realpath(os.path.join(sys.argv[5], r.get('model') or ''))
-sys.exit(0 if named == os.path.realpath(sys.argv[2]) and r.get('horizon_ms') == int(sys.argv[3])
-         and r.get('release_hold_ms') == int(sys.argv[4]) else 1)" \
-    "$out" "$model" "$horizon" "$HOLD_MS" "$DATA_ROOT"
+  "$PY" "$REPO/scripts/retrain/reports.py" current "$out" "$model" "$horizon" "$HOLD_MS" "$DATA_ROOT"
 }
 
 # newer OUT IN...: OUT exists and is newer than every IN.
@@ -183,7 +177,7 @@ train_plan() {
   done < <(plan)
 }
 
-KEEP=$REPO/models/card/$SET_NAME   # the results kept per run (scripts/model_card.py)
+KEEP=$REPO/models/card/$SET_NAME   # the results kept per run (scripts/retrain/model_card.py)
 # The networks that ship are trained under the paper protocol (each horizon on
 # its own stop-line windows, so that the 1.5 s and 2 s outputs learn their own
 # lead), and the latch watches their LATCH_MS output (`[model].horizon_ms`),
@@ -203,14 +197,7 @@ restore_shipped() {
   for abl in emp mp ep p; do
     f=$REPO/models/$abl.bpk
     [ -e "$f" ] || continue
-    meta=$("$PY" -c "
-import json, sys
-sys.path.insert(0, sys.argv[2])
-from model_meta import read_meta
-m = read_meta(sys.argv[1])
-print(m['trained_on'] == sys.argv[3], m['ablation'].lower(), m['seed'], m['config'].get('trajectory', 'planned'),
-      '-pp' if m.get('protocol') == 'paper' else '')" \
-      "$f" "$REPO/scripts" "$TRAINED_ON")
+    meta=$("$PY" "$REPO/scripts/retrain/reports.py" shipped-run "$f" "$TRAINED_ON")
     set -- $meta
     [ "$1" = True ] && [ "$4" = planned ] || continue
     # The run's name in the plan: ABLATION[-pp]-sSEED (-pp: paper protocol).
@@ -302,7 +289,7 @@ step_train() {
     log "train: $(train_plan | wc -l) runs on Ray ($RAY), $TRAIN_CPUS CPU and $TRAIN_GPUS GPU each"
     local line
     train_plan | while read -r line; do
-      printf '%s\n' "$(printf '%q ' bash "$REPO/scripts/retrain.sh" task train_one) $line"
+      printf '%s\n' "$(printf '%q ' bash "$REPO/scripts/retrain/retrain.sh" task train_one) $line"
     done | run_tasks "$TRAIN_CPUS" "$TRAIN_GPUS"
   else
     log "train: $(train_plan | wc -l) runs, $PARALLEL at a time"
@@ -314,13 +301,13 @@ step_train() {
 }
 
 # The validation loss of a run's network (its best epoch), for selection.
-val_loss() { "$PY" "$REPO/scripts/model_meta.py" "$1" val_loss; }
+val_loss() { "$PY" "$REPO/scripts/retrain/model_meta.py" "$1" val_loss; }
 
 # calibrated_by_form CAL: CAL's calibration names its forms per horizon (it
 # was fitted by a `calibrate` that chooses between Platt scaling and beta
 # calibration); one fitted before that is fitted again.
 calibrated_by_form() {
-  "$PY" "$REPO/scripts/model_meta.py" "$1" calibration | grep -q '; forms '
+  "$PY" "$REPO/scripts/retrain/model_meta.py" "$1" calibration | grep -q '; forms '
 }
 
 step_calibrate() {
@@ -404,7 +391,7 @@ step_thresholds() {
   # Validation falls with validation walking (the set's sigma <= 0.01 walks and
   # the walking set's validation split): false alarms are bounded per minute
   # of walking; the walking set's train and test splits give the test figure.
-  "$PY" "$REPO/scripts/choice_set.py" "$SET" "$WALK" "$DATA_ROOT/choice" >>"$LOG"
+  "$PY" "$REPO/scripts/retrain/choice_set.py" "$SET" "$WALK" "$DATA_ROOT/choice" >>"$LOG"
   while read -r abl name loss; do
     model="$RUNS/$name.cal.bpk"
     out="$REPORTS/$abl-thresholds.json"
@@ -458,7 +445,7 @@ step_evaluate() {
   for group in emp mp p emp-pp mp-pp p-pp; do job eval_seeds "$group" "$group"; done
   # Within the event episodes (the test episodes at sigma >= 0.035): whether
   # the plan and the camera add to the joints once an event is known to come.
-  "$PY" "$REPO/scripts/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
+  "$PY" "$REPO/scripts/retrain/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
   for group in emp mp p emp-pp mp-pp p-pp; do
     SET="$DATA_ROOT/bycause/high-sigma" job eval_seeds "$group" "$group-highsigma"
   done
@@ -506,7 +493,7 @@ step_evaluate() {
   # The second test set (every episode of the held-out set): the test split's
   # 97 falls cannot tell an ECE of 0.03 from the noise; its ~300 can.
   if [ -e "$HELDOUT/.complete" ]; then
-    "$PY" "$REPO/scripts/compose_set.py" "$DATA_ROOT/heldout-test" --test "$HELDOUT" >>"$LOG"
+    "$PY" "$REPO/scripts/retrain/compose_set.py" "$DATA_ROOT/heldout-test" --test "$HELDOUT" >>"$LOG"
     for group in mp-pp p-pp emp-pp; do
       SET="$DATA_ROOT/heldout-test" job eval_seeds "$group" "$group-heldout"
     done
@@ -521,7 +508,7 @@ step_evaluate() {
       for rev in $(git -C "$REPO" log --format=%H -- "models/$abl.bpk" 2>/dev/null); do
         blob="$REPORTS/$tag-$abl.bpk.partial"
         git -C "$REPO" show "$rev:models/$abl.bpk" >"$blob" 2>/dev/null || continue
-        on=$("$PY" "$REPO/scripts/model_meta.py" "$blob" trained_on)
+        on=$("$PY" "$REPO/scripts/retrain/model_meta.py" "$blob" trained_on)
         if { [ $tag = gen1 ] && [ "$on" = simulated ]; } || { [ $tag = gen4 ] && [ "${on%% *}" = simv4 ]; }; then
           mv "$blob" "$REPORTS/$tag-$abl.bpk"
           break
@@ -541,11 +528,7 @@ step_evaluate() {
 # chosen_pair THRESHOLDS.json: "TRIGGER RELEASE", the chosen pair or, when none
 # keeps within the budget, the grid's highest trigger.
 chosen_pair() {
-  "$PY" -c "
-import json, sys
-r = json.load(open(sys.argv[1]))
-c = r['chosen'] or max(r['grid'], key=lambda s: s['trigger'])
-print(c['trigger'], c['release'])" "$1"
+  "$PY" "$REPO/scripts/retrain/reports.py" chosen-pair "$1"
 }
 
 # latch_warnings MODEL THRESHOLDS.json HORIZON_MS SET:SPLIT OUT: the daemon's
@@ -604,7 +587,7 @@ warnings_one() {
 
 step_card() {
   log "card: tables from $REPORTS and the results kept in $KEEP"
-  "$PY" "$REPO/scripts/model_card.py" --reports "$REPORTS" --keep "$KEEP" \
+  "$PY" "$REPO/scripts/retrain/model_card.py" --reports "$REPORTS" --keep "$KEEP" \
     --out "$KEEP/tables.md.partial"
   mv "$KEEP/tables.md.partial" "$KEEP/tables.md"
 }
@@ -618,7 +601,7 @@ step_ship() {
   done <"$REPORTS/selected.txt"
   # Each network's latch thresholds, chosen for it on validation, into the
   # configs (and the real walk's, which replays the shipped latch).
-  "$PY" "$REPO/scripts/ship_thresholds.py" --reports "$REPORTS" --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" \
+  "$PY" "$REPO/scripts/retrain/ship_thresholds.py" --reports "$REPORTS" --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" \
     "$REPO/config/replay.toml" "$REPO/config/poppy_humanoid.toml" "$REPO/tests/fixtures/real/replay.toml" \
     | tee -a "$LOG"
 }
@@ -634,7 +617,7 @@ if [ "${1:-}" = task ]; then
 fi
 if [ $# -eq 0 ]; then
   for s in "${all_steps[@]}"; do "step_$s"; done
-  log "retrain: every step done; 'bash scripts/retrain.sh ship' copies the networks into models/"
+  log "retrain: every step done; 'bash scripts/retrain/retrain.sh ship' copies the networks into models/"
 else
   for s in "$@"; do
     declare -F "step_$s" >/dev/null || { echo "unknown step '$s' (steps: ${all_steps[*]} ship)" >&2; exit 2; }

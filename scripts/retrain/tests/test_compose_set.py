@@ -8,9 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 FIXTURES = REPO / "tests" / "fixtures"
-SCRIPT = REPO / "scripts" / "compose_set.py"
+SCRIPT = REPO / "scripts" / "retrain" / "compose_set.py"
 
 
 def compose(*args) -> subprocess.CompletedProcess:

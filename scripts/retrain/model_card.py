@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
-"""The model card's result tables, from the reports of scripts/retrain.sh.
+"""The model card's result tables, from the reports of scripts/retrain/retrain.sh.
 
     model_card.py --reports DIR --keep models/card --out tables.md
 
 Reads, under DIR (this data directory's reports): eval-GROUP-PROTOCOL/metrics.json
 (`fall-guard-lab eval`), warnings-ABL-SET-SPLIT.json (`fall-guard-lab warnings`),
-ABL-thresholds.json (chosen on scripts/choice_set.py's set, which holds the
+ABL-thresholds.json (chosen on scripts/retrain/choice_set.py's set, which holds the
 walking set's validation split: false alarms are counted on its train and
 test splits only), selected.txt, set-stats.json and walk-stats.json
 (`python -m sim stats`).
@@ -551,7 +551,7 @@ def main() -> int:
     sel = kept / "selected.txt"
     if sel.exists():
         selected = [tuple(line.split()[:2]) for line in sel.read_text().splitlines() if line.strip()]
-    lines = ["<!-- Written by scripts/model_card.py from the reports of scripts/retrain.sh. -->", "",
+    lines = ["<!-- Written by scripts/retrain/model_card.py from the reports of scripts/retrain/retrain.sh. -->", "",
              "### Data (simulated)", "", *stats_rows(load(kept / "set-stats.json"), "Training set"), "",
              *stats_rows(load(kept / "walk-stats.json"), "Walking set (false alarms)"), "",
              "### Paper protocol (test split)", "", *protocol_table(evals, "paper"), "",

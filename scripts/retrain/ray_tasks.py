@@ -9,7 +9,7 @@ and returns its exit status. The commands write their results, checkpoints and
 logs into the data directory, which every node sees at the same path (shared
 storage; ``docs/retraining.md``).
 
-    printf '%s\\n' "bash scripts/retrain.sh task train_one p-s1 --ablation P --seed 1" |
+    printf '%s\\n' "bash scripts/retrain/retrain.sh task train_one p-s1 --ablation P --seed 1" |
         ray_tasks.py --address HEAD:6379 --cpus 1 --gpus 0 --env FALL_GUARD_DATA
 
 Prints one line per finished task (status, seconds, node, command) and exits
@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT))  # sim.cluster: how this checkout joins a cluster
 
 

@@ -4,7 +4,7 @@
     ship_thresholds.py --reports DIR [--horizon-ms MS] CONFIG.toml [CONFIG.toml ...]
 
 Reads DIR/selected.txt and DIR/ABL-thresholds.json (`fall-guard-lab warnings
---choose` on the validation split, from scripts/retrain.sh) and rewrites, in
+--choose` on the validation split, from scripts/retrain/retrain.sh) and rewrites, in
 each config, `[model].trigger` / `release` (EMP's pair: the default) and the
 `[model.thresholds]` table (one `[trigger, release]` per network), and with
 `--horizon-ms` the horizon the latch watches (`[model].horizon_ms`, the one
@@ -23,7 +23,7 @@ import os
 import re
 from pathlib import Path
 
-BEGIN = "# -- per-network thresholds (scripts/ship_thresholds.py) --"
+BEGIN = "# -- per-network thresholds (scripts/retrain/ship_thresholds.py) --"
 END = "# -- end of per-network thresholds --"
 
 

@@ -21,7 +21,7 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from sim.stats import read_episode_metadata  # noqa: E402
 from subset_by_cause import write_subset  # noqa: E402  (this script's folder is on sys.path)
 

@@ -1,0 +1,69 @@
+#!/usr/bin/env python3
+"""The retrain's small questions about its reports and model files, one subcommand each.
+
+    reports.py current REPORT MODEL HORIZON_MS HOLD_MS DATA_ROOT
+        exit 0 when the warnings REPORT is of MODEL at HORIZON_MS with HOLD_MS
+        (its model named relative to DATA_ROOT, or absolute as older reports
+        name it), else 1
+    reports.py shipped-run MODEL_FILE TRAINED_ON
+        prints "SAME ABLATION SEED TRAJECTORY SUFFIX": whether the file was
+        trained on TRAINED_ON (True/False), its ablation in lower case, seed,
+        trajectory input, and "-pp" when trained under the paper protocol
+    reports.py chosen-pair THRESHOLDS_JSON
+        prints "TRIGGER RELEASE": the pair chosen, or when none kept within
+        the budget, the grid's highest trigger
+
+Standard library only (with model_meta.py beside it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from model_meta import read_meta  # noqa: E402
+
+
+def is_current(report: str, model: str, horizon_ms: int, hold_ms: int, data_root: str) -> bool:
+    r = json.loads(Path(report).read_text())
+    named = os.path.realpath(os.path.join(data_root, r.get("model") or ""))
+    return (named == os.path.realpath(model) and r.get("horizon_ms") == horizon_ms
+            and r.get("release_hold_ms") == hold_ms)
+
+
+def shipped_run(model_file: str, trained_on: str) -> str:
+    m = read_meta(model_file)
+    return " ".join(map(str, (m["trained_on"] == trained_on, m["ablation"].lower(), m["seed"],
+                              m["config"].get("trajectory", "planned"),
+                              "-pp" if m.get("protocol") == "paper" else "")))
+
+
+def chosen_pair(thresholds: str) -> str:
+    r = json.loads(Path(thresholds).read_text())
+    c = r["chosen"] or max(r["grid"], key=lambda s: s["trigger"])
+    return f"{c['trigger']} {c['release']}"
+
+
+def main(argv: list[str]) -> int:
+    usage = "usage: reports.py current|shipped-run|chosen-pair ARGS... (see the module's docstring)"
+    if not argv:
+        print(usage, file=sys.stderr)
+        return 2
+    command, args = argv[0], argv[1:]
+    if command == "current" and len(args) == 5:
+        return 0 if is_current(args[0], args[1], int(args[2]), int(args[3]), args[4]) else 1
+    if command == "shipped-run" and len(args) == 2:
+        print(shipped_run(*args))
+        return 0
+    if command == "chosen-pair" and len(args) == 1:
+        print(chosen_pair(args[0]))
+        return 0
+    print(usage, file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
