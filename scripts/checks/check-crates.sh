@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The crate graph (docs/architecture.md, "Crates"): the robot's binary
 # (package fall-guard) links the runtime and never the lab, nor what only
-# training uses (plotters, linfa, indicatif, ndarray), checked on `cargo
+# training uses (plotters, linfa, indicatif, ndarray, burn's autodiff and
+# optimisers), checked on `cargo
 # tree` of the normal dependencies, with the default features and with
 # `--features security`; the runtime never reaches the lab, with every
 # feature. The libraries' own code (crates/runtime/src, crates/lab/src but
@@ -20,8 +21,8 @@ CARGO=${CARGO:-cargo}
 # PACKAGE: the crates it must never reach.
 forbidden() {
   case $1 in
-    fall-guard) echo "fall-guard-lab plotters linfa linfa-logistic indicatif ndarray" ;;
-    fall-guard-runtime) echo "fall-guard-lab plotters linfa linfa-logistic indicatif" ;;
+    fall-guard) echo "fall-guard-lab plotters linfa linfa-logistic indicatif ndarray burn-autodiff burn-optim" ;;
+    fall-guard-runtime) echo "fall-guard-lab plotters linfa linfa-logistic indicatif burn-autodiff burn-optim" ;;
     fall-guard-lab) echo "" ;;
   esac
 }
