@@ -216,22 +216,40 @@ impl HostConv {
             }
         }
         let kk = k * k * c_in;
+        // Per im2col row: whether some grid lands on each tap.
+        let mut landed = vec![false; k * k];
         HostConv::with_scratch(TILE * kk, |a| {
             let mut m0 = 0;
             while m0 < out_len {
                 let tile = TILE.min(out_len - m0);
                 let a = &mut a[..tile * kk];
-                a.fill(0.0);
                 for (t, arow) in a.chunks_exact_mut(kk).enumerate() {
                     let m = m0 + t;
+                    // A tap's first landing stores (`0 + w·v` is `w·v`:
+                    // the same bits as adding to zeros), later ones add;
+                    // the taps no grid lands on are zeroed once at the
+                    // end, so the tile is not cleared first.
+                    landed.fill(false);
                     for g in grids {
                         for_each_landing_tap(k, g.p, g.x.len() / c_in, m, |tap, n| {
                             let src = &g.x[n * c_in..(n + 1) * c_in];
                             let dst = &mut arow[tap * c_in..(tap + 1) * c_in];
-                            for (d, v) in dst.iter_mut().zip(src) {
-                                *d += g.weight * v;
+                            if landed[tap] {
+                                for (d, v) in dst.iter_mut().zip(src) {
+                                    *d += g.weight * v;
+                                }
+                            } else {
+                                landed[tap] = true;
+                                for (d, v) in dst.iter_mut().zip(src) {
+                                    *d = g.weight * v;
+                                }
                             }
                         });
+                    }
+                    for (tap, &hit) in landed.iter().enumerate() {
+                        if !hit {
+                            arow[tap * c_in..(tap + 1) * c_in].fill(0.0);
+                        }
                     }
                 }
                 let row_major = |cols| Strides { row: cols, col: 1 };

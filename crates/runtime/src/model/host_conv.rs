@@ -159,6 +159,30 @@ impl HostConv {
         self.gemm(weight, cols.start * k..cols.end * k, product);
     }
 
+    /// [`accumulate_taps`](Self::accumulate_taps) with `a`'s columns read
+    /// in place: column `q` of the im2col matrix is `a` from `columns[q]`
+    /// on (rows `product.a_s.row` apart; `product.a_s.col` is not read),
+    /// so a matrix whose columns are runs of one buffer is not copied.
+    pub fn accumulate_taps_gathered(
+        &self,
+        taps: std::ops::Range<usize>,
+        product: Product<'_>,
+        columns: &[usize],
+    ) {
+        let n = self.c_out;
+        assert!(
+            taps.start < taps.end && taps.end * self.c_in * n <= self.weight.len(),
+            "taps inside the kernel"
+        );
+        let weight = &self.weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
+        assert_eq!(
+            columns.len() * n,
+            weight.len(),
+            "one offset per im2col column"
+        );
+        gemm_rows(weight, n, product, Write::Add, Some(columns));
+    }
+
     /// `dst += a · weight[taps]`, `weight` one of this convolution's layouts.
     fn gemm(&self, weight: &[f32], taps: std::ops::Range<usize>, product: Product<'_>) {
         let n = self.c_out;
@@ -167,7 +191,7 @@ impl HostConv {
             "taps inside the kernel"
         );
         let weight = &weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
-        gemm_rows(weight, n, product);
+        gemm_rows(weight, n, product, Write::Add, None);
     }
 
     /// Every kernel tap's product with every input position: `x`
@@ -177,6 +201,16 @@ impl HostConv {
     /// ([`HostConv::forward_grid_from_taps`]): one GEMM shared by all the
     /// periods a block folds the same input at.
     pub fn tap_products(&self, x: &[f32]) -> Vec<f32> {
+        let mut y = Vec::new();
+        self.tap_products_into(x, &mut y);
+        y
+    }
+
+    /// [`tap_products`](Self::tap_products) into `y`, resized to
+    /// `[len, taps·C_out]`: every element is written (the GEMM stores its
+    /// sums, it does not add them to what `y` held), so a buffer kept from
+    /// one tick to the next is neither zeroed nor reallocated.
+    pub fn tap_products_into(&self, x: &[f32], y: &mut Vec<f32>) {
         let weight = self
             .weight_by_input
             .as_ref()
@@ -184,20 +218,23 @@ impl HostConv {
         let c_in = self.c_in;
         assert_eq!(x.len() % c_in, 0, "input width");
         let (len, n) = (x.len() / c_in, self.k * self.k * self.c_out);
-        let mut y = vec![0.0f32; len * n];
+        if y.len() != len * n {
+            y.resize(len * n, 0.0);
+        }
         let row_major = |cols| Strides { row: cols, col: 1 };
         gemm_rows(
             weight,
             n,
             Product {
                 m: len,
-                dst: &mut y,
+                dst: y,
                 dst_s: row_major(n),
                 a: x,
                 a_s: row_major(c_in),
             },
+            Write::Store,
+            None,
         );
-        y
     }
 }
 
@@ -211,9 +248,37 @@ pub struct Product<'a> {
     pub a_s: Strides,
 }
 
-/// `dst += a · weight`: `weight` `kk x n` row-major (`kk = weight.len() / n`),
+/// How [`gemm_rows`] writes its sums.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Write {
+    /// `dst += a · weight`.
+    Add,
+    /// `dst = a · weight` (what `dst` held is not read).
+    Store,
+}
+
+/// `dst += a · weight` ([`Write::Add`]) or `dst = a · weight`
+/// ([`Write::Store`]): `weight` `kk x n` row-major (`kk = weight.len() / n`),
 /// `a` `m x kk` and `dst` `m x n` with their strides, on this thread.
-fn gemm_rows(weight: &[f32], n: usize, product: Product<'_>) {
+///
+/// A direct kernel for the small, fixed shapes of these layers (`n` up
+/// to a few hundred, `kk` up to about a thousand, `m` a few dozen to a
+/// few hundred): the weights are read in place (row-major with the
+/// output channels contiguous is already the layout a register block
+/// wants), `a` is read by broadcasting its elements, so nothing is
+/// packed or copied per call. A general GEMM (the `gemm` crate, used
+/// before) packed both operands and set up its thread-local buffers on
+/// every call, which cost more than the multiply-adds at these shapes.
+/// Each output is `dst + Σ_p a[p]·w[p]`, the sum in the order of `p`
+/// with fused multiply-adds where the CPU has them: the same bits on
+/// every x86-64 CPU with AVX2 and FMA (with or without AVX-512).
+fn gemm_rows(
+    weight: &[f32],
+    n: usize,
+    product: Product<'_>,
+    write: Write,
+    columns: Option<&[usize]>,
+) {
     let Product {
         m,
         dst,
@@ -228,31 +293,294 @@ fn gemm_rows(weight: &[f32], n: usize, product: Product<'_>) {
     }
     let last = |s: Strides, cols: usize| (m - 1) * s.row + (cols - 1) * s.col;
     assert!(last(dst_s, n) < dst.len(), "output inside its buffer");
-    assert!(last(a_s, kk) < a.len(), "im2col inside its buffer");
-    // SAFETY: the largest index each matrix is read or written at was
-    // checked above against its slice; `weight` is `kk x n` row-major,
-    // sliced so; `dst` is borrowed mutably, so no input overlaps it.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            kk,
-            dst.as_mut_ptr(),
-            dst_s.col as isize,
-            dst_s.row as isize,
-            true,
-            a.as_ptr(),
-            a_s.col as isize,
-            a_s.row as isize,
-            weight.as_ptr(),
-            1,
-            n as isize,
-            1.0f32,
-            1.0f32,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
+    match columns {
+        None => assert!(last(a_s, kk) < a.len(), "im2col inside its buffer"),
+        Some(cols) => {
+            assert_eq!(cols.len(), kk, "one offset per column");
+            let far = cols.iter().max().copied().unwrap_or(0) + (m - 1) * a_s.row;
+            assert!(far < a.len(), "gathered columns inside their buffer");
+        }
+    }
+    let ops = Operands {
+        m,
+        n,
+        kk,
+        weight: weight.as_ptr(),
+        a: a.as_ptr(),
+        a_s,
+        a_cols: columns.map_or(std::ptr::null(), <[usize]>::as_ptr),
+        dst: dst.as_mut_ptr(),
+        dst_s,
+        store: write == Write::Store,
+    };
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the CPU has AVX2 and FMA (checked just above); every
+            // index the kernel reads or writes is inside the slices (the
+            // largest of each was checked above); `dst` is borrowed
+            // mutably, so no input overlaps it.
+            unsafe { kernel::gemm_avx2(&ops) };
+            return;
+        }
+    }
+    // SAFETY: as above.
+    unsafe { kernel::gemm_portable(&ops) };
+}
+
+/// The raw operands of [`gemm_rows`], bounds already checked.
+struct Operands {
+    m: usize,
+    n: usize,
+    kk: usize,
+    weight: *const f32,
+    a: *const f32,
+    a_s: Strides,
+    /// Null, or `kk` offsets: column `p` of `a` starts at `a_cols[p]`
+    /// (then `a_s.col` is not read).
+    a_cols: *const usize,
+    dst: *mut f32,
+    dst_s: Strides,
+    /// Store the sums (`Write::Store`) instead of adding them.
+    store: bool,
+}
+
+mod kernel {
+    use super::Operands;
+
+    /// Output rows per register block.
+    const MR: usize = 6;
+
+    /// `acc[r][j] = Σ_p a[i0 + r, p] · w[p, j0 + j]`, `r < R`, `j < W`, then
+    /// added to `dst`. `fma(a, b, c)` is `a·b + c`.
+    ///
+    /// # Safety
+    /// `i0 + R <= m`, `j0 + W <= n`, the operands as [`Operands`] says.
+    #[inline(always)]
+    unsafe fn block<const R: usize, const W: usize>(
+        o: &Operands,
+        i0: usize,
+        j0: usize,
+        fma: impl Fn(f32, f32, f32) -> f32,
+    ) {
+        let mut acc = [[0.0f32; W]; R];
+        for p in 0..o.kk {
+            // SAFETY: `p < kk`, `j0 + W <= n`: inside the weight matrix.
+            let w: [f32; W] = unsafe { std::array::from_fn(|j| *o.weight.add(p * o.n + j0 + j)) };
+            for (r, row) in acc.iter_mut().enumerate() {
+                // SAFETY: row `i0 + r < m`, column `p < kk` of `a`.
+                let x = unsafe {
+                    let col = if o.a_cols.is_null() {
+                        p * o.a_s.col
+                    } else {
+                        *o.a_cols.add(p)
+                    };
+                    *o.a.add((i0 + r) * o.a_s.row + col)
+                };
+                for (s, &wj) in row.iter_mut().zip(&w) {
+                    *s = fma(x, wj, *s);
+                }
+            }
+        }
+        for (r, row) in acc.iter().enumerate() {
+            for (j, &s) in row.iter().enumerate() {
+                // SAFETY: element `(i0 + r, j0 + j)` of `dst`.
+                unsafe {
+                    let d = o.dst.add((i0 + r) * o.dst_s.row + (j0 + j) * o.dst_s.col);
+                    *d = if o.store { s } else { *d + s };
+                }
+            }
+        }
+    }
+
+    /// Every block of rows for columns `j0..j0 + W`.
+    #[inline(always)]
+    unsafe fn columns<const W: usize>(
+        o: &Operands,
+        j0: usize,
+        fma: impl Fn(f32, f32, f32) -> f32 + Copy,
+    ) {
+        let mut i0 = 0;
+        // SAFETY (all calls): `i0 + rows <= m`, `j0 + W <= n`.
+        unsafe {
+            while i0 + MR <= o.m {
+                block::<MR, W>(o, i0, j0, fma);
+                i0 += MR;
+            }
+            match o.m - i0 {
+                0 => {}
+                1 => block::<1, W>(o, i0, j0, fma),
+                2 => block::<2, W>(o, i0, j0, fma),
+                3 => block::<3, W>(o, i0, j0, fma),
+                4 => block::<4, W>(o, i0, j0, fma),
+                _ => block::<5, W>(o, i0, j0, fma),
+            }
+        }
+    }
+
+    /// All of `dst`: columns in blocks of 16 (two AVX2 registers), then 8,
+    /// then one at a time.
+    #[inline(always)]
+    unsafe fn gemm(o: &Operands, fma: impl Fn(f32, f32, f32) -> f32 + Copy) {
+        let mut j0 = 0;
+        // SAFETY (all calls): `j0 + width <= n`.
+        unsafe {
+            while j0 + 16 <= o.n {
+                columns::<16>(o, j0, fma);
+                j0 += 16;
+            }
+            if j0 + 8 <= o.n {
+                columns::<8>(o, j0, fma);
+                j0 += 8;
+            }
+            while j0 < o.n {
+                columns::<1>(o, j0, fma);
+                j0 += 1;
+            }
+        }
+    }
+
+    /// All of `dst` with AVX2 registers: columns in blocks of 16 (two
+    /// registers) and 8, rows in blocks of [`MR`] (twelve accumulators),
+    /// the last columns (fewer than 8) one at a time.
+    ///
+    /// # Safety
+    /// The CPU has AVX2 and FMA; the operands as [`Operands`] says.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn gemm_avx2(o: &Operands) {
+        let mut j0 = 0;
+        // SAFETY (all calls): `j0 + width <= n`, `i0 + rows <= m`.
+        unsafe {
+            while j0 + 16 <= o.n {
+                columns_avx2::<2>(o, j0);
+                j0 += 16;
+            }
+            if j0 + 8 <= o.n {
+                columns_avx2::<1>(o, j0);
+                j0 += 8;
+            }
+            while j0 < o.n {
+                columns::<1>(o, j0, f32::mul_add);
+                j0 += 1;
+            }
+        }
+    }
+
+    /// Every block of rows for columns `j0..j0 + 8·V`.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn columns_avx2<const V: usize>(o: &Operands, j0: usize) {
+        // SAFETY (all calls): `i0 + rows <= m`, `j0 + 8·V <= n`.
+        unsafe {
+            if o.a_cols.is_null() {
+                rows_avx2::<V, false>(o, j0);
+            } else {
+                rows_avx2::<V, true>(o, j0);
+            }
+        }
+    }
+
+    /// [`columns_avx2`] with `a`'s columns strided (`G` false) or
+    /// gathered (`G` true).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn rows_avx2<const V: usize, const G: bool>(o: &Operands, j0: usize) {
+        let mut i0 = 0;
+        // SAFETY (all calls): `i0 + rows <= m`, `j0 + 8·V <= n`.
+        unsafe {
+            while i0 + MR <= o.m {
+                block_avx2::<MR, V, G>(o, i0, j0);
+                i0 += MR;
+            }
+            match o.m - i0 {
+                0 => {}
+                1 => block_avx2::<1, V, G>(o, i0, j0),
+                2 => block_avx2::<2, V, G>(o, i0, j0),
+                3 => block_avx2::<3, V, G>(o, i0, j0),
+                4 => block_avx2::<4, V, G>(o, i0, j0),
+                _ => block_avx2::<5, V, G>(o, i0, j0),
+            }
+        }
+    }
+
+    /// [`block`] in AVX2 registers: `R x 8·V` sums, each `a` element
+    /// broadcast once per `p`, each weight row loaded once per `p`.
+    ///
+    /// # Safety
+    /// The CPU has AVX2 and FMA; `i0 + R <= m`, `j0 + 8·V <= n`.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn block_avx2<const R: usize, const V: usize, const G: bool>(
+        o: &Operands,
+        i0: usize,
+        j0: usize,
+    ) {
+        use std::arch::x86_64::{
+            __m256, _mm256_add_ps, _mm256_broadcast_ss, _mm256_fmadd_ps, _mm256_loadu_ps,
+            _mm256_setzero_ps, _mm256_storeu_ps,
+        };
+        let mut acc: [[__m256; V]; R] = [[_mm256_setzero_ps(); V]; R];
+        // SAFETY: every pointer below stays inside its matrix: weight row
+        // `p < kk` columns `j0..j0 + 8·V`, `a` rows `i0..i0 + R` column `p`,
+        // `dst` rows `i0..i0 + R` columns `j0..j0 + 8·V`.
+        unsafe {
+            let mut w = o.weight.add(j0);
+            let mut a = o.a.add(i0 * o.a_s.row);
+            for p in 0..o.kk {
+                let wv: [__m256; V] = std::array::from_fn(|v| _mm256_loadu_ps(w.add(8 * v)));
+                if G {
+                    a = o.a.add(i0 * o.a_s.row + *o.a_cols.add(p));
+                }
+                for (r, row) in acc.iter_mut().enumerate() {
+                    let x = _mm256_broadcast_ss(&*a.add(r * o.a_s.row));
+                    for (s, &wj) in row.iter_mut().zip(&wv) {
+                        *s = _mm256_fmadd_ps(x, wj, *s);
+                    }
+                }
+                w = w.add(o.n);
+                if !G {
+                    a = a.add(o.a_s.col);
+                }
+            }
+            for (r, row) in acc.iter().enumerate() {
+                let d = o.dst.add((i0 + r) * o.dst_s.row + j0 * o.dst_s.col);
+                for (v, &s) in row.iter().enumerate() {
+                    if o.dst_s.col == 1 {
+                        let at = d.add(8 * v);
+                        let sum = if o.store {
+                            s
+                        } else {
+                            _mm256_add_ps(_mm256_loadu_ps(at), s)
+                        };
+                        _mm256_storeu_ps(at, sum);
+                    } else {
+                        let mut lanes = [0.0f32; 8];
+                        _mm256_storeu_ps(lanes.as_mut_ptr(), s);
+                        for (j, &l) in lanes.iter().enumerate() {
+                            let at = d.add((8 * v + j) * o.dst_s.col);
+                            *at = if o.store { l } else { *at + l };
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// # Safety
+    /// The operands as [`Operands`] says.
+    pub(super) unsafe fn gemm_portable(o: &Operands) {
+        // aarch64 always has fused multiply-add (and NEON): the same sums
+        // as the AVX2 path. Elsewhere a product and a sum.
+        #[cfg(target_arch = "aarch64")]
+        let fma = f32::mul_add;
+        #[cfg(not(target_arch = "aarch64"))]
+        let fma = |a: f32, b: f32, c: f32| a * b + c;
+        // SAFETY: passed on.
+        unsafe { gemm(o, fma) }
     }
 }

@@ -189,6 +189,12 @@ impl PlanEncoder {
     }
 }
 
+thread_local! {
+    /// The first convolution's tap products ([`HostConv::tap_products_into`]),
+    /// kept between calls on this thread.
+    static TAP_PRODUCTS: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
 /// The period branches of one block with the fused convolutions as im2col +
 /// GEMM on the host ([`HostConv::forward_grid`]): `x` `[B, L, d]`, each sample's periods
 /// and softmax weights `[B, 1, k]` -> `Σ_i w_i · conv_out(gelu(conv_in(grid_i)))`,
@@ -242,14 +248,20 @@ fn fused_periods(
                 conv_in.grid_taps(l, rows, p, rows * p)
             })
             .sum();
-        let shared = (conv_in.has_tap_products() && one_pass_pays(folded, l, taps))
-            .then(|| conv_in.tap_products(xs));
+        // Kept from one call to the next (this thread's): written whole
+        // by the GEMM, so neither zeroed nor reallocated per tick.
+        let mut taps_buf = TAP_PRODUCTS.with(|t| std::mem::take(&mut *t.borrow_mut()));
+        let use_shared = conv_in.has_tap_products() && one_pass_pays(folded, l, taps);
+        if use_shared {
+            conv_in.tap_products_into(xs, &mut taps_buf);
+        }
+        let shared = use_shared.then_some(taps_buf.as_slice());
         let hidden: Vec<(usize, usize, f32, Vec<f32>)> = distinct
             .iter()
             .map(|&(p, w)| {
                 let rows = l.div_ceil(p);
                 let lp = rows * p;
-                let mut h = match &shared {
+                let mut h = match shared {
                     Some(y) => conv_in.forward_grid_from_taps(y, rows, p, lp),
                     None => conv_in.forward_grid(xs, rows, p, lp),
                 };
@@ -258,6 +270,7 @@ fn fused_periods(
                 (p, rows, w, h)
             })
             .collect();
+        TAP_PRODUCTS.with(|t| *t.borrow_mut() = taps_buf);
         // The second convolution is linear: when folding each period would
         // multiply more than the whole kernel once, the weighted periods
         // go through one GEMM together.

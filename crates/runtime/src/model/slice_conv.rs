@@ -62,42 +62,51 @@ impl HostConv {
         let taps_per_kt = k * k;
         let kk = (kt_hi - kt_lo) * taps_per_kt * c_in;
         let n_kt = kt_hi - kt_lo;
-        HostConv::with_scratch(kk * wide + n_kt * c_in * padded_len, |scratch| {
-            let (a, padded) = scratch.split_at_mut(kk * wide);
+        HostConv::with_scratch(n_kt * c_in * padded_len, |padded| {
             // Each input plane once with its zero border: `hw + 2·half`
             // rows of `w` values.
             for (kt, input) in inputs.iter().enumerate().take(kt_hi).skip(kt_lo) {
                 for ci in 0..c_in {
                     let dst = &mut padded[((kt - kt_lo) * c_in + ci) * padded_len..][..padded_len];
-                    dst.fill(0.0);
-                    let Some(input) = input else { continue };
+                    let Some(input) = input else {
+                        dst.fill(0.0);
+                        continue;
+                    };
                     let plane = &input[ci * n..(ci + 1) * n];
+                    // Only the border is zeroed: the top rows, each row's
+                    // `2·half` zeros between two rows, the bottom rows.
+                    dst[..half * w + half].fill(0.0);
                     for (y, row) in plane.chunks_exact(hw).enumerate() {
                         let at = (y + half) * w + half;
                         dst[at..at + hw].copy_from_slice(row);
+                        let gap_end = (at + hw + 2 * half).min(padded_len);
+                        dst[at + hw..gap_end].fill(0.0);
                     }
+                    dst[(hw + half) * w + half..].fill(0.0);
                 }
             }
             // Column q = (((kt - kt_lo)·k + ky)·k + kx)·C_in + ci holds, for
             // every wide position m = y·w + x, the padded plane at
-            // m + ky·w + kx: one contiguous copy per column.
-            for (q, col) in a.chunks_exact_mut(wide).enumerate() {
-                let (ci, tap) = (q % c_in, q / c_in);
-                let (kt, ky, kx) = (tap / taps_per_kt, tap / k % k, tap % k);
-                let src = &padded[(kt * c_in + ci) * padded_len + ky * w + kx..];
-                col.copy_from_slice(&src[..wide]);
-            }
-            // `conv` is `wide x C_out` channel-major, `a` `wide x kk` column-major.
-            let column_major = Strides { row: 1, col: wide };
-            self.accumulate_taps(
+            // m + ky·w + kx: a contiguous run of `padded`, read in place
+            // by the GEMM (no im2col copy).
+            let columns: Vec<usize> = (0..kk)
+                .map(|q| {
+                    let (ci, tap) = (q % c_in, q / c_in);
+                    let (kt, ky, kx) = (tap / taps_per_kt, tap / k % k, tap % k);
+                    (kt * c_in + ci) * padded_len + ky * w + kx
+                })
+                .collect();
+            // `conv` is `wide x C_out` channel-major.
+            self.accumulate_taps_gathered(
                 kt_lo * taps_per_kt..kt_hi * taps_per_kt,
                 Product {
                     m: wide,
                     dst: &mut conv,
-                    dst_s: column_major,
-                    a,
-                    a_s: column_major,
+                    dst_s: Strides { row: 1, col: wide },
+                    a: padded,
+                    a_s: Strides { row: 1, col: 0 },
                 },
+                &columns,
             );
         });
         Self::relu_pool(&conv, c_out, hw, w)
