@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import socket
+from contextlib import contextmanager
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -71,6 +72,29 @@ def connect(address: str | None):
         raise ClusterError(f"--ray {address or '(local)'}: cannot join the Ray cluster ({e}); "
                            "start it with `ray start --head` (docs/retraining.md)") from e
     return ray
+
+
+@contextmanager
+def local_cluster(worker_nodes: int, head_cpus: int):
+    """A Ray cluster on this machine, for tests and measurements; yields its address.
+
+    A head of HEAD_CPUS CPUs and WORKER_NODES nodes of one CPU each: Ray's
+    ``ray.cluster_utils.Cluster``, the processes `ray start --head` and a
+    joining `ray start` make. Stopped on leaving the block.
+    """
+    _ray()
+    from ray.cluster_utils import Cluster
+    os.environ.setdefault("RAY_enable_metrics_collection", "0")
+    store = 80 * 2**20
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": head_cpus, "object_store_memory": store,
+                                                            "include_dashboard": False})
+    try:
+        for _ in range(worker_nodes):
+            cluster.add_node(num_cpus=1, object_store_memory=store)
+        cluster.wait_for_nodes()
+        yield cluster.address
+    finally:
+        cluster.shutdown()
 
 
 def _group_task(out: str, seed: int, episodes: int, duration_s: float, group: int, indices: list[int],

@@ -25,28 +25,20 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+from sim.cluster import local_cluster  # noqa: E402
 
 
 def one_round(nodes: int, episodes: int, seed: int, duration_s: float) -> dict:
-    from ray.cluster_utils import Cluster
-    os.environ.setdefault("RAY_enable_metrics_collection", "0")
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "object_store_memory": 80 * 2**20,
-                                                            "include_dashboard": False})
-    try:
-        for _ in range(nodes):
-            cluster.add_node(num_cpus=1, object_store_memory=80 * 2**20)
-        cluster.wait_for_nodes()
-        with tempfile.TemporaryDirectory() as tmp:
-            t0 = time.perf_counter()
-            r = subprocess.run([sys.executable, "-m", "sim", "generate", "--out", str(Path(tmp) / "set"),
-                                "--episodes", str(episodes), "--seed", str(seed), "--duration", str(duration_s),
-                                "--ray", cluster.address, "--quiet"], cwd=REPO, capture_output=True, text=True)
-            wall = time.perf_counter() - t0
-        if r.returncode != 0:
-            raise RuntimeError(f"generate failed: {r.stderr[-2000:]}")
-        return {"worker_nodes": nodes, "episodes": episodes, "wall_s": round(wall, 2)}
-    finally:
-        cluster.shutdown()
+    with local_cluster(worker_nodes=nodes, head_cpus=0) as address, tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, "-m", "sim", "generate", "--out", str(Path(tmp) / "set"),
+                            "--episodes", str(episodes), "--seed", str(seed), "--duration", str(duration_s),
+                            "--ray", address, "--quiet"], cwd=REPO, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise RuntimeError(f"generate failed: {r.stderr[-2000:]}")
+    return {"worker_nodes": nodes, "episodes": episodes, "wall_s": round(wall, 2)}
 
 
 def main() -> int:

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import pytest
 
+from sim.cluster import local_cluster
 from sim.dataset import generate
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 try:
     import ray  # noqa: F401
-    from ray.cluster_utils import Cluster
 except ImportError:
     if os.environ.get("FALL_GUARD_REQUIRE_RAY") == "1":
         raise
@@ -32,14 +32,9 @@ SET = ["--episodes", "6", "--seed", "5", "--duration", "1.5"]
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A head and one worker node, one CPU each, as `ray start --head` and a joining `ray start` would make."""
-    os.environ.setdefault("RAY_enable_metrics_collection", "0")
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "object_store_memory": 80 * 2**20,
-                                                      "include_dashboard": False})
-    c.add_node(num_cpus=1, object_store_memory=80 * 2**20)
-    c.wait_for_nodes()
-    yield c.address
-    c.shutdown()
+    """A head and one worker node, one CPU each."""
+    with local_cluster(worker_nodes=1, head_cpus=1) as address:
+        yield address
 
 
 @pytest.fixture(scope="module")

@@ -21,12 +21,14 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[3]
 RETRAIN = REPO / "scripts" / "retrain" / "retrain.sh"
+sys.path.insert(0, str(REPO))
+from sim.cluster import local_cluster  # noqa: E402
 FIXTURES = REPO / "tests" / "fixtures"
 LAB = Path(os.environ.get("FALL_GUARD_LAB_BIN", REPO / "target" / "debug" / "fall-guard-lab"))
 REQUIRED = os.environ.get("FALL_GUARD_REQUIRE_RAY") == "1"
 
 try:
-    from ray.cluster_utils import Cluster
+    import ray  # noqa: F401
 except ImportError:
     if REQUIRED:
         raise
@@ -42,13 +44,9 @@ RUNS = ("p-s1", "p-s2")
 
 @pytest.fixture(scope="module")
 def cluster():
-    os.environ.setdefault("RAY_enable_metrics_collection", "0")
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "object_store_memory": 80 * 2**20,
-                                                      "include_dashboard": False})
-    c.add_node(num_cpus=1, object_store_memory=80 * 2**20)
-    c.wait_for_nodes()
-    yield c.address
-    c.shutdown()
+    """A head and one worker node, one CPU each."""
+    with local_cluster(worker_nodes=1, head_cpus=1) as address:
+        yield address
 
 
 def retrain_train(data: Path, **env: str) -> subprocess.CompletedProcess:
