@@ -12,6 +12,10 @@
     reports.py chosen-pair THRESHOLDS_JSON
         prints "TRIGGER RELEASE": the pair chosen, or when none kept within
         the budget, the grid's highest trigger
+    reports.py causes BYCAUSE_DIR
+        prints the test split's fall causes that subset_by_cause.py found
+        (BYCAUSE_DIR/causes.json), most falls first, on one line: the
+        subsets BYCAUSE_DIR/CAUSE/ it wrote
 
 Standard library only (with model_meta.py beside it).
 """
@@ -47,8 +51,12 @@ def chosen_pair(thresholds: str) -> str:
     return f"{c['trigger']} {c['release']}"
 
 
+def causes(bycause: str) -> str:
+    return " ".join(json.loads((Path(bycause) / "causes.json").read_text())["causes"])
+
+
 def main(argv: list[str]) -> int:
-    usage = "usage: reports.py current|shipped-run|chosen-pair ARGS... (see the module's docstring)"
+    usage = "usage: reports.py current|shipped-run|chosen-pair|causes ARGS... (see the module's docstring)"
     if not argv:
         print(usage, file=sys.stderr)
         return 2
@@ -60,6 +68,9 @@ def main(argv: list[str]) -> int:
         return 0
     if command == "chosen-pair" and len(args) == 1:
         print(chosen_pair(args[0]))
+        return 0
+    if command == "causes" and len(args) == 1:
+        print(causes(args[0]))
         return 0
     print(usage, file=sys.stderr)
     return 2

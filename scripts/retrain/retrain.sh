@@ -445,14 +445,21 @@ step_evaluate() {
   for group in emp mp p emp-pp mp-pp p-pp; do job eval_seeds "$group" "$group"; done
   # Within the event episodes (the test episodes at sigma >= 0.035): whether
   # the plan and the camera add to the joints once an event is known to come.
+  # The subsets by fall cause are made here too, with the test split's falls by
+  # cause (reports/cause-stats.json, kept with the card's reports).
   "$PY" "$REPO/scripts/retrain/subset_by_cause.py" "$SET" "$DATA_ROOT/bycause" >>"$LOG"
+  cp "$DATA_ROOT/bycause/causes.json" "$REPORTS/cause-stats.json.partial"
+  mv "$REPORTS/cause-stats.json.partial" "$REPORTS/cause-stats.json"
+  local causes cause
+  causes=$("$PY" "$REPO/scripts/retrain/reports.py" causes "$DATA_ROOT/bycause")
+  log "evaluate: test falls by cause: ${causes:-none}"
   for group in emp mp p emp-pp mp-pp p-pp; do
     SET="$DATA_ROOT/bycause/high-sigma" job eval_seeds "$group" "$group-highsigma"
   done
   # The daemon's own path: warnings on test and on the long walking set, then
   # on the test falls of each cause with the test walks.
   local target
-  for target in set:test walk:train walk:test collision:test perturbation:test; do
+  for target in set:test walk:train walk:test $(for cause in $causes; do echo "$cause:test"; done); do
     while read -r abl name loss; do
       job warnings_one "$abl" "$name" "$target"
     done <"$REPORTS/selected.txt"
@@ -465,10 +472,9 @@ step_evaluate() {
     best=$(best_run "$g")
     [ -n "$best" ] && job warnings_2s "${best%% *}"
   done
-  # By fall cause: EMP and MP on the test falls of one cause with the test walks.
-  local cause
-  for cause in collision perturbation; do
-    for group in emp mp emp-pp mp-pp p-pp emp-vis-pp; do
+  # By fall cause: the networks on the test falls of one cause with the test walks.
+  for cause in $causes; do
+    for group in emp mp emp-pp mp-pp ep-pp p-pp emp-vis-pp; do
       SET="$DATA_ROOT/bycause/$cause" job eval_seeds "$group" "$group-$cause"
     done
   done
@@ -533,16 +539,19 @@ chosen_pair() {
 
 # latch_warnings MODEL THRESHOLDS.json HORIZON_MS SET:SPLIT OUT: the daemon's
 # path (`fall-guard-lab warnings`) with the pair chosen in THRESHOLDS.json, on the
-# data set, the walking set (no choice is made on it) or the test falls of one
-# cause with the test walks; skipped while OUT is current (`current`).
+# data set (`set`), the walking set (`walk`; no choice is made on it) or the
+# test falls of one cause with the test walks (any other name: the subset
+# bycause/CAUSE); skipped while OUT is current (`current`; for a subset, newer
+# than its manifest too, which subset_by_cause.py rewrites only when it changed).
 latch_warnings() {
   local model=$1 pairs=$2 horizon=$3 target=$4 out=$5 trig rel
-  local set=${target%%:*} split=${target##*:} data=$SET
+  local set=${target%%:*} split=${target##*:} data=$SET subset=()
   case $set in
+    set) ;;
     walk) data=$WALK ;;
-    collision|perturbation) data=$DATA_ROOT/bycause/$set ;;
+    *) data=$DATA_ROOT/bycause/$set; subset=("$data/manifest.json") ;;
   esac
-  current "$out" "$model" "$horizon" "$pairs" && return 0
+  current "$out" "$model" "$horizon" "$pairs" "${subset[@]}" && return 0
   read -r trig rel < <(chosen_pair "$pairs")
   log "warnings $(basename "$model" .cal.bpk) at $horizon ms on $set $split (trigger $trig, release $rel)"
   "$FG" warnings --model "$model" --data "$data" --split "$split" --horizon-ms "$horizon" --trigger "$trig" \

@@ -50,3 +50,11 @@ def test_the_chosen_pair_or_the_highest_trigger(tmp_path):
 def test_a_bad_call_says_how_to_call_it():
     r = reports("nothing")
     assert r.returncode == 2 and "usage" in r.stderr
+
+
+def test_the_causes_are_the_test_splits_most_falls_first(tmp_path):
+    (tmp_path / "causes.json").write_text(json.dumps({"causes": {"perturbation": {}, "push": {}, "obstacle": {}}}))
+    assert reports("causes", tmp_path).stdout.split() == ["perturbation", "push", "obstacle"]
+    (tmp_path / "causes.json").write_text(json.dumps({"causes": {}}))
+    r = reports("causes", tmp_path)
+    assert r.returncode == 0 and r.stdout.strip() == ""
