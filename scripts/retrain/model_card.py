@@ -8,7 +8,8 @@ Reads, under DIR (this data directory's reports): eval-GROUP-PROTOCOL/metrics.js
 ABL-thresholds.json (chosen on scripts/retrain/choice_set.py's set, which holds the
 walking set's validation split: false alarms are counted on its train and
 test splits only), selected.txt, set-stats.json and walk-stats.json
-(`python -m sim stats`).
+(`python -m sim stats`) and cause-stats.json (the test split's falls by cause,
+scripts/retrain/subset_by_cause.py).
 
 The results are kept in the repository, under --keep, so that seeds trained
 from different data directories add up (the data set and training are
@@ -21,8 +22,11 @@ to KEEP/reports/ and read from there.
 
 Writes Markdown: the data, the paper and deployment protocols (seeds as mean
 +- std), the checks the card makes (each with its figure, and by how much a
-target is missed), by fall cause, and the daemon's warnings. Standard library
-only. Welch's t-test is one-sided (the claim "A > B" over seeds).
+target is missed), by fall cause, and the daemon's warnings. The fall causes
+are the data's (cause-stats.json, else those the warnings were replayed on):
+per cause, its share of the test falls, the time from the cause to the onset
+and, per network, the share of its falls warned >= 0.5 s ahead, EMP against
+MP. Standard library only. Welch's t-test is one-sided (the claim "A > B" over seeds).
 """
 
 from __future__ import annotations
@@ -404,9 +408,91 @@ def latch_2s_rows(reports: Path) -> list[str]:
             "| --- | --- | --- | --- | --- | --- | --- | --- |", *rows, ""]
 
 
+def cause_names(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
+    """The fall causes the card has figures for: those of the test split's falls
+    (cause-stats.json, most falls first), else, by name, those a selected network's warnings
+    were replayed on (warnings-ABL-CAUSE-test.json)."""
+    stats = load(reports / "cause-stats.json")
+    if stats and stats.get("causes"):
+        return list(stats["causes"])
+    found = set()
+    for abl, _ in selected:
+        prefix = f"warnings-{abl}-"
+        for f in reports.glob(f"{prefix}*-test.json"):
+            cause = f.name[len(prefix):-len("-test.json")]
+            if cause not in ("set", "walk"):
+                found.add(cause)
+    return sorted(found)
+
+
+def spread_txt(spread: dict | None, what: str = "") -> str:
+    """A `sim stats` spread in s as "median (p10-p90)"; "-" without one."""
+    if not spread:
+        return "-"
+    return f"{spread['median']:.2f} s ({spread['p10']:.2f}-{spread['p90']:.2f}){what}"
+
+
+def early_share(t: dict) -> float | None:
+    """The share of a warnings grid entry's falls warned >= 0.5 s ahead (None: not in the report)."""
+    if t.get("warned_by_0_5s") is None or not t.get("falling_episodes"):
+        return None
+    return t["warned_by_0_5s"] / t["falling_episodes"]
+
+
+def cause_warning_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
+    """One row per fall cause of the test split: its falls and their share of the test falls, the
+    time from the cause to the onset (cause-stats.json; a perturbation fall's from its event) and
+    how many of the timed falls had their cause >= 0.5 s before the onset, then per selected
+    network the falls warned >= 0.5 s ahead (warnings-ABL-CAUSE-test.json) and EMP's share
+    against MP's; nothing without such warnings."""
+    causes = cause_names(reports, selected)
+    abls = [abl for abl, _ in selected]
+    warned = {(c, a): load(reports / f"warnings-{a}-{c}-test.json") for c in causes for a in abls}
+    if not any(warned.values()):
+        return []
+    stats = (load(reports / "cause-stats.json") or {}).get("causes", {})
+    falls = {}
+    for c in causes:
+        counts = [r["grid"][0]["falling_episodes"] for a in abls if (r := warned[(c, a)])]
+        falls[c] = stats[c]["falls"] if c in stats else (counts[0] if counts else None)
+    total = sum(n for n in falls.values() if n is not None)
+    both = "emp" in abls and "mp" in abls
+    rows = ["| cause | test falls (share) | cause to onset, median (p10-p90) | cause >= 0.5 s before onset | "
+            + " | ".join(f"{a.upper()} warned >= 0.5 s ahead" for a in abls) + (" | EMP - MP |" if both else " |"),
+            "| " + " | ".join(["---"] * (4 + len(abls) + both)) + " |"]
+    for c in causes:
+        s = stats.get(c)
+        n = falls[c]
+        share = s["share_of_falls"] if s else (n / total if n is not None and total else None)
+        head = f"{n} ({100 * share:.0f}%)" if n is not None and share is not None else "-"
+        if not s:
+            onset = "-"
+        elif s.get("cause_to_onset_s"):
+            onset = spread_txt(s["cause_to_onset_s"])
+        else:
+            onset = spread_txt(s.get("event_to_onset_s"), " from the event")
+        timed = f"{s['caused_0_5s_before_onset']}/{s['timed_falls']}" if s and s.get("timed_falls") else "-"
+        cells = []
+        for a in abls:
+            r = warned[(c, a)]
+            e = early_share(r["grid"][0]) if r else None
+            cells.append("-" if e is None else
+                         f"{r['grid'][0]['warned_by_0_5s']}/{r['grid'][0]['falling_episodes']} ({100 * e:.0f}%)")
+        if both:
+            te, tm = (warned[(c, a)]["grid"][0] if warned[(c, a)] else {} for a in ("emp", "mp"))
+            ee, em = early_share(te), early_share(tm)
+            gap = "-"
+            if ee is not None and em is not None and te["falling_episodes"] == tm["falling_episodes"]:
+                d = te["warned_by_0_5s"] - tm["warned_by_0_5s"]
+                gap = f"{100 * (ee - em):+.0f} points ({d:+d} {'fall' if abs(d) == 1 else 'falls'})"
+            cells.append(gap)
+        rows.append(f"| {c} | {head} | {onset} | {timed} | " + " | ".join(cells) + " |")
+    return rows
+
+
 def cause_lead_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     rows = []
-    for cause in ("collision", "perturbation"):
+    for cause in cause_names(reports, selected):
         for abl, name in selected:
             r = load(reports / f"warnings-{abl}-{cause}-test.json")
             if not r:
@@ -455,9 +541,11 @@ def warning_checks(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
 def stats_rows(stats: dict | None, title: str) -> list[str]:
     if not stats:
         return [f"({title}: no stats yet)"]
+    causes = stats.get("causes")
+    share = ("falls by cause below" if causes else
+             f"collision share of falls {stats['collision_share_of_falls']}")
     rows = [f"{title}: {stats['episodes']} episodes, {stats['falling']} falling ({100 * stats['fall_rate']:.1f}%), "
-            f"{stats.get('distinct_plans', '-')} plans, collision share of falls "
-            f"{stats['collision_share_of_falls']}.", "",
+            f"{stats.get('distinct_plans', '-')} plans, {share}.", "",
             "| sigma | episodes | falls | without the ball: falls / episodes | collision falls |",
             "| --- | --- | --- | --- | --- |"]
     for s, r in stats["per_sigma"].items():
@@ -465,6 +553,8 @@ def stats_rows(stats: dict | None, title: str) -> list[str]:
         fr = r["fall_rate_without_ball"]
         rows.append(f"| {s} | {r['episodes']} | {r['falling']} | "
                     f"{round(fr * plain) if fr is not None else '-'} / {plain} | {r['collision_falls']} |")
+    if causes:
+        rows += ["", *cause_stats_rows(causes)]
     cf = stats.get("counterfactual")
     if cf:
         rows += ["", f"Counterfactual (knots from onset - {cf['lead_s']} s redrawn, {cf['perturbation_falls_tried']} "
@@ -476,6 +566,21 @@ def stats_rows(stats: dict | None, title: str) -> list[str]:
                      f"median {lead['median']} s (p10 {lead['p10']}, p90 {lead['p90']}); launched more than "
                      + ", ".join(f"{k} s before the onset in {100 * v:.0f}%" for k, v in share.items())
                      + " of the collision falls."]
+    return rows
+
+
+def cause_stats_rows(causes: dict) -> list[str]:
+    """The falls of a set by cause (`sim stats`, `causes`), most falls first: the episodes with the
+    cause, its falls and share of the falls, the time from the cause to the onset, and when measured,
+    the share of its falls averted or moved with the cause taken out."""
+    rows = ["| cause | episodes with it | falls | share of falls | cause to onset, median (p10-p90) | "
+            "without it: averted or moved |", "| --- | --- | --- | --- | --- | --- |"]
+    for cause, c in sorted(causes.items(), key=lambda kv: (-kv[1]["falls"], kv[0])):
+        share = "-" if c.get("share_of_falls") is None else f"{100 * c['share_of_falls']:.0f}%"
+        cf = c.get("counterfactual_without_it")
+        cf_txt = (f"{cf['averted'] + cf['moved']} / {cf['falls_tried']}" if cf and cf.get("falls_tried") else "-")
+        rows.append(f"| {cause} | {c['episodes_with_it']} | {c['falls']} | {share} | "
+                    f"{spread_txt(c.get('cause_to_onset_s'))} | {cf_txt} |")
     return rows
 
 
@@ -558,9 +663,10 @@ def main() -> int:
              "### Checks", "", *checks(evals), "",
              "### Deployment protocol (test split)", "", *protocol_table(evals, "deployment"), ""]
     cause_rows = []
-    for cause in ("collision", "perturbation"):
+    for cause in cause_names(kept, selected):
         for key, label in (("emp", "EMP"), ("mp", "MP"), ("emp-pp", "EMP (paper-trained)"),
-                           ("mp-pp", "MP (paper-trained)"), ("p-pp", "P (paper-trained)"),
+                           ("mp-pp", "MP (paper-trained)"), ("ep-pp", "EP (paper-trained)"),
+                           ("p-pp", "P (paper-trained)"),
                            ("emp-vis-pp", "EMP, vision encoder at 1e-4 (paper-trained)")):
             r = evals.get((f"{key}-{cause}", "paper"))
             if r:
@@ -590,6 +696,13 @@ def main() -> int:
                   "paper protocol, accuracy (ROC-AUC))", "",
                   "| network | seeds | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |",
                   *camera_rows, ""]
+    warned_rows = cause_warning_rows(kept, selected)
+    if warned_rows:
+        lines += ["### What each network warns, by fall cause (`fall-guard-lab warnings` on the test falls of "
+                  "that cause; the cause's time to the onset on the test split, a perturbation fall's from its event)",
+                  "", *warned_rows, "",
+                  "A fall whose cause comes less than 0.5 s before its onset is warned 0.5 s ahead only by a latch "
+                  "already asserted before the cause.", ""]
     lead_rows = cause_lead_rows(kept, selected)
     if lead_rows:
         lines += ["### Warnings by fall cause (`fall-guard-lab warnings` on the test falls of that cause)", "",

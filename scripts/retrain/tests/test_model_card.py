@@ -143,3 +143,128 @@ def test_each_per_horizon_network_sits_beside_the_all_horizon_emp_at_its_horizon
     assert rows[4] == "| 0.5 s | 0.930 +- 0.000 (0.930 +- 0.000) (1) | 0.960 +- 0.010 (0.960 +- 0.010) |"
     assert rows[5] == "| 1 s | 0.820 +- 0.010 (0.820 +- 0.010) (2) | 0.850 +- 0.010 (0.850 +- 0.010) |"
     assert model_card.per_horizon_rows({("emp-pp", "paper"): merged(emp)}) == []
+
+
+def warnings_report(falls: int, early: int, walks: int = 10) -> dict:
+    """A `fall-guard-lab warnings` report with fixed thresholds: FALLS falls, EARLY of them
+    warned >= 0.5 s ahead."""
+    t = {"trigger": 0.7, "release": 0.4, "falling_episodes": falls, "warned": early, "warned_share": early / falls,
+         "warned_by_0_5s": early, "warned_by_0_5s_share": early / falls, "lead_median_s": 1.0, "lead_p10_s": 0.6,
+         "non_falling_episodes": walks, "non_falling_minutes": walks / 6, "false_alarms": 0,
+         "false_alarms_per_min": 0.0}
+    return {"model": "runs/x.cal.bpk", "data": "bycause/x", "split": "test", "horizon_ms": 2000,
+            "release_hold_ms": 1000, "grid": [t], "chosen": None, "max_false_alarms_per_min": 0.5}
+
+
+def spread(median: float, p10: float, p90: float) -> dict:
+    return {"min": p10, "p10": p10, "median": median, "p90": p90, "max": p90, "mean": median}
+
+
+#: Generator 6's four causes on a test split of 40 falls (scripts/retrain/subset_by_cause.py's causes.json).
+CAUSE_STATS = {"split": "test", "episodes": 70, "falls": 40, "walks": 30, "early_lead_s": 0.5, "causes": {
+    "perturbation": {"falls": 20, "share_of_falls": 0.5, "cause_to_onset_s": None,
+                     "event_to_onset_s": spread(1.77, 1.2, 2.3), "timed_falls": 12, "caused_0_5s_before_onset": 12},
+    "collision": {"falls": 8, "share_of_falls": 0.2, "cause_to_onset_s": spread(0.85, 0.74, 1.35),
+                  "event_to_onset_s": None, "timed_falls": 8, "caused_0_5s_before_onset": 8},
+    "obstacle": {"falls": 7, "share_of_falls": 0.175, "cause_to_onset_s": spread(2.43, 0.26, 4.48),
+                 "event_to_onset_s": None, "timed_falls": 7, "caused_0_5s_before_onset": 5},
+    "push": {"falls": 5, "share_of_falls": 0.125, "cause_to_onset_s": spread(0.88, 0.45, 1.52),
+             "event_to_onset_s": None, "timed_falls": 5, "caused_0_5s_before_onset": 4}}}
+
+#: Per cause, the falls warned >= 0.5 s ahead by EMP, MP, EP and P.
+EARLY = {"perturbation": (20, 20, 19, 15), "collision": (7, 5, 5, 2), "obstacle": (6, 3, 3, 1),
+         "push": (1, 1, 1, 1)}
+SELECTED = [("emp", "emp-pp-s1"), ("mp", "mp-pp-s1"), ("ep", "ep-pp-s1"), ("p", "p-pp-s1")]
+
+
+def write_cause_reports(d: Path, with_stats: bool = True) -> None:
+    d.mkdir(parents=True, exist_ok=True)
+    if with_stats:
+        (d / "cause-stats.json").write_text(json.dumps(CAUSE_STATS))
+    for cause, early in EARLY.items():
+        for (abl, _), n in zip(SELECTED, early):
+            falls = CAUSE_STATS["causes"][cause]["falls"]
+            (d / f"warnings-{abl}-{cause}-test.json").write_text(json.dumps(warnings_report(falls, n)))
+    # The reports on the whole test split and the walking set are no causes.
+    for target in ("set-test", "walk-train", "walk-test"):
+        (d / f"warnings-emp-{target}.json").write_text(json.dumps(warnings_report(40, 34)))
+
+
+def test_the_card_gives_every_cause_its_share_time_to_onset_and_each_networks_early_warnings(tmp_path):
+    write_cause_reports(tmp_path)
+    assert model_card.cause_names(tmp_path, SELECTED) == ["perturbation", "collision", "obstacle", "push"]
+    rows = model_card.cause_warning_rows(tmp_path, SELECTED)
+    assert rows[0] == ("| cause | test falls (share) | cause to onset, median (p10-p90) | "
+                       "cause >= 0.5 s before onset | EMP warned >= 0.5 s ahead | MP warned >= 0.5 s ahead | "
+                       "EP warned >= 0.5 s ahead | P warned >= 0.5 s ahead | EMP - MP |")
+    assert rows[1] == "| " + " | ".join(["---"] * 9) + " |"
+    assert rows[2:] == [
+        "| perturbation | 20 (50%) | 1.77 s (1.20-2.30) from the event | 12/12 | 20/20 (100%) | 20/20 (100%) | "
+        "19/20 (95%) | 15/20 (75%) | +0 points (+0 falls) |",
+        "| collision | 8 (20%) | 0.85 s (0.74-1.35) | 8/8 | 7/8 (88%) | 5/8 (62%) | 5/8 (62%) | 2/8 (25%) | "
+        "+25 points (+2 falls) |",
+        "| obstacle | 7 (18%) | 2.43 s (0.26-4.48) | 5/7 | 6/7 (86%) | 3/7 (43%) | 3/7 (43%) | 1/7 (14%) | "
+        "+43 points (+3 falls) |",
+        "| push | 5 (12%) | 0.88 s (0.45-1.52) | 4/5 | 1/5 (20%) | 1/5 (20%) | 1/5 (20%) | 1/5 (20%) | "
+        "+0 points (+0 falls) |",
+    ]
+    # The detailed table has every cause and network too.
+    detail = model_card.cause_lead_rows(tmp_path, SELECTED)
+    assert len(detail) == 2 + 4 * 4 and detail[2].startswith("| perturbation | EMP | 20/20 (100%) |")
+
+
+def test_without_the_cause_statistics_the_causes_come_from_the_warnings(tmp_path):
+    # Kept reports from before cause-stats.json: the causes by name, their share from the warnings' falls.
+    write_cause_reports(tmp_path, with_stats=False)
+    assert model_card.cause_names(tmp_path, SELECTED) == ["collision", "obstacle", "perturbation", "push"]
+    rows = model_card.cause_warning_rows(tmp_path, SELECTED)
+    assert rows[2].startswith("| collision | 8 (20%) | - | - | 7/8 (88%) |")
+    assert rows[5].startswith("| push | 5 (12%) | - | - | 1/5 (20%) |")
+    # A network without a report for a cause leaves its cell empty and the difference unsaid.
+    (tmp_path / "warnings-mp-push-test.json").unlink()
+    rows = model_card.cause_warning_rows(tmp_path, SELECTED)
+    assert rows[5] == "| push | 5 (12%) | - | - | 1/5 (20%) | - | 1/5 (20%) | 1/5 (20%) | - |"
+    assert model_card.cause_warning_rows(tmp_path / "none", SELECTED) == []
+
+
+def test_the_set_statistics_give_its_falls_by_cause():
+    stats = {"episodes": 100, "falling": 50, "fall_rate": 0.5, "distinct_plans": 10,
+             "collision_share_of_falls": 0.24, "per_sigma": {}, "causes": {
+                 "perturbation": {"falls": 23, "share_of_falls": 0.46, "episodes_with_it": 100,
+                                  "cause_to_onset_s": None},
+                 "collision": {"falls": 12, "share_of_falls": 0.24, "episodes_with_it": 15,
+                               "cause_to_onset_s": spread(0.85, 0.74, 1.35),
+                               "counterfactual_without_it": {"falls_tried": 10, "averted": 6, "moved": 2}},
+                 "push": {"falls": 6, "share_of_falls": 0.12, "episodes_with_it": 11,
+                          "cause_to_onset_s": spread(0.88, 0.45, 1.52)},
+                 "obstacle": {"falls": 9, "share_of_falls": 0.18, "episodes_with_it": 16,
+                              "cause_to_onset_s": spread(2.43, 0.26, 4.48)}}}
+    rows = model_card.stats_rows(stats, "Training set")
+    assert rows[0].endswith("10 plans, falls by cause below.")
+    i = rows.index("| cause | episodes with it | falls | share of falls | cause to onset, median (p10-p90) | "
+                   "without it: averted or moved |")
+    assert rows[i + 2:i + 6] == ["| perturbation | 100 | 23 | 46% | - | - |",
+                                 "| collision | 15 | 12 | 24% | 0.85 s (0.74-1.35) | 8 / 10 |",
+                                 "| obstacle | 16 | 9 | 18% | 2.43 s (0.26-4.48) | - |",
+                                 "| push | 11 | 6 | 12% | 0.88 s (0.45-1.52) | - |"]
+    # Generator 5's statistics name the ball's share only.
+    del stats["causes"]
+    assert model_card.stats_rows(stats, "Training set")[0].endswith("collision share of falls 0.24.")
+
+
+def test_the_card_has_every_cause_of_the_data(tmp_path, monkeypatch):
+    reports, keep = tmp_path / "reports", tmp_path / "keep"
+    write_cause_reports(reports)
+    (reports / "selected.txt").write_text("".join(f"{a} {n} 0.1\n" for a, n in SELECTED))
+    for cause in EARLY:
+        write_eval(reports, f"emp-pp-{cause}", report(["runs/emp-pp-s1.cal.bpk"], {1000.0: [0.9]}))
+    out = tmp_path / "tables.md"
+    monkeypatch.setattr(sys, "argv", ["model_card.py", "--reports", str(reports), "--keep", str(keep),
+                                      "--out", str(out)])
+    assert model_card.main() == 0
+    card = out.read_text()
+    assert (keep / "reports" / "cause-stats.json").is_file()
+    for cause in EARLY:
+        assert f"| {cause} | EMP (paper-trained) | 0.900 +- 0.000 |" in card
+        assert f"| {cause} | {CAUSE_STATS['causes'][cause]['falls']} (" in card
+    assert "### What each network warns, by fall cause" in card
