@@ -159,6 +159,34 @@ pub struct ModelConfig {
     /// a network without one uses `trigger` and `release`.
     #[serde(default)]
     pub thresholds: NetworkThresholds,
+    /// What a forecast does when its window holds an input outside the
+    /// range the network was trained on: `"hold"` (default: not valid,
+    /// NaN, `fall_imminent` asserted) or `"forecast"` (published as
+    /// usual, inputs held to their bounds, the excursion on
+    /// `/diagnostics`). `docs/daemon.md`, "Inputs outside the training range".
+    #[serde(default)]
+    pub out_of_range: OutOfRange,
+}
+
+/// `[model].out_of_range`.
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum OutOfRange {
+    /// The forecast is not valid while an input is out: the safety signal
+    /// holds.
+    #[default]
+    Hold,
+    /// The forecast is published from the inputs held to their bounds.
+    Forecast,
+}
+
+impl OutOfRange {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            OutOfRange::Hold => "hold",
+            OutOfRange::Forecast => "forecast",
+        }
+    }
 }
 
 /// `[model.thresholds]`: `emp = [trigger, release]`, and so on.

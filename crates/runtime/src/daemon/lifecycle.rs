@@ -154,6 +154,7 @@ impl Networks {
             latch,
             bus.clone(),
             config.output.print_forecasts,
+            config.model.out_of_range,
         )?;
         Ok(Networks {
             models,

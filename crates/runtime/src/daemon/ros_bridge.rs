@@ -222,6 +222,7 @@ mod tests {
             imminent: true,
             ablation: "MP",
             invalid_reason: String::new(),
+            out_of_range: String::new(),
             sensed_at: std::time::Instant::now(),
         }
     }

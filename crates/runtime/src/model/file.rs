@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use super::config::{Ablation, ModelConfig};
 use super::emp::{Emp, EmpInference, EmpInput};
+use super::ranges::Bounds;
 use super::vision::lowpass_frames;
 
 const MAGIC: &[u8; 8] = b"FGEMP\0v1";
@@ -134,6 +135,12 @@ pub struct ModelMeta {
     /// its rate table's (`train --vision-lr`); none: the table's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vision_lr: Option<f64>,
+    /// The range of every input over the training split (written by
+    /// `fall-guard-lab train`, added by `fall-guard-lab ranges`), which the
+    /// out-of-range guard holds windows to ([`super::ranges`]); none: no
+    /// bounds, nothing checked.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_ranges: Option<super::ranges::InputRanges>,
 }
 
 /// Post-hoc calibration, fitted on held-out windows after training, per
@@ -298,6 +305,7 @@ impl ModelMeta {
             calibration: None,
             protocol: None,
             vision_lr: None,
+            input_ranges: None,
             config,
         }
     }
@@ -684,8 +692,10 @@ pub fn host_logits(logits: Tensor<2>) -> Result<Vec<f32>, ModelError> {
         .map_err(|e| ModelError::Input(format!("model output is not f32: {e:?}")))
 }
 
-/// Standardises joints and plan per joint, checks every value, low-passes the
-/// frames, and stacks `B` windows into one network input.
+/// Standardises joints and plan per joint (each value held to its measured
+/// range first, when the file has ranges, [`Bounds`]: a value inside it is
+/// untouched), checks every value,
+/// low-passes the frames, and stacks `B` windows into one network input.
 pub fn build_input(
     meta: &ModelMeta,
     joints: &[&[f32]],
@@ -696,34 +706,42 @@ pub fn build_input(
     let cfg = &meta.config;
     let (n, c, l, s) = (cfg.n_ticks, cfg.n_joints, cfg.plan_len(), cfg.frame_size);
     let b = joints.len();
-    let standardise = |name: &str, rows: usize, windows: &[&[f32]], mean: &[f32], std: &[f32]| {
-        let mut out = Vec::with_capacity(b * rows * c);
-        for (w, x) in windows.iter().enumerate() {
-            if x.len() != rows * c {
-                return Err(ModelError::Input(format!(
-                    "{name} of window {w} has {} values, expected {rows} ticks x {c} joints",
-                    x.len()
-                )));
-            }
-            for (i, &v) in x.iter().enumerate() {
-                if !v.is_finite() {
+    let bounds = Bounds::of(meta);
+    let mut excursions = Vec::new();
+    let mut standardise =
+        |name: &str, rows: usize, windows: &[&[f32]], mean: &[f32], std: &[f32]| {
+            let is_plan = name == "plan";
+            let mut out = Vec::with_capacity(b * rows * c);
+            for (w, x) in windows.iter().enumerate() {
+                if x.len() != rows * c {
                     return Err(ModelError::Input(format!(
-                        "{name} of window {w} is not finite at tick {} joint {} ({v})",
-                        i / c,
-                        meta.joint_names
-                            .get(i % c)
-                            .map(String::as_str)
-                            .unwrap_or("?")
+                        "{name} of window {w} has {} values, expected {rows} ticks x {c} joints",
+                        x.len()
                     )));
                 }
-                out.push((v - mean[i % c]) / std[i % c]);
+                for (i, &v) in x.iter().enumerate() {
+                    if !v.is_finite() {
+                        return Err(ModelError::Input(format!(
+                            "{name} of window {w} is not finite at tick {} joint {} ({v})",
+                            i / c,
+                            meta.joint_names
+                                .get(i % c)
+                                .map(String::as_str)
+                                .unwrap_or("?")
+                        )));
+                    }
+                    let v = match &bounds {
+                        Some(b) => b.clip(is_plan, i % c, v, &mut excursions),
+                        None => v,
+                    };
+                    out.push((v - mean[i % c]) / std[i % c]);
+                }
             }
-        }
-        Ok(Tensor::<3>::from_data(
-            TensorData::new(out, [b, rows, c]),
-            device,
-        ))
-    };
+            Ok(Tensor::<3>::from_data(
+                TensorData::new(out, [b, rows, c]),
+                device,
+            ))
+        };
     let joints_t = standardise("joints", n, joints, &meta.joint_mean, &meta.joint_std)?;
     let plan_t = if meta.ablation.uses_plan() {
         if plan.len() != b {

@@ -14,6 +14,7 @@ pub mod host_linear;
 pub mod inception;
 pub mod motion;
 pub mod plan;
+pub mod ranges;
 pub mod slice_conv;
 pub mod spectral;
 pub mod streaming;

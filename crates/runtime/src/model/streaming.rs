@@ -25,6 +25,7 @@ use std::sync::Arc;
 use burn::prelude::*;
 
 use super::file::{host_logits, LoadedModel, ModelError};
+use super::ranges::{record, Bounds, Excursion};
 use super::vision::lowpass_frames;
 
 /// One time slice of one vision layer: `[channels, h, w]` row-major.
@@ -46,14 +47,21 @@ struct TickState {
     /// trajectory encoder reads them, standardised with the plan statistics).
     joints_rad: Option<Vec<f32>>,
     frame_lp: Option<Arc<Vec<f32>>>,
+    /// Its joints and frame outside their bounds (usually none).
+    excursions: Vec<Excursion>,
 }
 
 /// Forecasts tick by tick from a [`LoadedModel`].
 #[derive(Debug)]
 pub struct StreamingForecaster {
     model: LoadedModel,
+    /// What every input is held to ([`Bounds::of`] the model; none: a
+    /// file without measured ranges, nothing held).
+    bounds: Option<Bounds>,
     ticks: VecDeque<TickState>,
     plan_std: Option<Vec<f32>>,
+    /// The newest plan window's values outside their bounds.
+    plan_excursions: Vec<Excursion>,
     /// Trajectory features computed ahead of their tick
     /// ([`StreamingForecaster::precompute_plan`]) with the standardised plan
     /// window they are of: used when the tick's window is that one.
@@ -73,8 +81,10 @@ impl StreamingForecaster {
         let layers = cfg.vision_channels.len();
         StreamingForecaster {
             model: model.clone(),
+            bounds: Bounds::of(&model.meta),
             ticks: VecDeque::with_capacity(cfg.n_ticks + 1),
             plan_std: None,
+            plan_excursions: Vec::new(),
             plan_ahead: None,
             plan_reused: 0,
             cache: vec![HashMap::new(); layers],
@@ -91,8 +101,41 @@ impl StreamingForecaster {
     pub fn reset(&mut self) {
         self.ticks.clear();
         self.plan_std = None;
+        self.plan_excursions.clear();
         self.plan_ahead = None;
         self.cache.iter_mut().for_each(HashMap::clear);
+    }
+
+    /// The bounds the inputs are held to (none: the file has no ranges).
+    pub fn bounds(&self) -> Option<&Bounds> {
+        self.bounds.as_ref()
+    }
+
+    /// `value` of joint channel `j` (`plan`: of the trajectory input) held
+    /// to its bound, if the model has bounds.
+    fn clip(&self, plan: bool, j: usize, value: f32, out: &mut Vec<Excursion>) -> f32 {
+        match &self.bounds {
+            Some(b) => b.clip(plan, j, value, out),
+            None => value,
+        }
+    }
+
+    /// The inputs of the current window outside their bounds, the largest
+    /// excursion of each (joints and frames of every tick in the window,
+    /// the newest tick's plan window), in input order. Empty: every value
+    /// the network reads is as given.
+    pub fn excursions(&self) -> Vec<Excursion> {
+        let mut out = Vec::new();
+        for e in self
+            .ticks
+            .iter()
+            .flat_map(|t| &t.excursions)
+            .chain(&self.plan_excursions)
+        {
+            record(&mut out, e.clone());
+        }
+        out.sort_by_key(|e| e.input);
+        out
     }
 
     /// Forecasts whose trajectory features were computed ahead of their
@@ -146,6 +189,7 @@ impl StreamingForecaster {
             )));
         }
         let mut joints_std = Vec::with_capacity(c);
+        let mut excursions = Vec::new();
         for (j, &v) in joints_rad.iter().enumerate() {
             if !v.is_finite() {
                 return Err(ModelError::Input(format!(
@@ -153,6 +197,7 @@ impl StreamingForecaster {
                     meta.joint_names[j]
                 )));
             }
+            let v = self.clip(false, j, v, &mut excursions);
             joints_std.push((v - meta.joint_mean[j]) / meta.joint_std[j]);
         }
         let frame_lp = if meta.ablation.uses_vision() {
@@ -174,6 +219,9 @@ impl StreamingForecaster {
                     "tick {tick}: frame is not finite"
                 )));
             }
+            if let Some(b) = &self.bounds {
+                b.check_frame(f, &mut excursions);
+            }
             // P · x · Pᵀ per channel with the same tensor code as the whole-window path.
             let raw = Tensor::<5>::from_data(
                 TensorData::new(f.to_vec(), [1, 3, 1, s, s]),
@@ -191,9 +239,11 @@ impl StreamingForecaster {
             // Only the newest tick's plan window is read (it holds the
             // window's past and future plan): a tick without a plan clears
             // it, and the forecast of a window ending there is refused.
+            let mut plan_excursions = Vec::new();
             self.plan_std = plan_rad
-                .map(|p| self.standardised_plan(tick, p))
+                .map(|p| self.standardised_plan(tick, p, &mut plan_excursions))
                 .transpose()?;
+            self.plan_excursions = plan_excursions;
         }
         if let Some(last) = self.ticks.back() {
             if tick != last.tick + 1 {
@@ -208,6 +258,7 @@ impl StreamingForecaster {
             joints_std,
             joints_rad: keep_raw.then(|| joints_rad.to_vec()),
             frame_lp,
+            excursions,
         });
         if self.ticks.len() > cfg.n_ticks {
             self.ticks.pop_front();
@@ -216,8 +267,14 @@ impl StreamingForecaster {
     }
 
     /// The trajectory encoder's input for tick `tick`, standardised, from
-    /// the plan window `plan_rad` (checked: length, finite values).
-    fn standardised_plan(&self, tick: i64, plan_rad: &[f32]) -> Result<Vec<f32>, ModelError> {
+    /// the plan window `plan_rad` (checked: length, finite values; each
+    /// value held to its bound, excursions into `excursions`).
+    fn standardised_plan(
+        &self,
+        tick: i64,
+        plan_rad: &[f32],
+        excursions: &mut Vec<Excursion>,
+    ) -> Result<Vec<f32>, ModelError> {
         let meta = &self.model.meta;
         let cfg = &meta.config;
         let (l, c) = (cfg.plan_len(), cfg.n_joints);
@@ -237,6 +294,7 @@ impl StreamingForecaster {
                     meta.joint_names[i % c]
                 )));
             }
+            let v = self.clip(true, i % c, v, excursions);
             std.push((v - meta.plan_mean[i % c]) / meta.plan_std[i % c]);
         }
         Ok(std)
@@ -256,7 +314,7 @@ impl StreamingForecaster {
         if !(meta.ablation.uses_plan() && meta.config.trajectory.reads_plan()) {
             return Ok(());
         }
-        let std = self.standardised_plan(tick, plan_rad)?;
+        let std = self.standardised_plan(tick, plan_rad, &mut Vec::new())?;
         let (l, c) = (meta.config.plan_len(), meta.config.n_joints);
         let plan =
             Tensor::<3>::from_data(TensorData::new(std.clone(), [1, l, c]), &self.model.device);
@@ -358,10 +416,15 @@ impl StreamingForecaster {
                     cfg.plan_len()
                 )));
             }
+            // Held to the plan's bounds as the whole-window path holds them
+            // (the joints' own excursions are reported per tick).
             let std: Vec<f32> = rows
                 .iter()
                 .enumerate()
-                .map(|(i, &v)| (v - meta.plan_mean[i % c]) / meta.plan_std[i % c])
+                .map(|(i, &v)| {
+                    let v = self.clip(true, i % c, v, &mut Vec::new());
+                    (v - meta.plan_mean[i % c]) / meta.plan_std[i % c]
+                })
                 .collect();
             Some(Tensor::<3>::from_data(
                 TensorData::new(std, [1, cfg.plan_len(), c]),

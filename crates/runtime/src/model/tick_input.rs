@@ -2,9 +2,6 @@
 //! [`TickInput`] per tick, turned into the same arrays `Window::from_ticks`
 //! builds (the plan window sampled from the tick's latest plan on the tick
 //! grid, the frame as CHW in `[0, 1]`), then [`StreamingForecaster::push_parts`].
-//!
-//! Needs the data plane's `window.rs` and `frame.rs` (branch `data`): add
-//! `pub mod tick_input;` to `model/mod.rs` when they are merged.
 
 use super::file::ModelError;
 use super::streaming::StreamingForecaster;

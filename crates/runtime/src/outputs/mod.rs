@@ -57,6 +57,10 @@ pub struct ForecastOutput {
     pub ablation: &'static str,
     /// Why the forecast is not valid (empty when valid).
     pub invalid_reason: String,
+    /// The window's inputs outside the range the network was trained on
+    /// (empty: none), whether the forecast is valid or not
+    /// (`[model].out_of_range`).
+    pub out_of_range: String,
     /// When the newest sensor sample used by this tick reached the daemon.
     pub sensed_at: Instant,
 }
@@ -128,6 +132,18 @@ pub struct DiagnosticsSnapshot {
     /// Devices the sources report (servo buses), after the streams.
     pub devices: Vec<DeviceDiagnostics>,
     pub model: ModelDiagnostics,
+    /// The out-of-range guard: `fall_guard: inputs`.
+    pub inputs: InputsDiagnostics,
+}
+
+/// Whether the forecast window lies inside what the network was trained on.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InputsDiagnostics {
+    pub level: DiagnosticLevel,
+    pub message: String,
+    /// `out_of_range` (the inputs, comma-separated), `since_s`,
+    /// `windows_out_of_range`, `windows`, `policy`, `bounds`.
+    pub values: Vec<(String, String)>,
 }
 
 /// One `diagnostic_msgs/DiagnosticStatus`, ready to be copied into a message.
@@ -149,9 +165,10 @@ impl DiagnosticsSnapshot {
     /// node name (`fall_guard: joints`): one per stream (keys `source`,
     /// `rate_hz`, `age_ms`, `errors`, `errors_in_window`, `error_window_s`,
     /// then the source's own), one per device (`fall_guard: servo bus
-    /// lower`, `hardware_id` the port), then `fall_guard: model`.
+    /// lower`, `hardware_id` the port), then `fall_guard: model` and
+    /// `fall_guard: inputs`.
     pub fn statuses(&self, prefix: &str) -> Vec<StatusEntry> {
-        let mut out = Vec::with_capacity(self.streams.len() + self.devices.len() + 1);
+        let mut out = Vec::with_capacity(self.streams.len() + self.devices.len() + 2);
         for s in &self.streams {
             let mut values = vec![
                 ("source".to_string(), s.source.clone()),
@@ -214,6 +231,13 @@ impl DiagnosticsSnapshot {
                     m.networks_in_memory.clone(),
                 ),
             ],
+        });
+        out.push(StatusEntry {
+            level: self.inputs.level,
+            name: format!("{prefix}: inputs"),
+            message: self.inputs.message.clone(),
+            hardware_id: self.hardware_id.clone(),
+            values: self.inputs.values.clone(),
         });
         out
     }
@@ -357,6 +381,7 @@ mod tests {
             imminent: false,
             ablation: "EMP",
             invalid_reason: String::new(),
+            out_of_range: String::new(),
             sensed_at: Instant::now(),
         }
     }
@@ -435,9 +460,14 @@ mod tests {
                 latch_horizon_ms: 1000,
                 networks_in_memory: "EMP,MP,EP,P".to_string(),
             },
+            inputs: InputsDiagnostics {
+                level: DiagnosticLevel::Warn,
+                message: "inputs outside the training range: bust_x".into(),
+                values: vec![("out_of_range".into(), "bust_x".into())],
+            },
         };
         let statuses = snap.statuses("fall_guard");
-        assert_eq!(statuses.len(), 3);
+        assert_eq!(statuses.len(), 4);
         assert_eq!(statuses[0].name, "fall_guard: joints");
         assert_eq!(statuses[0].message, "stale (replay)");
         assert_eq!(statuses[0].level.as_byte(), 3);
@@ -457,5 +487,8 @@ mod tests {
         assert!(has(2, "active_model", "P"));
         assert!(has(2, "ring", "10/60"));
         assert!(has(2, "invalid_reason", "joints stale"));
+        assert_eq!(statuses[3].name, "fall_guard: inputs");
+        assert_eq!(statuses[3].level, DiagnosticLevel::Warn);
+        assert!(has(3, "out_of_range", "bust_x"));
     }
 }

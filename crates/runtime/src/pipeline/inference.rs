@@ -20,11 +20,14 @@ use std::time::Instant;
 
 use tokio::sync::Notify;
 
+use crate::config::OutOfRange;
+use crate::model::ranges::Excursion;
 use crate::model::{Ablation, ModelError, StreamingForecaster};
 use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::window::TickInput;
 
+use super::guard::{GuardState, InputGuard};
 use super::models::{ablation_name, ForecastError, ModelSet};
 
 /// p50/p99 of a set of durations in µs (nearest rank), in ms.
@@ -65,6 +68,8 @@ pub struct InferenceStats {
     pub errors: u64,
     pub imminent: bool,
     pub latch_triggers: u64,
+    /// The out-of-range guard after the latest forecast.
+    pub guard: GuardState,
 }
 
 /// Latencies kept between two diagnostics snapshots, at most.
@@ -89,11 +94,16 @@ impl Inference {
         latch: SafetyLatch,
         bus: OutputBus,
         print: bool,
+        out_of_range: OutOfRange,
     ) -> Result<Inference, ForecastError> {
         let (tx, rx) = mpsc::sync_channel::<InferenceJob>(1);
         let busy = Arc::new(AtomicBool::new(false));
         let idle = Arc::new(Notify::new());
-        let stats = Arc::new(Mutex::new(InferenceStats::default()));
+        let guard = InputGuard::new(out_of_range, models.spec().joint_names.clone());
+        let stats = Arc::new(Mutex::new(InferenceStats {
+            guard: guard.state().clone(),
+            ..InferenceStats::default()
+        }));
         let dead = Arc::new(AtomicBool::new(false));
         let (t_busy, t_idle, t_stats, t_dead) = (
             Arc::clone(&busy),
@@ -105,7 +115,7 @@ impl Inference {
             .name("inference".into())
             .spawn(move || {
                 inference_loop(
-                    &models, latch, &bus, print, &rx, &t_busy, &t_idle, &t_stats, &t_dead,
+                    &models, latch, guard, &bus, print, &rx, &t_busy, &t_idle, &t_stats, &t_dead,
                 )
             })
             .map_err(ForecastError::Thread)?;
@@ -171,6 +181,7 @@ impl Inference {
 fn inference_loop(
     models: &ModelSet,
     mut latch: SafetyLatch,
+    mut guard: InputGuard,
     bus: &OutputBus,
     print: bool,
     jobs: &mpsc::Receiver<InferenceJob>,
@@ -187,6 +198,7 @@ fn inference_loop(
         let mut invalid_reason = job.invalid_reason;
         let mut probabilities = Vec::new();
         let mut latency_us = None;
+        let mut out_of_range = String::new();
         if job.ticks.len() < models.spec().n_ticks {
             forecasters.prepare(job.ablation, &job.ticks);
         } else {
@@ -194,9 +206,18 @@ fn inference_loop(
             // A refused or failed network: logged once, counted as an error.
             let mut error = None;
             match forecasters.forecast(models, job.ablation, &job.ticks) {
-                Ok(p) => {
+                Ok((p, excursions)) => {
                     latency_us =
                         Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
+                    if let Some(sentence) =
+                        guard.judge(job.tick, job.stamp_ns, &excursions.0, &excursions.1)
+                    {
+                        if valid && guard.holds() {
+                            valid = false;
+                            invalid_reason = sentence.clone();
+                        }
+                        out_of_range = sentence;
+                    }
                     if valid && p.iter().any(|x| !x.is_finite()) {
                         valid = false;
                         invalid_reason = "the network produced a non-finite probability".into();
@@ -235,6 +256,7 @@ fn inference_loop(
             imminent,
             ablation: ablation_name(job.ablation),
             invalid_reason,
+            out_of_range,
             sensed_at: job.sensed_at,
         };
         if print {
@@ -250,6 +272,7 @@ fn inference_loop(
             }
             s.imminent = imminent;
             s.latch_triggers = latch.triggers();
+            s.guard.clone_from(guard.state());
         }
         bus.send_forecast(output);
         busy.store(false, Ordering::Release);
@@ -325,15 +348,16 @@ impl Forecasters {
     }
 
     /// The forecast of `ablation` for the window `ticks` (N consecutive
-    /// ticks, oldest first). Only the ticks the forecaster has not seen are
-    /// pushed: one per tick normally, the missed ones after an overrun, the
-    /// whole window after a model switch or a gap.
+    /// ticks, oldest first), with the window's inputs outside their bounds
+    /// and where the bounds come from. Only the ticks the forecaster has
+    /// not seen are pushed: one per tick normally, the missed ones after an
+    /// overrun, the whole window after a model switch or a gap.
     fn forecast(
         &mut self,
         models: &ModelSet,
         ablation: Ablation,
         ticks: &[TickInput],
-    ) -> Result<Vec<f32>, ForecastFailure> {
+    ) -> Result<(Vec<f32>, (Vec<Excursion>, String)), ForecastFailure> {
         let forecaster = self.forecaster(models, ablation)?;
         let first = ticks.first().map(|t| t.tick).unwrap_or_default();
         let from = match forecaster.last_tick() {
@@ -358,7 +382,15 @@ impl Forecasters {
                 return Err(e.into());
             }
         }
-        Ok(forecaster.forecast()?)
+        let p = forecaster.forecast()?;
+        let bounds = forecaster.bounds().map_or_else(
+            || {
+                "none: the file carries no measured input ranges, nothing is checked (fall-guard-lab ranges adds them)"
+                    .to_string()
+            },
+            |b| format!("measured on {}", b.measured_on),
+        );
+        Ok((p, (forecaster.excursions(), bounds)))
     }
 }
 
@@ -451,12 +483,18 @@ pub fn format_forecast(f: &ForecastOutput) -> String {
     } else {
         format!("invalid({})", f.invalid_reason)
     };
+    let guard = if f.out_of_range.is_empty() || !f.valid {
+        String::new()
+    } else {
+        format!(" ({})", f.out_of_range)
+    };
     format!(
-        "tick {} t={:.3}s {} {} p=[{}] imminent={}",
+        "tick {} t={:.3}s {} {}{} p=[{}] imminent={}",
         f.tick,
         f.stamp_ns as f64 / 1e9,
         f.ablation,
         validity,
+        guard,
         probabilities.join(" "),
         f.imminent
     )
@@ -491,6 +529,7 @@ mod tests {
             imminent: true,
             ablation: "MP",
             invalid_reason: "camera stale".into(),
+            out_of_range: String::new(),
             sensed_at: Instant::now(),
         };
         assert_eq!(

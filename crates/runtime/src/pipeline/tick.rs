@@ -17,12 +17,14 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::clock::unix_now_ns;
+use crate::config::OutOfRange;
 use crate::model::Ablation;
 use crate::outputs::{
-    CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, OutputBus,
-    StreamDiagnostics, ERROR_WINDOW_S,
+    CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, InputsDiagnostics, ModelDiagnostics,
+    OutputBus, StreamDiagnostics, ERROR_WINDOW_S,
 };
 use crate::pipeline::choice::{best_configured, Freshness, JointsAt, ModelChoice};
+use crate::pipeline::guard::GuardState;
 use crate::pipeline::inference::{percentiles_ms, Inference, InferenceJob};
 use crate::pipeline::models::{ablation_name, ModelSet};
 use crate::shutdown::Shutdown;
@@ -287,6 +289,56 @@ fn invalid_reason(
         })
         .collect();
     (!not_ready.is_empty()).then(|| not_ready.join(", "))
+}
+
+/// `fall_guard: inputs`: OK while the window lies inside the ranges the
+/// network was trained on, WARN naming each input outside them.
+fn inputs_diagnostics(guard: &GuardState) -> InputsDiagnostics {
+    let since = guard.out_of_range.iter().map(|o| o.since_ns).min();
+    let values = vec![
+        (
+            "out_of_range".to_string(),
+            guard
+                .out_of_range
+                .iter()
+                .map(|o| o.input.as_str())
+                .collect::<Vec<_>>()
+                .join(","),
+        ),
+        (
+            "since_s".to_string(),
+            since.map_or_else(String::new, |s| format!("{:.3}", s as f64 / 1e9)),
+        ),
+        (
+            "windows_out_of_range".to_string(),
+            guard.windows_out_of_range.to_string(),
+        ),
+        ("windows".to_string(), guard.windows.to_string()),
+        ("policy".to_string(), guard.policy.as_str().to_string()),
+        ("bounds".to_string(), guard.bounds.clone()),
+    ];
+    let (level, message) = if guard.windows == 0 {
+        (DiagnosticLevel::Ok, "no forecast window yet".to_string())
+    } else if guard.out_of_range.is_empty() {
+        (
+            DiagnosticLevel::Ok,
+            "inside the ranges the network was trained on".to_string(),
+        )
+    } else {
+        let action = match guard.policy {
+            OutOfRange::Hold => "forecasts not valid, fall_imminent asserted ([model].out_of_range = \"hold\")",
+            OutOfRange::Forecast => "forecasting on the inputs held to their bounds ([model].out_of_range = \"forecast\")",
+        };
+        (
+            DiagnosticLevel::Warn,
+            format!("{}; {action}", guard.sentence()),
+        )
+    };
+    InputsDiagnostics {
+        level,
+        message,
+        values,
+    }
 }
 
 impl TickLoop {
@@ -601,7 +653,7 @@ impl TickLoop {
                 details,
             });
         }
-        let (mut latencies, forecasts, errors, imminent) = {
+        let (mut latencies, forecasts, errors, imminent, guard) = {
             let mut s = self
                 .inference
                 .stats()
@@ -612,7 +664,17 @@ impl TickLoop {
                 s.forecasts,
                 s.errors,
                 s.imminent,
+                s.guard.clone(),
             )
+        };
+        // Under `hold`, inputs outside their range make the forecast not
+        // valid on the inference thread: the model status says so too.
+        let held =
+            self.last_valid && guard.policy == OutOfRange::Hold && !guard.out_of_range.is_empty();
+        let (last_valid, last_reason) = if held {
+            (false, guard.sentence())
+        } else {
+            (self.last_valid, self.last_reason.clone())
         };
         let percentiles = percentiles_ms(&mut latencies);
         let s = &self.settings.streams;
@@ -621,15 +683,15 @@ impl TickLoop {
             s.camera.configured,
             s.plan.configured,
         );
-        let (level, message) = if errors > 0 && !self.last_valid {
+        let (level, message) = if errors > 0 && !last_valid {
             (
                 DiagnosticLevel::Error,
-                format!("{errors} inference errors; {}", self.last_reason),
+                format!("{errors} inference errors; {last_reason}"),
             )
-        } else if !self.last_valid {
+        } else if !last_valid {
             (
                 DiagnosticLevel::Warn,
-                format!("forecast not valid: {}", self.last_reason),
+                format!("forecast not valid: {last_reason}"),
             )
         } else if Some(active) != expected {
             (
@@ -672,8 +734,8 @@ impl TickLoop {
                 overruns: self.counters.overruns,
                 ticks: self.counters.ticks,
                 forecasts,
-                valid: self.last_valid,
-                invalid_reason: self.last_reason.clone(),
+                valid: last_valid,
+                invalid_reason: last_reason,
                 switches: self.choice.switches(),
                 ring_ticks: self.ring.len(),
                 ring_capacity: self.ring.capacity(),
@@ -687,6 +749,7 @@ impl TickLoop {
                     .collect::<Vec<_>>()
                     .join(","),
             },
+            inputs: inputs_diagnostics(&guard),
         }
     }
 
