@@ -41,6 +41,8 @@ pub enum Command {
     Calibrate(CalibrateArgs),
     /// Rewrite a model file with its weights in half precision (f16).
     Half(HalfArgs),
+    /// Measure the input ranges a network was trained on (its training split) and write them into its model file, for the daemon's out-of-range guard.
+    Ranges(RangesArgs),
     /// Training throughput of the network (EMP, batch 4) on the CPU or a GPU.
     Bench(BenchArgs),
 }
@@ -293,6 +295,34 @@ impl From<HalfArgs> for HalfOptions {
     fn from(a: HalfArgs) -> Self {
         HalfOptions {
             model: a.model,
+            out: a.out,
+        }
+    }
+}
+
+/// Arguments of `fall-guard-lab ranges`.
+#[derive(Debug, Clone, Args)]
+pub struct RangesArgs {
+    /// Model file (written in place unless `--out` is given; the weights are copied byte for byte).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Data set directory the network was trained on.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Split to measure: the one the network was trained on.
+    #[arg(long, default_value = "train")]
+    pub split: Split,
+    /// Output model file.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+impl From<RangesArgs> for fall_guard_lab::ranges::RangesOptions {
+    fn from(a: RangesArgs) -> Self {
+        fall_guard_lab::ranges::RangesOptions {
+            model: a.model,
+            data: a.data,
+            split: a.split,
             out: a.out,
         }
     }

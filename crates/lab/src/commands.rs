@@ -521,6 +521,20 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
     // Read once; every per-horizon network cuts its windows from them.
     let train_eps = load_split_episodes(&dataset, Split::Train, &spec, needs)?;
     let val_eps = load_split_episodes(&dataset, Split::Validation, &spec, needs)?;
+    // The input ranges every network of this run is written with (the
+    // daemon's out-of-range guard): those of the training split.
+    let input_ranges = match ablation {
+        Some(a) => {
+            let probe = ModelMeta::new(cfg.clone(), a, args.rate_hz, joint_names.clone());
+            let (ranges, measured) = crate::ranges::measure(&train_eps, &probe, "")?;
+            let on = crate::ranges::describe(&data_name(&dataset.dir), "train", &measured);
+            Some(fall_guard_runtime::model::ranges::InputRanges {
+                measured_on: on,
+                ..ranges
+            })
+        }
+        None => None,
+    };
     for (name, horizons, out) in runs {
         let net = run.as_ref().map(|r| r.network(&name));
         if let Some(net) = &net {
@@ -570,6 +584,7 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
             validation,
             &out,
             net.as_ref(),
+            input_ranges.as_ref(),
         )?;
         if let Some(net) = &net {
             net.finish()?;
@@ -728,6 +743,7 @@ fn train_one(
     validation: SplitEpoch,
     out: &Path,
     checkpoint: Option<&NetworkCheckpoint>,
+    input_ranges: Option<&fall_guard_runtime::model::ranges::InputRanges>,
 ) -> CommandResult<()> {
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).doing(|| format!("creating {}", parent.display()))?;
@@ -776,7 +792,8 @@ fn train_one(
                 drawn: 0,
                 validation,
             };
-            let (meta, model) = fit(meta, &mut source, &opts)?;
+            let (mut meta, model) = fit(meta, &mut source, &opts)?;
+            meta.input_ranges = input_ranges.cloned();
             save_model(out, &meta, &model)?;
             tracing::info!(
                 "{} model ({} trajectory, {} protocol, horizons {:?} ticks) written to {} (best epoch {}, val loss {:.4})",

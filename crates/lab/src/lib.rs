@@ -30,6 +30,7 @@ pub mod fit;
 pub mod logreg;
 pub mod metrics;
 pub mod plots;
+pub mod ranges;
 pub mod sampler;
 pub mod warning;
 

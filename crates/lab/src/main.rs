@@ -34,6 +34,9 @@ fn main() -> Result<()> {
         }
         Command::Warnings(args) => print!("{}", warning::run_warnings(&args.into())?.table()),
         Command::Half(args) => commands::run_half(&args.into())?,
+        Command::Ranges(args) => {
+            println!("{}", fall_guard_lab::ranges::run_ranges(&args.into())?)
+        }
         Command::Calibrate(args) => print!("{}", calibrate::run_calibrate(&args.into())?.table()),
         Command::Bench(args) => {
             let report = bench::run_train_bench(&args.into())?;

@@ -484,6 +484,52 @@ pub fn save_model_as(
     Ok(())
 }
 
+/// Writes `meta` over the metadata of the model file `path` into `out`
+/// (the same path or another), the weights section copied byte for byte:
+/// for metadata added after training (`fall-guard-lab ranges`). `meta`
+/// must describe the same network: same sizes and encoders, and a
+/// calibration of the same form, since the file's version says which.
+pub fn rewrite_meta(path: &Path, out: &Path, meta: &ModelMeta) -> Result<(), ModelError> {
+    let (old, _) = load_emp(path, &super::cpu_device())?;
+    if old.config != meta.config || old.ablation != meta.ablation {
+        return Err(ModelError::BadMeta {
+            path: path.to_path_buf(),
+            message: "the new metadata describes another network".into(),
+        });
+    }
+    let beta = |m: &ModelMeta| m.calibration.as_ref().is_some_and(Calibration::is_beta);
+    if beta(&old) != beta(meta) {
+        return Err(ModelError::BadMeta {
+            path: path.to_path_buf(),
+            message: "the new metadata changes the calibration's form".into(),
+        });
+    }
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    // load_emp checked the layout: magic, length, metadata, the rest.
+    let json_len = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes")) as usize;
+    let rest = &bytes[16 + json_len..];
+    let json = serde_json::to_vec(meta).map_err(|e| ModelError::BadMeta {
+        path: out.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let mut file = Vec::with_capacity(16 + json.len() + rest.len());
+    file.extend_from_slice(&bytes[..8]);
+    file.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    file.extend_from_slice(&json);
+    file.extend_from_slice(rest);
+    let io = |source| ModelError::Io {
+        path: out.to_path_buf(),
+        source,
+    };
+    let tmp = partial_path(out);
+    std::fs::write(&tmp, &file).map_err(io)?;
+    std::fs::rename(&tmp, out).map_err(io)?;
+    Ok(())
+}
+
 /// `NAME.partial` next to `path` (`models/emp.h15.bpk` ->
 /// `models/emp.h15.bpk.partial`): where a file is written before it is
 /// renamed to `path`.
