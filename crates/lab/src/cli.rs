@@ -432,15 +432,32 @@ pub struct WarningsArgs {
     pub release_hold_ms: u32,
     /// Search the thresholds on this split instead (trigger 0.30..0.95,
     /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
-    /// false-alarm rate is within --max-false-alarms-per-min.
+    /// false-alarm rate is within --max-false-alarms-per-min and whose time
+    /// held within --max-held-share.
     #[arg(long)]
     pub choose: bool,
     /// False-alarm budget for --choose, per minute of non-falling walking.
     #[arg(long, default_value_t = 0.5)]
     pub max_false_alarms_per_min: f64,
+    /// Time-held budget for --choose: the share of non-falling time with
+    /// `fall_imminent` asserted once the window is full.
+    #[arg(long, default_value_t = 0.01)]
+    pub max_held_share: f64,
+    /// What a window with an input outside the network's training range
+    /// does, as the daemon's `[model].out_of_range`: hold (not valid, the
+    /// latch asserted) or forecast.
+    #[arg(long, value_enum, default_value_t = OutOfRangeArg::Hold)]
+    pub out_of_range: OutOfRangeArg,
     /// JSON report.
     #[arg(long)]
     pub out: Option<PathBuf>,
+}
+
+/// `warnings --out-of-range`: `[model].out_of_range`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum OutOfRangeArg {
+    Hold,
+    Forecast,
 }
 
 impl From<WarningsArgs> for WarningsOptions {
@@ -455,6 +472,8 @@ impl From<WarningsArgs> for WarningsOptions {
             release_hold_ms: a.release_hold_ms,
             choose: a.choose,
             max_false_alarms_per_min: a.max_false_alarms_per_min,
+            max_held_share: a.max_held_share,
+            hold_out_of_range: a.out_of_range == OutOfRangeArg::Hold,
             out: a.out,
         }
     }

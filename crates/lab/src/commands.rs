@@ -1015,6 +1015,27 @@ pub fn forecast_ticks(
     model: &LoadedModel,
     episode: &EpisodeTicks,
 ) -> CommandResult<Vec<(i64, i64, Vec<f32>)>> {
+    Ok(forecast_ticks_judged(model, episode)?
+        .into_iter()
+        .map(|t| (t.tick, t.stamp_ns, t.probabilities))
+        .collect())
+}
+
+/// One tick's forecast and the out-of-range guard's judgement of its window.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JudgedForecast {
+    pub tick: i64,
+    pub stamp_ns: i64,
+    pub probabilities: Vec<f32>,
+    /// The window holds an input outside the network's training range.
+    pub out_of_range: bool,
+}
+
+/// [`forecast_ticks`] with the guard's judgement of each window.
+pub fn forecast_ticks_judged(
+    model: &LoadedModel,
+    episode: &EpisodeTicks,
+) -> CommandResult<Vec<JudgedForecast>> {
     let needs = needs_of_model(&model.meta);
     let mut stream = StreamingForecaster::new(model);
     let mut out = Vec::with_capacity(episode.ticks.len());
@@ -1025,7 +1046,12 @@ pub fn forecast_ticks(
         let at = || format!("{}: tick {}", episode.path.display(), tick.tick);
         stream.push(tick).doing(at)?;
         if stream.is_full() {
-            out.push((tick.tick, tick.stamp_ns, stream.forecast().doing(at)?));
+            out.push(JudgedForecast {
+                tick: tick.tick,
+                stamp_ns: tick.stamp_ns,
+                probabilities: stream.forecast().doing(at)?,
+                out_of_range: !stream.excursions().is_empty(),
+            });
         }
     }
     Ok(out)

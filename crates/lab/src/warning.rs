@@ -5,7 +5,15 @@
 //!
 //! - on falling episodes: whether `fall_imminent` went true before the fall
 //!   onset, and the lead time (onset minus the first tick it went true);
-//! - on non-falling episodes: false alarms (latch off -> on) per minute.
+//! - on non-falling episodes: false alarms (latch off -> on) per minute,
+//!   and the time held: the share of their forecast time (once the window
+//!   is full) with `fall_imminent` asserted. Triggers alone cannot see a
+//!   latch that never lets go: a walk held from start to end counts one
+//!   trigger, or none;
+//! - on every tick before a fall: the share whose window holds an input
+//!   outside the network's training range (the daemon's out-of-range
+//!   guard; under `hold`, as the daemon's default, such a tick is not valid
+//!   and asserts the latch).
 //!
 //! `fall-guard-lab warnings --choose` picks the trigger / release thresholds on
 //! one split (the validation split: never the test split), reporting the
@@ -17,7 +25,7 @@ use std::path::PathBuf;
 use crate::error::{refused, CommandResult, Doing};
 use serde::Serialize;
 
-use super::commands::{forecast_ticks, needs_of_model};
+use super::commands::{forecast_ticks_judged, needs_of_model};
 use super::dataset::{data_name, load_episode, Dataset, Split};
 use fall_guard_runtime::model::LoadedModel;
 use fall_guard_runtime::outputs::latch::{release_hold_ticks, SafetyLatch, Thresholds};
@@ -45,6 +53,11 @@ pub struct WarningsOptions {
     pub choose: bool,
     /// False-alarm budget for --choose, per minute of non-falling walking.
     pub max_false_alarms_per_min: f64,
+    /// Time-held budget for --choose: share of non-falling time asserted.
+    pub max_held_share: f64,
+    /// A window with an input outside the training range asserts the
+    /// latch (`[model].out_of_range = "hold"`).
+    pub hold_out_of_range: bool,
     /// JSON report.
     pub out: Option<PathBuf>,
 }
@@ -53,8 +66,9 @@ pub struct WarningsOptions {
 #[derive(Debug, Clone)]
 pub struct EpisodeForecasts {
     pub name: String,
-    /// Tick stamps (ns) and probability at the horizon, once the window is full.
-    pub ticks: Vec<(i64, f32)>,
+    /// Tick stamps (ns), probability at the horizon, and whether the window
+    /// holds an input outside the training range, once the window is full.
+    pub ticks: Vec<(i64, f32, bool)>,
     /// Fall onset stamp (ns), `None` for an episode that does not fall.
     pub onset_ns: Option<i64>,
 }
@@ -79,6 +93,15 @@ pub struct WarningStats {
     pub non_falling_minutes: f64,
     pub false_alarms: u64,
     pub false_alarms_per_min: f64,
+    /// Minutes of non-falling forecasts with `fall_imminent` asserted.
+    pub held_minutes: f64,
+    /// `held_minutes / non_falling_minutes`.
+    pub held_share: f64,
+    /// Share of the forecast ticks before any fall (every episode) whose
+    /// window holds an input outside the training range.
+    pub out_of_range_share: f64,
+    /// Whether such a tick asserted the latch (`hold`).
+    pub out_of_range_holds: bool,
 }
 
 /// The lead a warning needs for a safety node to brace in time, s.
@@ -101,9 +124,13 @@ pub fn warning_stats(
     release: f32,
     hold_ticks: usize,
     tick_s: f64,
+    hold_out_of_range: bool,
 ) -> CommandResult<WarningStats> {
     let mut leads = Vec::new();
     let (mut falling, mut warned, mut calm, mut minutes, mut alarms) = (0, 0, 0, 0.0, 0u64);
+    let (mut held_ticks, mut judged, mut out_of_range) = (0usize, 0usize, 0usize);
+    // A tick is valid unless the guard holds it.
+    let valid = |out: bool| !(out && hold_out_of_range);
     for ep in episodes {
         // The latch sees one probability: index 0 of a one-element forecast.
         let thresholds = Thresholds::new(trigger, release)
@@ -114,12 +141,16 @@ pub fn warning_stats(
         match ep.onset_ns {
             Some(onset) => {
                 falling += 1;
+                for (_, _, out) in ep.ticks.iter().take_while(|(stamp, _, _)| *stamp < onset) {
+                    judged += 1;
+                    out_of_range += usize::from(*out);
+                }
                 let first = ep
                     .ticks
                     .iter()
-                    .take_while(|(stamp, _)| *stamp < onset)
-                    .find(|(_, p)| latch.update(&[*p], true));
-                if let Some((stamp, _)) = first {
+                    .take_while(|(stamp, _, _)| *stamp < onset)
+                    .find(|(_, p, out)| latch.update(&[*p], valid(*out)));
+                if let Some((stamp, _, _)) = first {
                     warned += 1;
                     leads.push((onset - stamp) as f64 / 1e9);
                 }
@@ -127,8 +158,10 @@ pub fn warning_stats(
             None => {
                 calm += 1;
                 minutes += ep.ticks.len() as f64 * tick_s / 60.0;
-                for (_, p) in &ep.ticks {
-                    latch.update(&[*p], true);
+                for (_, p, out) in &ep.ticks {
+                    judged += 1;
+                    out_of_range += usize::from(*out);
+                    held_ticks += usize::from(latch.update(&[*p], valid(*out)));
                 }
                 alarms += latch.triggers();
             }
@@ -161,6 +194,18 @@ pub fn warning_stats(
         } else {
             f64::NAN
         },
+        held_minutes: held_ticks as f64 * tick_s / 60.0,
+        held_share: if minutes > 0.0 {
+            held_ticks as f64 * tick_s / 60.0 / minutes
+        } else {
+            f64::NAN
+        },
+        out_of_range_share: if judged > 0 {
+            out_of_range as f64 / judged as f64
+        } else {
+            f64::NAN
+        },
+        out_of_range_holds: hold_out_of_range,
     })
 }
 
@@ -174,10 +219,17 @@ pub fn threshold_grid() -> Vec<(f32, f32)> {
         .collect()
 }
 
-/// The lowest trigger within the false-alarm budget (the most falls warned).
-pub fn choose(grid: &[WarningStats], max_false_alarms_per_min: f64) -> Option<&WarningStats> {
+/// The lowest trigger within the false-alarm and time-held budgets (the
+/// most falls warned).
+pub fn choose(
+    grid: &[WarningStats],
+    max_false_alarms_per_min: f64,
+    max_held_share: f64,
+) -> Option<&WarningStats> {
     grid.iter()
-        .filter(|s| s.false_alarms_per_min <= max_false_alarms_per_min)
+        .filter(|s| {
+            s.false_alarms_per_min <= max_false_alarms_per_min && s.held_share <= max_held_share
+        })
         .min_by(|a, b| a.trigger.total_cmp(&b.trigger))
 }
 
@@ -195,9 +247,9 @@ pub fn forecast_split(
         let episode =
             load_episode(&path, &spec, needs).doing(|| format!("reading {}", path.display()))?;
         let onset_ns = episode.fall_onset_tick.map(|t| episode.grid.stamp_ns(t));
-        let ticks = forecast_ticks(model, &episode)?
+        let ticks = forecast_ticks_judged(model, &episode)?
             .into_iter()
-            .map(|(_, stamp_ns, p)| (stamp_ns, p[horizon_index]))
+            .map(|t| (t.stamp_ns, t.probabilities[horizon_index], t.out_of_range))
             .collect();
         out.push(EpisodeForecasts {
             name: path
@@ -225,18 +277,20 @@ pub struct WarningsReport {
     pub chosen: Option<WarningStats>,
     /// The false-alarm budget of the search, per minute.
     pub max_false_alarms_per_min: f64,
+    /// The time-held budget of the search, share of walking time.
+    pub max_held_share: f64,
 }
 
 impl WarningsReport {
     /// The figures as a Markdown table, and the choice.
     pub fn table(&self) -> String {
         let mut t = format!(
-            "| trigger | release | falls warned | warned >= {EARLY_LEAD_S} s ahead | lead median s | lead p10 s | false alarms / min |\n| --- | --- | --- | --- | --- | --- | --- |\n"
+            "| trigger | release | falls warned | warned >= {EARLY_LEAD_S} s ahead | lead median s | lead p10 s | false alarms / min | time held | inputs out of range |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
         );
         let opt = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.2}"));
         for s in &self.grid {
             t += &format!(
-                "| {:.2} | {:.2} | {}/{} ({:.0}%) | {} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) |\n",
+                "| {:.2} | {:.2} | {}/{} ({:.0}%) | {} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) | {:.1}% ({:.2} min) | {:.2}% of ticks{} |\n",
                 s.trigger,
                 s.release,
                 s.warned,
@@ -248,18 +302,27 @@ impl WarningsReport {
                 opt(s.lead_p10_s),
                 s.false_alarms_per_min,
                 s.false_alarms,
-                s.non_falling_minutes
+                s.non_falling_minutes,
+                100.0 * s.held_share,
+                s.held_minutes,
+                100.0 * s.out_of_range_share,
+                if s.out_of_range_holds { ", held" } else { "" }
             );
         }
         if self.searched {
             t += &match &self.chosen {
                 Some(c) => format!(
-                    "chosen on {}: trigger {:.2}, release {:.2} (false alarms <= {} / min)\n",
-                    self.split, c.trigger, c.release, self.max_false_alarms_per_min
+                    "chosen on {}: trigger {:.2}, release {:.2} (false alarms <= {} / min, time held <= {:.1}%)\n",
+                    self.split,
+                    c.trigger,
+                    c.release,
+                    self.max_false_alarms_per_min,
+                    100.0 * self.max_held_share
                 ),
                 None => format!(
-                    "no threshold on the grid keeps false alarms within {} / min\n",
-                    self.max_false_alarms_per_min
+                    "no threshold on the grid keeps false alarms within {} / min and time held within {:.1}%\n",
+                    self.max_false_alarms_per_min,
+                    100.0 * self.max_held_share
                 ),
             };
         }
@@ -293,10 +356,10 @@ pub fn run_warnings(args: &WarningsOptions) -> CommandResult<WarningsReport> {
     };
     let grid = pairs
         .iter()
-        .map(|&(t, r)| warning_stats(&episodes, t, r, hold_ticks, tick_s))
+        .map(|&(t, r)| warning_stats(&episodes, t, r, hold_ticks, tick_s, args.hold_out_of_range))
         .collect::<CommandResult<Vec<_>>>()?;
     let chosen = if args.choose {
-        choose(&grid, args.max_false_alarms_per_min).cloned()
+        choose(&grid, args.max_false_alarms_per_min, args.max_held_share).cloned()
     } else {
         None
     };
@@ -310,6 +373,9 @@ pub fn run_warnings(args: &WarningsOptions) -> CommandResult<WarningsReport> {
             "grid": grid,
             "chosen": chosen,
             "max_false_alarms_per_min": args.max_false_alarms_per_min,
+            "max_held_share": args.max_held_share,
+            "out_of_range": if args.hold_out_of_range { "hold" } else { "forecast" },
+            "input_ranges": model.meta.input_ranges.as_ref().map(|r| r.measured_on.clone()),
         });
         std::fs::write(out, serde_json::to_vec_pretty(&report)?)
             .doing(|| format!("writing {}", out.display()))?;
@@ -320,6 +386,7 @@ pub fn run_warnings(args: &WarningsOptions) -> CommandResult<WarningsReport> {
         searched: args.choose,
         chosen,
         max_false_alarms_per_min: args.max_false_alarms_per_min,
+        max_held_share: args.max_held_share,
     })
 }
 
@@ -334,7 +401,7 @@ mod tests {
             ticks: ps
                 .iter()
                 .enumerate()
-                .map(|(i, &p)| (i as i64 * tick_ns, p))
+                .map(|(i, &p)| (i as i64 * tick_ns, p, false))
                 .collect(),
             onset_ns: onset_tick.map(|t| t as i64 * tick_ns),
         }
@@ -363,7 +430,7 @@ mod tests {
             episode(&short, Some(60)),
             episode(&calm, None),
         ];
-        let s = warning_stats(&eps, 0.7, 0.4, 1, tick_s).unwrap();
+        let s = warning_stats(&eps, 0.7, 0.4, 1, tick_s, true).unwrap();
         assert_eq!((s.falling_episodes, s.warned, s.warned_by_0_5s), (3, 2, 1));
         assert!((s.warned_by_0_5s_share - 1.0 / 3.0).abs() < 1e-12);
         // Leads 1 s and 0.17 s: the nearest-rank median is the shorter.
@@ -375,9 +442,47 @@ mod tests {
         assert!((s.non_falling_minutes - 1.0).abs() < 1e-9);
         assert!((s.false_alarms_per_min - 2.0).abs() < 1e-9);
         // A higher trigger removes the alarms and the warning.
-        let s = warning_stats(&eps, 0.95, 0.5, 1, tick_s).unwrap();
+        let s = warning_stats(&eps, 0.95, 0.5, 1, tick_s, true).unwrap();
         assert_eq!((s.warned, s.warned_by_0_5s, s.false_alarms), (0, 0, 0));
         assert!(s.lead_median_s.is_none());
+    }
+
+    #[test]
+    fn time_held_counts_every_asserted_tick_and_the_guard_holds_when_asked() {
+        // One walk, 60 ticks of 1 s: latched from tick 10 to 39 (one trigger).
+        let mut ps = vec![0.1f32; 60];
+        ps[10..40].iter_mut().for_each(|p| *p = 0.92);
+        let mut walk = episode(&ps, None);
+        let s = warning_stats(std::slice::from_ref(&walk), 0.7, 0.4, 1, 1.0, true).unwrap();
+        assert_eq!(s.false_alarms, 1);
+        assert!((s.held_share - 0.5).abs() < 1e-9, "{s:?}");
+        assert!((s.held_minutes - 0.5).abs() < 1e-9, "{s:?}");
+        assert_eq!(s.out_of_range_share, 0.0);
+        // Ticks 45..50 out of the training range: held under `hold` only.
+        walk.ticks[45..50].iter_mut().for_each(|t| t.2 = true);
+        let eps = vec![walk];
+        let held = warning_stats(&eps, 0.7, 0.4, 1, 1.0, true).unwrap();
+        assert!((held.held_share - 35.0 / 60.0).abs() < 1e-9, "{held:?}");
+        assert_eq!(
+            held.false_alarms, 1,
+            "an assertion for the guard is no trigger"
+        );
+        assert!((held.out_of_range_share - 5.0 / 60.0).abs() < 1e-9);
+        let forecast = warning_stats(&eps, 0.7, 0.4, 1, 1.0, false).unwrap();
+        assert!((forecast.held_share - 0.5).abs() < 1e-9, "{forecast:?}");
+        // The choice keeps time held within its budget: only a trigger
+        // above 0.92 leaves the walk alone, and the guard's 5 ticks (8%)
+        // exceed 1% at any trigger.
+        let grid = |hold| {
+            threshold_grid()
+                .into_iter()
+                .map(|(t, r)| warning_stats(&eps, t, r, 1, 1.0, hold).unwrap())
+                .collect::<Vec<_>>()
+        };
+        let c = choose(&grid(false), 10.0, 0.01).map(|c| c.trigger);
+        assert!(c.is_some_and(|t| (t - 0.95).abs() < 1e-6), "{c:?}");
+        assert!(choose(&grid(true), 10.0, 0.01).is_none());
+        assert!(choose(&grid(true), 10.0, 0.1).is_some());
     }
 
     #[test]
@@ -385,10 +490,10 @@ mod tests {
         let eps = vec![episode(&[0.1, 0.62, 0.1, 0.62, 0.1], None)];
         let grid: Vec<WarningStats> = threshold_grid()
             .into_iter()
-            .map(|(t, r)| warning_stats(&eps, t, r, 1, 1.0).unwrap())
+            .map(|(t, r)| warning_stats(&eps, t, r, 1, 1.0, true).unwrap())
             .collect();
         // 5 ticks of 1 s: one alarm is 12 per min, over budget up to trigger 0.6.
-        let c = choose(&grid, 1.0).unwrap();
+        let c = choose(&grid, 1.0, 1.0).unwrap();
         assert!((c.trigger - 0.65).abs() < 1e-6, "{c:?}");
         assert!(threshold_grid().iter().all(|(t, r)| r < t && *r >= 0.05));
     }
