@@ -43,6 +43,8 @@ pub enum Command {
     Half(HalfArgs),
     /// Measure the input ranges a network was trained on (its training split) and write them into its model file, for the daemon's out-of-range guard.
     Ranges(RangesArgs),
+    /// Fine-tune a shipped network on the owner's labelled recordings mixed with the simulated set, calibrate, choose its thresholds again, and write a card comparing it with the shipped one.
+    Finetune(FinetuneArgs),
     /// Training throughput of the network (EMP, batch 4) on the CPU or a GPU.
     Bench(BenchArgs),
 }
@@ -190,6 +192,10 @@ pub struct TrainArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Fine-tune this model file: start from its weights, keep its sizes,
+    /// trajectory input and standardisation.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
 }
 
 impl From<TrainArgs> for TrainOptions {
@@ -217,6 +223,7 @@ impl From<TrainArgs> for TrainOptions {
             device: a.device,
             checkpoint_dir: a.checkpoint_dir,
             quiet: a.quiet,
+            init: a.init,
         }
     }
 }
@@ -296,6 +303,75 @@ impl From<HalfArgs> for HalfOptions {
         HalfOptions {
             model: a.model,
             out: a.out,
+        }
+    }
+}
+
+/// Arguments of `fall-guard-lab finetune`.
+#[derive(Debug, Clone, Args)]
+pub struct FinetuneArgs {
+    /// The network to fine-tune (e.g. models/mp.bpk).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// The owner's recordings (`fall-guard record`), each labelled (`fall-guard label --no-fall` or `--fall-at S`).
+    #[arg(long = "recording", required = true)]
+    pub recordings: Vec<PathBuf>,
+    /// The simulated data set the network was trained on (its splits are mixed in).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Output directory: the mixed data set, the network, card.md and card.json.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Share of each walk held back (its end) to measure on.
+    #[arg(long, default_value_t = 0.4)]
+    pub holdout: f64,
+    /// How many times each owner part is listed in the training split.
+    #[arg(long, default_value_t = 50)]
+    pub owner_copies: usize,
+    /// Training epochs at most.
+    #[arg(long, default_value_t = 3)]
+    pub epochs: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// The latch's horizon, ms, as `[model].horizon_ms`.
+    #[arg(long, default_value_t = 2000)]
+    pub horizon_ms: u32,
+    /// As `[model].release_hold_ms`.
+    #[arg(long, default_value_t = 1000)]
+    pub release_hold_ms: u32,
+    /// The shipped network's pair (its `[model.thresholds]`).
+    #[arg(long, default_value_t = 0.8)]
+    pub trigger: f32,
+    #[arg(long, default_value_t = 0.5)]
+    pub release: f32,
+    /// Budgets of the new pair's choice on the validation walks.
+    #[arg(long, default_value_t = 0.1)]
+    pub max_false_alarms_per_min: f64,
+    #[arg(long, default_value_t = 0.01)]
+    pub max_held_share: f64,
+    /// Where the network trains (see `train --device`).
+    #[arg(long, default_value = "cpu")]
+    pub device: TrainDevice,
+}
+
+impl From<FinetuneArgs> for fall_guard_lab::finetune::FinetuneOptions {
+    fn from(a: FinetuneArgs) -> Self {
+        fall_guard_lab::finetune::FinetuneOptions {
+            model: a.model,
+            recordings: a.recordings,
+            data: a.data,
+            out: a.out,
+            holdout: a.holdout,
+            owner_copies: a.owner_copies,
+            epochs: a.epochs,
+            seed: a.seed,
+            horizon_ms: a.horizon_ms,
+            release_hold_ms: a.release_hold_ms,
+            trigger: a.trigger,
+            release: a.release,
+            max_false_alarms_per_min: a.max_false_alarms_per_min,
+            max_held_share: a.max_held_share,
+            device: a.device,
         }
     }
 }

@@ -87,6 +87,10 @@ pub struct TrainOptions {
     pub checkpoint_dir: Option<PathBuf>,
     /// No progress bar.
     pub quiet: bool,
+    /// Fine-tune this model file: start from its weights, keep its network
+    /// sizes, trajectory input and standardisation (`--config`, `--n-ticks`,
+    /// `--horizons` and `--trajectory` are taken from it).
+    pub init: Option<PathBuf>,
 }
 
 /// Arguments of `fall-guard-lab eval`.
@@ -489,6 +493,33 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
     )
     .map_err(refused)?;
     cfg.trajectory = args.trajectory;
+    if let Some(init) = &args.init {
+        let (im, _) = fall_guard_runtime::model::file::load_emp(
+            init,
+            &fall_guard_runtime::model::cpu_device(),
+        )
+        .doing(|| format!("reading {}", init.display()))?;
+        if Some(im.ablation) != ablation {
+            return Err(refused(format!(
+                "--init {}: holds {}, not {}",
+                init.display(),
+                im.ablation,
+                args.ablation
+            )));
+        }
+        if im.joint_names != joint_names || (im.rate_hz - args.rate_hz).abs() > 1e-9 {
+            return Err(refused(format!(
+                "--init {}: trained for other joints or another tick rate",
+                init.display()
+            )));
+        }
+        if args.per_horizon {
+            return Err(refused(
+                "--init with --per-horizon: fine-tune one network at a time",
+            ));
+        }
+        cfg = im.config.clone();
+    }
     cfg.validate().map_err(refused)?;
     let spec = WindowSpec {
         n_ticks: cfg.n_ticks,
@@ -767,6 +798,18 @@ fn train_one(
         Some(ablation) => {
             let mut meta = ModelMeta::new(cfg, ablation, args.rate_hz, joint_names.to_vec());
             meta.trained_on = args.trained_on.clone();
+            if let Some(init) = &args.init {
+                // The weights were trained on this standardisation.
+                let (im, _) = fall_guard_runtime::model::file::load_emp(
+                    init,
+                    &fall_guard_runtime::model::cpu_device(),
+                )
+                .doing(|| format!("reading {}", init.display()))?;
+                meta.joint_mean = im.joint_mean;
+                meta.joint_std = im.joint_std;
+                meta.plan_mean = im.plan_mean;
+                meta.plan_std = im.plan_std;
+            }
             meta.protocol = Some(args.protocol.name().into());
             let mut rates = match args.rates.as_str() {
                 "sim" => EncoderRates::sim(),
@@ -786,6 +829,7 @@ fn train_one(
                 progress: !args.quiet,
                 device: args.device,
                 checkpoint: checkpoint.map(|c| c.checkpoint.dir().to_path_buf()),
+                init: args.init.clone(),
             };
             let mut source = DatasetSource {
                 train,

@@ -25,7 +25,7 @@ use super::adam::FusedAdam;
 use super::checkpoint::{Checkpoint, EpochState};
 use super::device::TrainDevice;
 use crate::error::TrainError;
-use fall_guard_runtime::model::file::build_input;
+use fall_guard_runtime::model::file::{build_input, load_emp};
 use fall_guard_runtime::model::{cpu_device, Ablation, Emp, EpochRecord, ModelConfig, ModelMeta};
 
 /// One training sample: a window and its labels.
@@ -260,6 +260,10 @@ pub struct FitOptions {
     /// holds one ([`super::checkpoint`]); the caller removes it once the
     /// model is written.
     pub checkpoint: Option<PathBuf>,
+    /// Start from this model file's weights (fine-tuning) instead of a
+    /// fresh initialisation; `meta` then carries that file's
+    /// standardisation, kept as it is (the weights were trained on it).
+    pub init: Option<PathBuf>,
 }
 
 impl Default for FitOptions {
@@ -273,6 +277,7 @@ impl Default for FitOptions {
             progress: true,
             device: TrainDevice::Cpu,
             checkpoint: None,
+            init: None,
         }
     }
 }
@@ -576,7 +581,13 @@ pub fn fit(
                     "the training split gave no windows".into(),
                 ));
             }
-            standardisation(&mut meta, first.as_ref())?;
+            match &opts.init {
+                Some(path) => {
+                    let (_, start) = load_emp(path, &device)?;
+                    model = stable_param_ids(start);
+                }
+                None => standardisation(&mut meta, first.as_ref())?,
+            }
             first_epoch = Some(first);
         }
     }

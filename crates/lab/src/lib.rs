@@ -26,6 +26,7 @@ pub mod dataset;
 pub mod device;
 pub mod error;
 pub mod eval;
+pub mod finetune;
 pub mod fit;
 pub mod logreg;
 pub mod metrics;

@@ -34,6 +34,12 @@ fn main() -> Result<()> {
         }
         Command::Warnings(args) => print!("{}", warning::run_warnings(&args.into())?.table()),
         Command::Half(args) => commands::run_half(&args.into())?,
+        Command::Finetune(args) => {
+            print!(
+                "{}",
+                fall_guard_lab::finetune::run_finetune(&args.into())?.markdown()
+            )
+        }
         Command::Ranges(args) => {
             println!("{}", fall_guard_lab::ranges::run_ranges(&args.into())?)
         }

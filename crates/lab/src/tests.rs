@@ -174,6 +174,7 @@ fn fixture_training(ablation: &str, out: std::path::PathBuf) -> super::commands:
         joint_names: None,
         trained_on: "fixtures".into(),
         quiet: true,
+        init: None,
         device: super::device::TrainDevice::Cpu,
         protocol: super::sampler::Protocol::Deployment,
         per_horizon: false,

@@ -115,6 +115,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         joint_names: Some(names.clone()),
         trained_on: "synthetic".into(),
         quiet: true,
+        init: None,
         device: fall_guard_lab::TrainDevice::Cpu,
         protocol: fall_guard_lab::sampler::Protocol::Deployment,
         per_horizon: false,

@@ -813,6 +813,50 @@ impl<W: Write + Seek> RecordingWriter<W> {
     }
 }
 
+/// Writes the part of the recording at `input` from `from_ns` (included)
+/// to `to_ns` (excluded), log time, to `out`: metadata and the messages of
+/// that span, unchanged (a walk split by time, `fall-guard-lab finetune`).
+/// A falling episode is refused: its onset would name a time the part may
+/// not hold. Written as `out.partial`, renamed when complete.
+pub fn cut(
+    input: impl AsRef<Path>,
+    out: impl AsRef<Path>,
+    from_ns: i64,
+    to_ns: i64,
+) -> Result<(), RecordingError> {
+    let (input, out) = (input.as_ref(), out.as_ref());
+    let rec = Recording::open(input)?;
+    if rec.episode()?.fall_onset_ns.is_some() {
+        return Err(RecordingError::Label {
+            path: input.to_path_buf(),
+            reason: "a falling episode is not cut (label the parts instead)".into(),
+        });
+    }
+    let raw = RawMcap::read(input)?;
+    let mut partial = out.as_os_str().to_owned();
+    partial.push(".partial");
+    let partial = PathBuf::from(partial);
+    let span = from_ns.max(0) as u64..to_ns.max(0) as u64;
+    let result = (|| {
+        let mut w = RecordingWriter::create(&partial)?;
+        for name in &raw.metadata_order {
+            if let Some(map) = raw.metadata.get(name) {
+                w.write_metadata(name, map.clone())?;
+            }
+        }
+        copy_messages(input, &raw, &mut w, &[], span, |_, _| Ok(()))?;
+        w.finish()?;
+        std::fs::rename(&partial, out).map_err(|source| RecordingError::Io {
+            path: out.to_path_buf(),
+            source,
+        })
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&partial);
+    }
+    result
+}
+
 /// Marks the fall onset of a recording, in place: `fall_at_s` seconds after
 /// the recording's first message (`None`: the episode does not fall).
 ///
@@ -887,6 +931,7 @@ pub fn label(
             &raw,
             &mut w,
             &[topics::GROUND_TRUTH_FALLEN],
+            0..u64::MAX,
             |w, until| {
                 while next_fallen < fallen.len()
                     && until.is_none_or(|t| (fallen[next_fallen].0 as u64) <= t)
@@ -931,12 +976,13 @@ fn copy_messages<W: Write + Seek>(
     raw: &RawMcap,
     w: &mut RecordingWriter<W>,
     skip: &[&str],
+    log_times: std::ops::Range<u64>,
     mut merge: impl FnMut(&mut RecordingWriter<W>, Option<u64>) -> Result<(), RecordingError>,
 ) -> Result<(), RecordingError> {
     let mut ids: HashMap<u16, u16> = HashMap::new();
     for m in &raw.messages {
         let channel = raw.channel(path, m)?;
-        if skip.contains(&channel.topic.as_str()) {
+        if skip.contains(&channel.topic.as_str()) || !log_times.contains(&m.log_time) {
             continue;
         }
         merge(w, Some(m.log_time))?;
@@ -999,7 +1045,7 @@ pub fn copy_with(
                 w.write_metadata(name, map.clone())?;
             }
         }
-        copy_messages(input, &raw, &mut w, &[], merge)?;
+        copy_messages(input, &raw, &mut w, &[], 0..u64::MAX, merge)?;
         w.finish()?;
         std::fs::rename(&partial, out).map_err(|source| RecordingError::Io {
             path: out.to_path_buf(),

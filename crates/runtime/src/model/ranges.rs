@@ -150,14 +150,14 @@ impl Bounds {
         } else {
             Input::Joint(j)
         };
-        record(
-            out,
-            Excursion {
-                input,
-                value,
-                bound: [lo, hi],
-            },
-        );
+        let e = Excursion {
+            input,
+            value,
+            bound: [lo, hi],
+        };
+        if e.beyond() > tolerance(lo, hi, ANGLE_TOLERANCE_RAD) {
+            record(out, e);
+        }
         value.clamp(lo, hi)
     }
 
@@ -173,7 +173,8 @@ impl Bounds {
             (Input::FrameStd, std, self.frame_std),
         ] {
             if let Some([lo, hi]) = bound {
-                if !(lo..=hi).contains(&value) {
+                let beyond = (lo - value).max(value - hi);
+                if beyond > tolerance(lo, hi, FRAME_TOLERANCE) {
                     record(
                         out,
                         Excursion {
@@ -186,6 +187,21 @@ impl Bounds {
             }
         }
     }
+}
+
+/// An excursion is reported once it exceeds this share of its range's
+/// width, or the floor below, whichever is larger: a joint 0.4 deg past
+/// what a 20 s walk happened to reach is not a posture the network never
+/// saw. The value is clipped to the range all the same.
+pub const TOLERANCE_SHARE: f32 = 0.1;
+/// The floor of an angle's tolerance: 2 deg.
+pub const ANGLE_TOLERANCE_RAD: f32 = 2.0 * std::f32::consts::PI / 180.0;
+/// The floor of a frame summary's tolerance (values in `[0, 1]`).
+pub const FRAME_TOLERANCE: f32 = 0.02;
+
+/// How far past `[lo, hi]` a value may lie before it is reported.
+pub fn tolerance(lo: f32, hi: f32, floor: f32) -> f32 {
+    (TOLERANCE_SHARE * (hi - lo)).max(floor)
 }
 
 /// Keeps the largest excursion per input.
@@ -313,6 +329,10 @@ mod tests {
             assert_eq!(b.clip(false, 0, v, &mut out).to_bits(), v.to_bits());
         }
         assert!(out.is_empty());
+        // Past the range by less than its tolerance (2 deg here): clipped,
+        // not reported.
+        assert_eq!(b.clip(false, 0, 0.13, &mut out), 0.1);
+        assert!(out.is_empty());
         assert_eq!(b.clip(false, 0, 0.5, &mut out), 0.1);
         assert_eq!(b.clip(false, 0, 0.3, &mut out), 0.1);
         assert_eq!(b.clip(true, 1, -1.0, &mut out), 0.0);
@@ -339,6 +359,12 @@ mod tests {
             .map(|i| if i % 2 == 0 { 0.3 } else { 0.5 })
             .collect();
         b.check_frame(&grey, &mut out);
+        assert!(out.is_empty(), "{out:?}");
+        // Brightness 0.61 against 0.2..0.6: within its tolerance (0.04).
+        let bright: Vec<f32> = (0..300)
+            .map(|i| if i % 2 == 0 { 0.41 } else { 0.81 })
+            .collect();
+        b.check_frame(&bright, &mut out);
         assert!(out.is_empty(), "{out:?}");
         b.check_frame(&vec![1.0; 300], &mut out);
         let inputs: Vec<Input> = out.iter().map(|e| e.input).collect();
