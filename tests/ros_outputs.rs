@@ -13,7 +13,8 @@ use std::time::{Duration, Instant};
 
 use fall_guard_runtime::outputs::ros::{OutputTopics, RosOutputs};
 use fall_guard_runtime::outputs::{
-    DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, ModelDiagnostics, StreamDiagnostics,
+    DeviceDiagnostics, DiagnosticLevel, DiagnosticsSnapshot, InputsDiagnostics, ModelDiagnostics,
+    StreamDiagnostics,
 };
 use fall_guard_runtime::ros::{qos, RosNode, LATCHED_MAX_SAMPLES};
 use rustdds::dds::qos::HasQoSPolicy;
@@ -79,6 +80,15 @@ fn health(tick: u32) -> DiagnosticsSnapshot {
             imminent: true,
             latch_horizon_ms: 1000,
             networks_in_memory: "EMP,MP,EP,P".to_string(),
+            set_aside: String::new(),
+            skipped_in_window: 1,
+            overload_window: 30,
+            overload_switches: 0,
+        },
+        inputs: InputsDiagnostics {
+            level: DiagnosticLevel::Ok,
+            message: "inside the ranges the network was trained on".into(),
+            values: vec![("out_of_range".into(), String::new())],
         },
     }
 }

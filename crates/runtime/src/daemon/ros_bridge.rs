@@ -205,7 +205,11 @@ pub fn joint_state(names: &[String], stamp_ns: i64, positions: &[f32]) -> Option
 /// `RosOutputs` and reported on `/diagnostics`.
 fn publish_tick(outputs: &RosOutputs, imminent: &mut Option<bool>, f: &ForecastOutput) {
     let _ = outputs.publish_forecast(&published_probabilities(f));
-    let _ = publish_imminent_change(imminent, f.imminent, |v| outputs.publish_fall_imminent(v));
+    // A skipped tick carries the latch's state as it was: the latch is
+    // moved by forecasts only.
+    if !f.skipped {
+        let _ = publish_imminent_change(imminent, f.imminent, |v| outputs.publish_fall_imminent(v));
+    }
 }
 
 #[cfg(test)]
@@ -223,6 +227,7 @@ mod tests {
             ablation: "MP",
             invalid_reason: String::new(),
             out_of_range: String::new(),
+            skipped: false,
             sensed_at: std::time::Instant::now(),
         }
     }

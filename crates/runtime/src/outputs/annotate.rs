@@ -90,6 +90,9 @@ pub fn collect(
         let mut take_forecast = |out: &mut Collected, f: &ForecastOutput| {
             let msg = forecast_message(&published_probabilities(f));
             out.messages.push((f.stamp_ns, Output::Forecast(msg)));
+            if f.skipped {
+                return;
+            }
             let _ = publish_imminent_change(&mut imminent, f.imminent, |v| {
                 out.messages.push((f.stamp_ns, Output::FallImminent(v)));
                 Ok::<(), std::convert::Infallible>(())

@@ -61,6 +61,11 @@ pub struct ForecastOutput {
     /// (empty: none), whether the forecast is valid or not
     /// (`[model].out_of_range`).
     pub out_of_range: String,
+    /// Not forecast: the inference of an earlier tick was still running
+    /// (the overload policy, `pipeline/overload.rs`). Published as NaN;
+    /// `imminent` is the latch's state as it was, and does not change the
+    /// published `fall_imminent`.
+    pub skipped: bool,
     /// When the newest sensor sample used by this tick reached the daemon.
     pub sensed_at: Instant,
 }
@@ -119,6 +124,12 @@ pub struct ModelDiagnostics {
     /// The networks in memory now ("EMP,MP"): with `[model].fallbacks =
     /// "when_needed"` a fallback appears after its first use.
     pub networks_in_memory: String,
+    /// The overload policy: networks set aside ("EMP"), ticks skipped in
+    /// its window and the window, set-asides and retries since start.
+    pub set_aside: String,
+    pub skipped_in_window: usize,
+    pub overload_window: usize,
+    pub overload_switches: u64,
 }
 
 /// Everything `/diagnostics` says, once per second.
@@ -229,6 +240,15 @@ impl DiagnosticsSnapshot {
                 (
                     "networks_in_memory".to_string(),
                     m.networks_in_memory.clone(),
+                ),
+                ("set_aside".to_string(), m.set_aside.clone()),
+                (
+                    "skipped_in_window".to_string(),
+                    format!("{}/{}", m.skipped_in_window, m.overload_window),
+                ),
+                (
+                    "overload_switches".to_string(),
+                    m.overload_switches.to_string(),
                 ),
             ],
         });
@@ -382,6 +402,7 @@ mod tests {
             ablation: "EMP",
             invalid_reason: String::new(),
             out_of_range: String::new(),
+            skipped: false,
             sensed_at: Instant::now(),
         }
     }
@@ -459,6 +480,10 @@ mod tests {
                 imminent: false,
                 latch_horizon_ms: 1000,
                 networks_in_memory: "EMP,MP,EP,P".to_string(),
+                set_aside: String::new(),
+                skipped_in_window: 0,
+                overload_window: 30,
+                overload_switches: 0,
             },
             inputs: InputsDiagnostics {
                 level: DiagnosticLevel::Warn,

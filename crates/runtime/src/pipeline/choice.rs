@@ -71,6 +71,9 @@ pub struct ModelChoice {
     joints_seen_fresh: bool,
     gaps: JointGaps,
     switches: u64,
+    /// Networks the overload policy has set aside (`overload.rs`): not
+    /// chosen while they are.
+    set_aside: Vec<Ablation>,
 }
 
 /// Preference order: the most informed network first.
@@ -105,7 +108,26 @@ impl ModelChoice {
             joints_seen_fresh: false,
             gaps: JointGaps::default(),
             switches: 0,
+            set_aside: Vec::new(),
         }
+    }
+
+    /// The networks not to choose for overload (from the next tick on).
+    pub fn set_aside(&mut self, networks: &[Ablation]) {
+        self.set_aside = networks.to_vec();
+    }
+
+    /// Whether a lighter network than the active one is loaded and not set
+    /// aside: one that reads a subset of its streams (EMP: MP, EP, P; MP
+    /// and EP: P), so usable whenever the active one is.
+    pub fn has_lighter(&self) -> bool {
+        let active = self.active;
+        self.available.iter().any(|&a| {
+            a != active
+                && !self.set_aside.contains(&a)
+                && (active.uses_vision() || !a.uses_vision())
+                && (active.uses_plan() || !a.uses_plan())
+        })
     }
 
     /// The same choice, bridging a gap of at most `max_held_ticks` ticks of
@@ -261,6 +283,7 @@ impl ModelChoice {
         let current = self.active;
         let choice = PREFERENCE.into_iter().find(|&a| {
             self.available.contains(&a)
+                && !self.set_aside.contains(&a)
                 && usable(
                     a.uses_vision(),
                     current.uses_vision(),

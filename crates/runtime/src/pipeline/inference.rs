@@ -72,6 +72,53 @@ pub struct InferenceStats {
     pub guard: GuardState,
 }
 
+/// The test hook that slows inference down: `ABLATION:MS:UNTIL_TICK`
+/// (`EMP:70:150`: EMP's forecasts of the ticks before tick 150 take 70 ms
+/// longer), read from this variable at start. For the overload policy's tests (`tests/daemon_overload.rs`);
+/// unset on a robot.
+pub const SLOW_INFERENCE_ENV: &str = "FALL_GUARD_TEST_SLOW_INFERENCE";
+
+/// The parsed [`SLOW_INFERENCE_ENV`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct SlowInference {
+    ablation: Ablation,
+    delay: std::time::Duration,
+    until_tick: i64,
+}
+
+impl SlowInference {
+    fn from_env() -> Option<SlowInference> {
+        let v = std::env::var(SLOW_INFERENCE_ENV).ok()?;
+        let mut parts = v.split(':');
+        let parsed = (|| {
+            let ablation = parts.next()?.parse::<Ablation>().ok()?;
+            let ms: u64 = parts.next()?.parse().ok()?;
+            let until_tick: i64 = parts.next()?.parse().ok()?;
+            Some(SlowInference {
+                ablation,
+                delay: std::time::Duration::from_millis(ms),
+                until_tick,
+            })
+        })();
+        match parsed {
+            Some(_) => {
+                tracing::warn!(%v, "{SLOW_INFERENCE_ENV}: inference slowed down on purpose (a test hook)")
+            }
+            None => {
+                tracing::error!(%v, "{SLOW_INFERENCE_ENV}: not ABLATION:MS:UNTIL_TICK, ignored")
+            }
+        }
+        parsed
+    }
+
+    /// Sleeps if this forecast is one to slow down.
+    fn apply(slow: Option<SlowInference>, ablation: Ablation, tick: i64) {
+        if let Some(s) = slow.filter(|s| s.ablation == ablation && tick < s.until_tick) {
+            std::thread::sleep(s.delay);
+        }
+    }
+}
+
 /// Latencies kept between two diagnostics snapshots, at most.
 const MAX_LATENCIES: usize = 4096;
 
@@ -84,6 +131,8 @@ pub struct Inference {
     dead: Arc<AtomicBool>,
     stats: Arc<Mutex<InferenceStats>>,
     handle: Option<JoinHandle<()>>,
+    /// Forecasts are printed on stdout (`[output].print_forecasts`).
+    print: bool,
 }
 
 impl Inference {
@@ -126,7 +175,13 @@ impl Inference {
             dead,
             stats,
             handle: Some(handle),
+            print,
         })
+    }
+
+    /// Whether forecasts are printed on stdout.
+    pub fn prints(&self) -> bool {
+        self.print
     }
 
     /// Hands `job` over if the thread is idle; gives it back if it is still
@@ -193,6 +248,7 @@ fn inference_loop(
     let mut logged_error = false;
     let _alive = AliveGuard { busy, idle, dead };
     let mut forecasters = Forecasters::new(models);
+    let slow = SlowInference::from_env();
     while let Ok(job) = jobs.recv() {
         let mut valid = job.valid;
         let mut invalid_reason = job.invalid_reason;
@@ -205,13 +261,18 @@ fn inference_loop(
             let started = Instant::now();
             // A refused or failed network: logged once, counted as an error.
             let mut error = None;
-            match forecasters.forecast(models, job.ablation, &job.ticks) {
+            let result = forecasters.forecast(models, job.ablation, &job.ticks);
+            SlowInference::apply(slow, job.ablation, job.tick);
+            match result {
                 Ok((p, excursions)) => {
                     latency_us =
                         Some(u32::try_from(started.elapsed().as_micros()).unwrap_or(u32::MAX));
-                    if let Some(sentence) =
-                        guard.judge(job.tick, job.stamp_ns, &excursions.0, &excursions.1)
-                    {
+                    if let Some(sentence) = guard.judge(
+                        job.tick,
+                        job.stamp_ns,
+                        &excursions.excursions,
+                        &excursions.bounds,
+                    ) {
                         if valid && guard.holds() {
                             valid = false;
                             invalid_reason = sentence.clone();
@@ -257,6 +318,7 @@ fn inference_loop(
             ablation: ablation_name(job.ablation),
             invalid_reason,
             out_of_range,
+            skipped: false,
             sensed_at: job.sensed_at,
         };
         if print {
@@ -296,6 +358,12 @@ impl From<ModelError> for ForecastFailure {
             other => ForecastFailure::Model(other),
         }
     }
+}
+
+/// The window's inputs outside their ranges, and where the ranges come from.
+struct Judged {
+    excursions: Vec<Excursion>,
+    bounds: String,
 }
 
 /// Why a forecast could not be computed.
@@ -357,7 +425,7 @@ impl Forecasters {
         models: &ModelSet,
         ablation: Ablation,
         ticks: &[TickInput],
-    ) -> Result<(Vec<f32>, (Vec<Excursion>, String)), ForecastFailure> {
+    ) -> Result<(Vec<f32>, Judged), ForecastFailure> {
         let forecaster = self.forecaster(models, ablation)?;
         let first = ticks.first().map(|t| t.tick).unwrap_or_default();
         let from = match forecaster.last_tick() {
@@ -390,7 +458,13 @@ impl Forecasters {
             },
             |b| format!("measured on {}", b.measured_on),
         );
-        Ok((p, (forecaster.excursions(), bounds)))
+        Ok((
+            p,
+            Judged {
+                excursions: forecaster.excursions(),
+                bounds,
+            },
+        ))
     }
 }
 
@@ -500,7 +574,7 @@ pub fn format_forecast(f: &ForecastOutput) -> String {
     )
 }
 
-fn print_forecast(f: &ForecastOutput) {
+pub fn print_forecast(f: &ForecastOutput) {
     let mut out = std::io::stdout().lock();
     // A closed stdout (a pipe whose reader left) must not stop the daemon.
     let _ = writeln!(out, "{}", format_forecast(f));
@@ -530,6 +604,7 @@ mod tests {
             ablation: "MP",
             invalid_reason: "camera stale".into(),
             out_of_range: String::new(),
+            skipped: false,
             sensed_at: Instant::now(),
         };
         assert_eq!(

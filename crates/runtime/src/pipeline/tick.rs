@@ -20,13 +20,14 @@ use crate::clock::unix_now_ns;
 use crate::config::OutOfRange;
 use crate::model::Ablation;
 use crate::outputs::{
-    CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, InputsDiagnostics, ModelDiagnostics,
-    OutputBus, StreamDiagnostics, ERROR_WINDOW_S,
+    CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, ForecastOutput, InputsDiagnostics,
+    ModelDiagnostics, OutputBus, StreamDiagnostics, ERROR_WINDOW_S,
 };
 use crate::pipeline::choice::{best_configured, Freshness, JointsAt, ModelChoice};
 use crate::pipeline::guard::GuardState;
-use crate::pipeline::inference::{percentiles_ms, Inference, InferenceJob};
+use crate::pipeline::inference::{percentiles_ms, print_forecast, Inference, InferenceJob};
 use crate::pipeline::models::{ablation_name, ModelSet};
+use crate::pipeline::overload::{Overload, OverloadSettings};
 use crate::shutdown::Shutdown;
 use crate::streams::input::Seq;
 use crate::streams::sample::Sample;
@@ -135,6 +136,8 @@ pub struct TickLoop {
     /// The latest tick whose joints were stale, and why (`/diagnostics`
     /// names it even when the gap was bridged between two snapshots).
     last_joints_stale: Option<(i64, String)>,
+    /// When inference runs late: which networks are set aside.
+    overload: Overload,
 }
 
 /// Names of the joints a tick has no angle for: never read (a motor that
@@ -349,6 +352,7 @@ impl TickLoop {
         bus: OutputBus,
     ) -> Result<TickLoop, WindowError> {
         let spec = models.spec().clone();
+        let overload = Overload::new(OverloadSettings::at_rate(spec.rate_hz));
         Ok(TickLoop {
             resampler: Resampler::new(&spec)?,
             ring: Ring::new(spec.n_ticks),
@@ -368,6 +372,7 @@ impl TickLoop {
             last_valid: false,
             last_reason: String::new(),
             last_joints_stale: None,
+            overload,
         })
     }
 
@@ -474,16 +479,22 @@ impl TickLoop {
                 sensed_at,
             };
             match self.inference.try_dispatch(job) {
-                Ok(()) => self.counters.dispatched += 1,
-                Err(_) => self.overrun(tick_index),
+                Ok(()) => {
+                    self.counters.dispatched += 1;
+                    self.budget(false, active);
+                }
+                Err(_) => self.overrun(tick_index, stamp_ns, active, sensed_at),
             }
         } else {
-            self.overrun(tick_index);
+            self.overrun(tick_index, stamp_ns, active, sensed_at);
         }
         self.maybe_diagnostics(stamp_ns, latest.as_ref());
     }
 
-    fn overrun(&mut self, tick: i64) {
+    /// A tick skipped because the inference of an earlier one is still
+    /// running: counted, published as NaN with its reason (the latch's
+    /// state unchanged), and judged by the overload policy.
+    fn overrun(&mut self, tick: i64, stamp_ns: i64, active: Ablation, sensed_at: Instant) {
         self.counters.overruns += 1;
         if self.counters.overruns == 1 || self.counters.overruns.is_power_of_two() {
             tracing::warn!(
@@ -491,6 +502,42 @@ impl TickLoop {
                 overruns = self.counters.overruns,
                 "inference overrun: tick skipped"
             );
+        }
+        let imminent = self
+            .inference
+            .stats()
+            .lock()
+            .map(|s| s.imminent)
+            .unwrap_or(true);
+        let skipped = ForecastOutput {
+            tick,
+            stamp_ns,
+            probabilities: Vec::new(),
+            horizons_ms: self.models.horizons_ms().to_vec(),
+            valid: false,
+            imminent,
+            ablation: ablation_name(active),
+            invalid_reason: format!(
+                "skipped: the inference of an earlier tick was still running ({} ticks skipped since start)",
+                self.counters.overruns
+            ),
+            out_of_range: String::new(),
+            skipped: true,
+            sensed_at,
+        };
+        if self.inference.prints() {
+            print_forecast(&skipped);
+        }
+        self.bus.send_forecast(skipped);
+        self.budget(true, active);
+    }
+
+    /// One tick's budget, kept or missed, to the overload policy; a
+    /// network it sets aside (or tries again) reaches the model choice.
+    fn budget(&mut self, skipped: bool, active: Ablation) {
+        let lighter = self.choice.has_lighter();
+        if self.overload.tick(skipped, active, lighter).is_some() {
+            self.choice.set_aside(self.overload.set_aside());
         }
     }
 
@@ -693,6 +740,27 @@ impl TickLoop {
                 DiagnosticLevel::Warn,
                 format!("forecast not valid: {last_reason}"),
             )
+        } else if !self.overload.set_aside().is_empty() {
+            let aside: Vec<&str> = self
+                .overload
+                .set_aside()
+                .iter()
+                .map(|&a| ablation_name(a))
+                .collect();
+            (
+                DiagnosticLevel::Warn,
+                format!(
+                    "overloaded: running {} ({} set aside: inference missed its budget of one tick persistently; {}); tried again after {} ticks within budget",
+                    ablation_name(active),
+                    aside.join(", "),
+                    self.overload
+                        .last
+                        .as_ref()
+                        .map(ToString::to_string)
+                        .unwrap_or_default(),
+                    self.overload.retry_in_ticks().unwrap_or(0)
+                ),
+            )
         } else if Some(active) != expected {
             (
                 DiagnosticLevel::Warn,
@@ -748,6 +816,16 @@ impl TickLoop {
                     .map(ablation_name)
                     .collect::<Vec<_>>()
                     .join(","),
+                set_aside: self
+                    .overload
+                    .set_aside()
+                    .iter()
+                    .map(|&a| ablation_name(a))
+                    .collect::<Vec<_>>()
+                    .join(","),
+                skipped_in_window: self.overload.skipped_in_window(),
+                overload_window: self.overload.window_ticks(),
+                overload_switches: self.overload.switches,
             },
             inputs: inputs_diagnostics(&guard),
         }
