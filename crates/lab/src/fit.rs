@@ -19,7 +19,6 @@ use std::path::PathBuf;
 use burn::module::{Module, ModuleMapper, Param, ParamId};
 use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::prelude::*;
-use indicatif::{ProgressBar, ProgressStyle};
 
 use super::adam::FusedAdam;
 use super::checkpoint::{Checkpoint, EpochState};
@@ -252,7 +251,8 @@ pub struct FitOptions {
     pub batch_size: usize,
     /// Per-encoder rates.
     pub rates: EncoderRates,
-    /// Show a progress bar on stderr.
+    /// Log the training's progress at info level (a line at every tenth of
+    /// an epoch and one per epoch); otherwise at debug level.
     pub progress: bool,
     /// Where the steps run (CPU unless a GPU backend is compiled in and asked for).
     pub device: TrainDevice,
@@ -500,6 +500,49 @@ pub fn stable_param_ids(model: Emp) -> Emp {
     model.map(&mut Renumber(0xFA11_0000_0000))
 }
 
+/// An epoch's progress in the log (the library draws nothing): a line at
+/// every tenth of its steps, with the mean loss so far and the time left at
+/// the pace so far; at debug level when progress was not asked for.
+struct EpochProgress {
+    epoch: usize,
+    max_epochs: usize,
+    steps: usize,
+    started: std::time::Instant,
+    next_tenth: usize,
+    shown: bool,
+}
+
+impl EpochProgress {
+    fn new(epoch: usize, max_epochs: usize, steps: usize, shown: bool) -> EpochProgress {
+        EpochProgress {
+            epoch,
+            max_epochs,
+            steps,
+            started: std::time::Instant::now(),
+            next_tenth: 1,
+            shown,
+        }
+    }
+
+    fn step(&mut self, done: usize, mean_loss: f64) {
+        if self.steps == 0 || done * 10 < self.next_tenth * self.steps {
+            return;
+        }
+        self.next_tenth = done * 10 / self.steps + 1;
+        let elapsed = self.started.elapsed().as_secs_f64();
+        let left = elapsed / done as f64 * (self.steps - done) as f64;
+        let line = format!(
+            "epoch {}/{}: {done}/{} steps, loss {mean_loss:.4}, {:.0} s left in the epoch",
+            self.epoch, self.max_epochs, self.steps, left
+        );
+        if self.shown {
+            tracing::info!("{line}");
+        } else {
+            tracing::debug!("{line}");
+        }
+    }
+}
+
 /// Trains `meta.ablation` on `source`. `meta` carries the config and input
 /// description; its standardisation is computed from the first training epoch.
 ///
@@ -591,17 +634,6 @@ pub fn fit(
             first_epoch = Some(first);
         }
     }
-    let bar = if opts.progress {
-        ProgressBar::new(0)
-    } else {
-        ProgressBar::hidden()
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "epoch {prefix} [{bar:30}] {pos}/{len} steps  {msg}  eta {eta}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
     for epoch in start..=opts.max_epochs {
         if stopped {
             break;
@@ -614,9 +646,7 @@ pub fn fit(
         let b = opts.batch_size.max(1);
         let n = windows.len();
         let steps = n.div_ceil(b);
-        bar.set_length(steps as u64);
-        bar.set_position(0);
-        bar.set_prefix(format!("{epoch}/{}", opts.max_epochs));
+        let mut progress = EpochProgress::new(epoch, opts.max_epochs, steps, opts.progress);
         let mut loss_sum = 0.0f64;
         for step in 0..steps {
             let batch = windows.build(step * b..((step + 1) * b).min(n), true)?;
@@ -651,11 +681,7 @@ pub fn fit(
                 vision: vision.zip(g_v).map(|(v, g)| opt_v.step(r.vision.lr, v, g)),
                 classifier: opt_c.step(r.classifier.lr, classifier, g_c),
             };
-            bar.set_position(step as u64 + 1);
-            bar.set_message(format!(
-                "loss {:.4}",
-                loss_sum / ((step + 1) * b).min(n) as f64
-            ));
+            progress.step(step + 1, loss_sum / ((step + 1) * b).min(n) as f64);
         }
         drop(windows);
         let train_loss = loss_sum / n.max(1) as f64;
@@ -667,9 +693,11 @@ pub fn fit(
             val_loss,
             val_accuracy,
         });
-        bar.println(format!(
-            "epoch {epoch}: train loss {train_loss:.4}, val loss {val_loss:.4}, val acc {val_accuracy:.3}"
-        ));
+        if opts.progress {
+            tracing::info!(
+                "epoch {epoch}: train loss {train_loss:.4}, val loss {val_loss:.4}, val acc {val_accuracy:.3}"
+            );
+        }
         tracing::debug!(epoch, train_loss, val_loss, val_accuracy, "epoch done");
         if best.as_ref().is_none_or(|(b, _)| val_loss < *b) {
             best = Some((val_loss, model.valid()));
@@ -678,10 +706,10 @@ pub fn fit(
         } else {
             since_best += 1;
             if since_best >= opts.patience {
-                bar.println(format!(
+                tracing::info!(
                     "early stop: no better validation loss for {} epochs",
                     opts.patience
-                ));
+                );
                 stopped = true;
             }
         }
@@ -698,7 +726,6 @@ pub fn fit(
             })?;
         }
     }
-    bar.finish_and_clear();
     let (_, best_model) =
         best.ok_or_else(|| TrainError::Data("no epoch ran (max_epochs = 0)".into()))?;
     // Callers evaluate and save on the CPU.

@@ -22,6 +22,7 @@
 //!   model: `outputs/ros.rs` copies these entries into the message as they are.
 
 pub mod annotate;
+pub mod diagnostics;
 pub mod latch;
 pub mod recorder;
 pub mod ros;

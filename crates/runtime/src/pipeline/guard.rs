@@ -14,54 +14,7 @@ use std::collections::BTreeMap;
 
 use crate::config::OutOfRange;
 use crate::model::ranges::{Excursion, Input};
-
-/// Inputs named in a message before "and N more".
-const NAMED: usize = 3;
-
-/// One input outside its bound now.
-#[derive(Debug, Clone, PartialEq)]
-pub struct OutOfRangeInput {
-    /// Its name: a joint, `plan of <joint>`, `camera brightness`, `camera contrast`.
-    pub input: String,
-    /// `"bust_x 36.2 deg, 31.4 deg above its trained range -4.1..4.8 deg"`.
-    pub detail: String,
-    /// Tick time its excursion began, ns.
-    pub since_ns: i64,
-}
-
-/// What `/diagnostics` says about the inputs.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct GuardState {
-    /// The inputs outside their bounds in the latest forecast window,
-    /// largest excursion first.
-    pub out_of_range: Vec<OutOfRangeInput>,
-    /// Forecast windows with an input outside its bound, since start.
-    pub windows_out_of_range: u64,
-    /// Forecast windows judged, since start.
-    pub windows: u64,
-    /// Where the bounds come from (the active network's).
-    pub bounds: String,
-    /// `[model].out_of_range`.
-    pub policy: OutOfRange,
-}
-
-impl GuardState {
-    /// `"inputs outside the training range: bust_x 36.2 deg, 31.4 deg
-    /// above its trained range -4.1..4.8 deg (since t=2.000 s); ... and 3
-    /// more"`.
-    pub fn sentence(&self) -> String {
-        let out = &self.out_of_range;
-        let mut parts: Vec<String> = out
-            .iter()
-            .take(NAMED)
-            .map(|o| format!("{} (since t={:.3} s)", o.detail, o.since_ns as f64 / 1e9))
-            .collect();
-        if out.len() > NAMED {
-            parts.push(format!("and {} more", out.len() - NAMED));
-        }
-        format!("inputs outside the training range: {}", parts.join("; "))
-    }
-}
+use crate::outputs::diagnostics::{GuardState, OutOfRangeInput};
 
 /// Follows the excursions forecast by forecast.
 #[derive(Debug)]
@@ -90,7 +43,7 @@ impl InputGuard {
             joint_names,
             since: BTreeMap::new(),
             state: GuardState {
-                policy,
+                holds: policy == OutOfRange::Hold,
                 ..GuardState::default()
             },
         }

@@ -27,8 +27,9 @@ use crate::outputs::latch::SafetyLatch;
 use crate::outputs::{ForecastOutput, OutputBus};
 use crate::window::TickInput;
 
-use super::guard::{GuardState, InputGuard};
+use super::guard::InputGuard;
 use super::models::{ablation_name, ForecastError, ModelSet};
+use crate::outputs::diagnostics::GuardState;
 
 /// p50/p99 of a set of durations in µs (nearest rank), in ms.
 pub fn percentiles_ms(samples_us: &mut [u32]) -> Option<(f64, f64)> {

@@ -17,14 +17,15 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::clock::unix_now_ns;
-use crate::config::OutOfRange;
 use crate::model::Ablation;
+use crate::outputs::diagnostics::{
+    inputs_diagnostics, model_level, stale_joints_text, stream_diagnostics, JointGapFigures,
+    ModelFigures, StreamFigures,
+};
 use crate::outputs::{
-    CounterWindow, DiagnosticLevel, DiagnosticsSnapshot, ForecastOutput, InputsDiagnostics,
-    ModelDiagnostics, OutputBus, StreamDiagnostics, ERROR_WINDOW_S,
+    CounterWindow, DiagnosticsSnapshot, ForecastOutput, ModelDiagnostics, OutputBus, ERROR_WINDOW_S,
 };
 use crate::pipeline::choice::{best_configured, Freshness, JointsAt, ModelChoice};
-use crate::pipeline::guard::GuardState;
 use crate::pipeline::inference::{percentiles_ms, print_forecast, Inference, InferenceJob};
 use crate::pipeline::models::{ablation_name, ModelSet};
 use crate::pipeline::overload::{Overload, OverloadSettings};
@@ -169,19 +170,6 @@ fn stale_joints(tick: &TickInput, names: &[String], stale_ns: i64) -> Vec<(Strin
     stale
 }
 
-/// The joints of [`stale_joints`] for a message: `head_z 140 ms, abs_x 120
-/// ms`, or `all 25 joints` when every joint is.
-fn stale_joints_text(stale: &[(String, i64)], n_joints: usize) -> String {
-    if stale.len() == n_joints {
-        return format!("all {n_joints} joints");
-    }
-    stale
-        .iter()
-        .map(|(n, age)| format!("{n} {} ms", age / 1_000_000))
-        .collect::<Vec<_>>()
-        .join(", ")
-}
-
 /// Whether a tick's joints are all usable: every joint read, none older
 /// than `stale_ns` (the tick's joints age is its oldest joint's).
 fn joints_fresh(tick: &TickInput, stale_ns: i64) -> bool {
@@ -292,56 +280,6 @@ fn invalid_reason(
         })
         .collect();
     (!not_ready.is_empty()).then(|| not_ready.join(", "))
-}
-
-/// `fall_guard: inputs`: OK while the window lies inside the ranges the
-/// network was trained on, WARN naming each input outside them.
-fn inputs_diagnostics(guard: &GuardState) -> InputsDiagnostics {
-    let since = guard.out_of_range.iter().map(|o| o.since_ns).min();
-    let values = vec![
-        (
-            "out_of_range".to_string(),
-            guard
-                .out_of_range
-                .iter()
-                .map(|o| o.input.as_str())
-                .collect::<Vec<_>>()
-                .join(","),
-        ),
-        (
-            "since_s".to_string(),
-            since.map_or_else(String::new, |s| format!("{:.3}", s as f64 / 1e9)),
-        ),
-        (
-            "windows_out_of_range".to_string(),
-            guard.windows_out_of_range.to_string(),
-        ),
-        ("windows".to_string(), guard.windows.to_string()),
-        ("policy".to_string(), guard.policy.as_str().to_string()),
-        ("bounds".to_string(), guard.bounds.clone()),
-    ];
-    let (level, message) = if guard.windows == 0 {
-        (DiagnosticLevel::Ok, "no forecast window yet".to_string())
-    } else if guard.out_of_range.is_empty() {
-        (
-            DiagnosticLevel::Ok,
-            "inside the ranges the network was trained on".to_string(),
-        )
-    } else {
-        let action = match guard.policy {
-            OutOfRange::Hold => "forecasts not valid, fall_imminent asserted ([model].out_of_range = \"hold\")",
-            OutOfRange::Forecast => "forecasting on the inputs held to their bounds ([model].out_of_range = \"forecast\")",
-        };
-        (
-            DiagnosticLevel::Warn,
-            format!("{}; {action}", guard.sentence()),
-        )
-    };
-    InputsDiagnostics {
-        level,
-        message,
-        values,
-    }
 }
 
 impl TickLoop {
@@ -552,7 +490,9 @@ impl TickLoop {
         self.bus.send_diagnostics(snapshot);
     }
 
-    /// Build a diagnostics snapshot now (also used at the end of a replay).
+    /// Build a diagnostics snapshot now (also used at the end of a replay):
+    /// the figures gathered here, their meaning decided in
+    /// `outputs::diagnostics`.
     pub fn diagnostics(
         &mut self,
         stamp_ns: i64,
@@ -582,16 +522,6 @@ impl TickLoop {
                 ),
                 None => (stats.errors, stats.rejected),
             };
-            // Why samples were refused, appended to a STALE message: a
-            // stream that is stale because every sample is rejected says so.
-            let rejected_note = if recent_rejected > 0 {
-                format!(
-                    "; {recent_rejected} samples rejected in the last {ERROR_WINDOW_S} s (last: {})",
-                    stats.last_rejection
-                )
-            } else {
-                String::new()
-            };
             let (unread, stale) = match (kind, latest) {
                 (StreamKind::Joints, Some(t)) => (
                     unread_joints(t, &self.joint_names),
@@ -599,106 +529,40 @@ impl TickLoop {
                 ),
                 _ => (Vec::new(), Vec::new()),
             };
-            let n_joints = self.joint_names.len();
-            let (level, message) = if !slot.configured {
-                (DiagnosticLevel::Ok, "not configured".to_string())
-            } else {
-                match age(kind) {
-                    None => (
-                        DiagnosticLevel::Stale,
-                        format!("no sample yet{rejected_note}"),
-                    ),
-                    // Some joints older than the bound, the others read.
-                    Some(_) if !stale.is_empty() && stale.len() < n_joints => (
-                        DiagnosticLevel::Stale,
-                        format!(
-                            "stale: {} of {n_joints} joints older than {} ms: {}",
-                            stale.len(),
-                            slot.stale_ns / 1_000_000,
-                            stale_joints_text(&stale, n_joints)
-                        ),
-                    ),
-                    Some(age) if age > slot.stale_ns => (
-                        DiagnosticLevel::Stale,
-                        format!(
-                            "stale: last sample {} ms old (limit {} ms){rejected_note}",
-                            age / 1_000_000,
-                            slot.stale_ns / 1_000_000
-                        ),
-                    ),
-                    Some(_) if !unread.is_empty() => (
-                        DiagnosticLevel::Warn,
-                        format!(
-                            "{} of {n_joints} joints not read: {}",
-                            unread.len(),
-                            unread.join(", ")
-                        ),
-                    ),
-                    Some(_) if recent_rejected > 0 => (
-                        DiagnosticLevel::Warn,
-                        format!(
-                            "{recent_rejected} samples rejected in the last {ERROR_WINDOW_S} s (last: {})",
-                            stats.last_rejection
-                        ),
-                    ),
-                    Some(_) if recent_errors > 0 => (
-                        DiagnosticLevel::Warn,
-                        format!("{recent_errors} errors in the last {ERROR_WINDOW_S} s"),
-                    ),
-                    Some(_) => (DiagnosticLevel::Ok, "ok".to_string()),
-                }
-            };
-            let mut details: Vec<(String, String)> = stats
-                .error_kinds
-                .iter()
-                .map(|(k, n)| (format!("errors.{k}"), n.to_string()))
-                .collect();
-            details.extend(rejection_details(&stats, recent_rejected));
-            details.extend(stats.details.iter().cloned());
-            if !stats.state.is_empty() {
-                details.push(("state".to_string(), stats.state.clone()));
-            }
-            if kind == StreamKind::Joints {
-                details.push(("joints_not_read".to_string(), unread.join(",")));
-                let stale: Vec<&str> = stale.iter().map(|(n, _)| n.as_str()).collect();
-                details.push(("joints_stale".to_string(), stale.join(",")));
-                // Gaps: how many were bridged on held values, how many
-                // waited out, the ticks of the window that were not fresh
-                // (bridged ones while the forecast is valid), the last
-                // stale tick and its joints.
+            // The joints' gaps: how many were bridged on held values, how
+            // many waited out, the ticks of the window that were not fresh
+            // (bridged ones while the forecast is valid), the last stale
+            // tick and its joints.
+            let gaps = (kind == StreamKind::Joints).then(|| {
                 let gaps = self.choice.joint_gaps();
-                details.extend([
-                    (
-                        "stale_ticks_in_window".to_string(),
-                        self.choice.stale_ticks().to_string(),
-                    ),
-                    (
-                        "max_held_ticks".to_string(),
-                        self.choice.max_held_ticks().to_string(),
-                    ),
-                    ("gaps_bridged".to_string(), gaps.bridged.to_string()),
-                    ("gaps_refilled".to_string(), gaps.refilled.to_string()),
-                    (
-                        "last_stale".to_string(),
-                        self.last_joints_stale
-                            .as_ref()
-                            .map(|(tick, r)| format!("tick {tick}: {r}"))
-                            .unwrap_or_default(),
-                    ),
-                ]);
-            }
+                JointGapFigures {
+                    stale_ticks_in_window: self.choice.stale_ticks(),
+                    max_held_ticks: self.choice.max_held_ticks(),
+                    bridged: gaps.bridged,
+                    refilled: gaps.refilled,
+                    last_stale: self
+                        .last_joints_stale
+                        .as_ref()
+                        .map(|(tick, r)| format!("tick {tick}: {r}"))
+                        .unwrap_or_default(),
+                }
+            });
             devices.extend(stats.devices.iter().cloned());
-            streams.push(StreamDiagnostics {
+            streams.push(stream_diagnostics(StreamFigures {
                 stream: slot.kind.as_str(),
                 source: slot.source.clone(),
-                level,
-                message,
+                configured: slot.configured,
+                stale_ns: slot.stale_ns,
+                stats: &stats,
                 rate_hz,
-                last_sample_age_ms: age(kind).map(|a| a as f64 / 1e6),
-                errors: stats.errors,
+                age_ns: age(kind),
                 recent_errors,
-                details,
-            });
+                recent_rejected,
+                unread,
+                stale,
+                n_joints: self.joint_names.len(),
+                gaps,
+            }));
         }
         let (mut latencies, forecasts, errors, imminent, guard) = {
             let mut s = self
@@ -714,15 +578,6 @@ impl TickLoop {
                 s.guard.clone(),
             )
         };
-        // Under `hold`, inputs outside their range make the forecast not
-        // valid on the inference thread: the model status says so too.
-        let held =
-            self.last_valid && guard.policy == OutOfRange::Hold && !guard.out_of_range.is_empty();
-        let (last_valid, last_reason) = if held {
-            (false, guard.sentence())
-        } else {
-            (self.last_valid, self.last_reason.clone())
-        };
         let percentiles = percentiles_ms(&mut latencies);
         let s = &self.settings.streams;
         let expected = best_configured(
@@ -730,59 +585,19 @@ impl TickLoop {
             s.camera.configured,
             s.plan.configured,
         );
-        let (level, message) = if errors > 0 && !last_valid {
-            (
-                DiagnosticLevel::Error,
-                format!("{errors} inference errors; {last_reason}"),
-            )
-        } else if !last_valid {
-            (
-                DiagnosticLevel::Warn,
-                format!("forecast not valid: {last_reason}"),
-            )
-        } else if !self.overload.set_aside().is_empty() {
-            let aside: Vec<&str> = self
-                .overload
-                .set_aside()
-                .iter()
-                .map(|&a| ablation_name(a))
-                .collect();
-            (
-                DiagnosticLevel::Warn,
-                format!(
-                    "overloaded: running {} ({} set aside: inference missed its budget of one tick persistently; {}); tried again after {} ticks within budget",
-                    ablation_name(active),
-                    aside.join(", "),
-                    self.overload
-                        .last
-                        .as_ref()
-                        .map(ToString::to_string)
-                        .unwrap_or_default(),
-                    self.overload.retry_in_ticks().unwrap_or(0)
-                ),
-            )
-        } else if Some(active) != expected {
-            (
-                DiagnosticLevel::Warn,
-                format!(
-                    "degraded: running {} ({} needs a stream that is lost)",
-                    ablation_name(active),
-                    expected.map_or("?", ablation_name)
-                ),
-            )
-        } else if active != Ablation::EMP {
-            // What the config asked for (camera = "none", plan = "none").
-            (
-                DiagnosticLevel::Ok,
-                format!(
-                    "ok: running {} (the configured streams: {})",
-                    ablation_name(active),
-                    configured_streams(&self.settings.streams)
-                ),
-            )
-        } else {
-            (DiagnosticLevel::Ok, "ok".to_string())
-        };
+        let names = |v: &[Ablation]| v.iter().map(|&a| ablation_name(a)).collect::<Vec<_>>();
+        let (level, message, valid, invalid_reason) = model_level(&ModelFigures {
+            errors,
+            valid: self.last_valid,
+            reason: self.last_reason.clone(),
+            guard: &guard,
+            active: ablation_name(active),
+            expected: expected.map(ablation_name),
+            set_aside: names(self.overload.set_aside()),
+            overload_last: self.overload.last.as_ref().map(ToString::to_string),
+            retry_in_ticks: self.overload.retry_in_ticks(),
+            configured_streams: configured_streams(&self.settings.streams),
+        });
         DiagnosticsSnapshot {
             stamp_ns,
             hardware_id: self.settings.hardware_id.clone(),
@@ -802,27 +617,15 @@ impl TickLoop {
                 overruns: self.counters.overruns,
                 ticks: self.counters.ticks,
                 forecasts,
-                valid: last_valid,
-                invalid_reason: last_reason,
+                valid,
+                invalid_reason,
                 switches: self.choice.switches(),
                 ring_ticks: self.ring.len(),
                 ring_capacity: self.ring.capacity(),
                 imminent,
                 latch_horizon_ms: self.settings.latch_horizon_ms,
-                networks_in_memory: self
-                    .models
-                    .in_memory()
-                    .into_iter()
-                    .map(ablation_name)
-                    .collect::<Vec<_>>()
-                    .join(","),
-                set_aside: self
-                    .overload
-                    .set_aside()
-                    .iter()
-                    .map(|&a| ablation_name(a))
-                    .collect::<Vec<_>>()
-                    .join(","),
+                networks_in_memory: names(&self.models.in_memory()).join(","),
+                set_aside: names(self.overload.set_aside()).join(","),
                 skipped_in_window: self.overload.skipped_in_window(),
                 overload_window: self.overload.window_ticks(),
                 overload_switches: self.overload.switches,
@@ -838,32 +641,6 @@ impl TickLoop {
         self.inference.finish();
         counters
     }
-}
-
-/// The boundary's rejections of one stream as diagnostic key-values:
-/// `rejected` (total), `rejected_in_window`, `rejected_per_s` (over the
-/// window), `rejected_<reason>` (total per reason seen) and
-/// `last_rejection` (empty before the first).
-fn rejection_details(
-    stats: &crate::streams::StreamStatsSnapshot,
-    recent: u64,
-) -> Vec<(String, String)> {
-    let mut out = vec![
-        ("rejected".to_string(), stats.rejected.to_string()),
-        ("rejected_in_window".to_string(), recent.to_string()),
-        (
-            "rejected_per_s".to_string(),
-            format!("{:.2}", recent as f64 / ERROR_WINDOW_S as f64),
-        ),
-    ];
-    out.extend(
-        stats
-            .rejections
-            .iter()
-            .map(|(k, n)| (format!("rejected_{k}"), n.to_string())),
-    );
-    out.push(("last_rejection".to_string(), stats.last_rejection.clone()));
-    out
 }
 
 /// The configured streams, for a message (`joints, plan`).
