@@ -384,6 +384,69 @@ def warnings_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     return rows
 
 
+def held_txt(reports: list[dict | None]) -> str:
+    """Time held (fall_imminent asserted) over the non-falling minutes of REPORTS (their first grid row), or
+    '-' when none of them has the figure (reports written before it existed)."""
+    rows = [r["grid"][0] for r in reports if r and "held_minutes" in r["grid"][0]]
+    minutes = sum(g["non_falling_minutes"] for g in rows)
+    if not rows or not minutes:
+        return "-"
+    held = sum(g["held_minutes"] for g in rows)
+    return f"{100 * held / minutes:.1f}% ({held:.2f} of {minutes:.1f} min)"
+
+
+def time_held_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
+    """Time held per selected network: on the walking set, on the non-falling test episodes and on the real
+    walk (warnings-ABL-real-test.json), each the share of non-falling time with fall_imminent asserted once the
+    window is full; with the share of ticks before any fall whose window is outside the training range."""
+    rows = []
+    for abl, name in selected:
+        stem = f"warnings-{abl}"
+        walk = [load(reports / f"{stem}-walk-{s}.json") for s in ("train", "test")]
+        test = load(reports / f"{stem}-set-test.json")
+        real = load(reports / f"{stem}-real-test.json")
+        if not any([*walk, test, real]):
+            continue
+        oor = [r["grid"][0].get("out_of_range_share") for r in (test, real) if r]
+        oor_txt = " / ".join("-" if v is None else f"{100 * v:.1f}%" for v in oor) or "-"
+        rows.append(f"| {abl.upper()} ({name}) | {held_txt(walk)} | {held_txt([test])} | {held_txt([real])} | "
+                    f"{oor_txt} |")
+    if not rows:
+        return []
+    return ["### Time held (`fall-guard-lab warnings`: the share of non-falling time with `fall_imminent` asserted, "
+            "once the window is full)", "",
+            "| network | walking set | non-falling test episodes | the real walk | windows out of range "
+            "(test / real walk) |", "| --- | --- | --- | --- | --- |", *rows, ""]
+
+
+def calibration_rows(keep: Path, selected: list[tuple[str, str]]) -> list[str]:
+    """ECE of each selected network under both protocols (its own run's eval report, kept in KEEP/runs), with
+    the floor a calibrated network would show on the same windows."""
+    rows = []
+    for abl, name in selected:
+        prefix = name.rsplit("-s", 1)[0]
+        report = load(keep / "runs" / f"{prefix}--{name}.json")
+        if not report:
+            continue
+        for proto in ("paper", "deployment"):
+            p = protocol(report, proto)
+            if not p:
+                continue
+            cells = []
+            for h in p["horizons"]:
+                ci = (h.get("ece_ci95") or [{}])[0]
+                if "ece" not in ci:
+                    continue
+                floor = f", floor {ci['floor']:.3f}" if "floor" in ci else ""
+                cells.append(f"{ci['ece']:.3f} [{ci['lower']:.3f}, {ci['upper']:.3f}]{floor}")
+            rows.append(f"| {abl.upper()} ({name}) | {proto} | " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    return ["### Calibration under both protocols (test split; ECE with its 95% bootstrap interval over episodes and "
+            "the floor of a calibrated network on the same windows)", "",
+            "| network | protocol | 0.5 s | 1 s | 1.5 s | 2 s |", "| --- | --- | --- | --- | --- | --- |", *rows, ""]
+
+
 def latch_2s_rows(reports: Path) -> list[str]:
     """The latch on the 2 s output of the paper-trained networks (warn2s-RUN-*.json)."""
     rows = []
@@ -411,7 +474,7 @@ def latch_2s_rows(reports: Path) -> list[str]:
 def cause_names(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     """The fall causes the card has figures for: those of the test split's falls
     (cause-stats.json, most falls first), else, by name, those a selected network's warnings
-    were replayed on (warnings-ABL-CAUSE-test.json)."""
+    were replayed on (warnings-ABL-CAUSE-test.json; not the test split, the walking set or the real walk)."""
     stats = load(reports / "cause-stats.json")
     if stats and stats.get("causes"):
         return list(stats["causes"])
@@ -420,7 +483,7 @@ def cause_names(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
         prefix = f"warnings-{abl}-"
         for f in reports.glob(f"{prefix}*-test.json"):
             cause = f.name[len(prefix):-len("-test.json")]
-            if cause not in ("set", "walk"):
+            if cause not in ("set", "walk", "real"):
                 found.add(cause)
     return sorted(found)
 
@@ -710,6 +773,7 @@ def main() -> int:
     lines += per_horizon_rows(evals)
     lines += ["### The daemon's warnings (`fall-guard-lab warnings`, streaming, thresholds chosen on validation)", "",
               *warnings_rows(kept, selected), "", *warning_checks(kept, selected), "",
+              *time_held_rows(kept, selected), *calibration_rows(a.keep, selected),
               *latch_2s_rows(kept)]
     a.out.write_text("\n".join(lines) + "\n")
     return 0

@@ -464,6 +464,16 @@ step_evaluate() {
       job warnings_one "$abl" "$name" "$target"
     done <"$REPORTS/selected.txt"
   done
+  # The real Poppy walk (tests/fixtures/real, no camera: the networks
+  # without vision): time held on a walk no simulated episode holds, and the
+  # out-of-range guard's share of its windows.
+  mkdir -p "$DATA_ROOT/real"
+  cp "$REPO/tests/fixtures/real/poppy_muffin_walk.mcap" "$DATA_ROOT/real/"
+  printf '%s\n' '{"train": [], "validation": [], "test": ["poppy_muffin_walk.mcap"], "generator": {"name": "the real Poppy walk"}}' \
+    >"$DATA_ROOT/real/manifest.json"
+  while read -r abl name loss; do
+    case $abl in mp | p) job warnings_one "$abl" "$name" real:test ;; esac
+  done <"$REPORTS/selected.txt"
   # The latch on the 2 s output of the paper-trained networks (the lowest
   # validation loss of each): thresholds chosen at 2 s on the validation falls
   # and walks, then the test split and the walking set.
@@ -549,6 +559,7 @@ latch_warnings() {
   case $set in
     set) ;;
     walk) data=$WALK ;;
+    real) data=$DATA_ROOT/real; subset=("$data/manifest.json") ;;
     *) data=$DATA_ROOT/bycause/$set; subset=("$data/manifest.json") ;;
   esac
   current "$out" "$model" "$horizon" "$pairs" "${subset[@]}" && return 0

@@ -268,3 +268,40 @@ def test_the_card_has_every_cause_of_the_data(tmp_path, monkeypatch):
         assert f"| {cause} | EMP (paper-trained) | 0.900 +- 0.000 |" in card
         assert f"| {cause} | {CAUSE_STATS['causes'][cause]['falls']} (" in card
     assert "### What each network warns, by fall cause" in card
+
+
+def held_report(held: float, minutes: float, out_of_range: float | None = None) -> dict:
+    row = {"non_falling_minutes": minutes, "held_minutes": held, "false_alarms": 1}
+    if out_of_range is not None:
+        row["out_of_range_share"] = out_of_range
+    return {"grid": [row]}
+
+
+def test_time_held_is_given_per_set_and_missing_figures_say_so(tmp_path):
+    d = tmp_path
+    (d / "warnings-mp-walk-train.json").write_text(json.dumps(held_report(0.5, 10.0)))
+    (d / "warnings-mp-walk-test.json").write_text(json.dumps(held_report(0.1, 10.0)))
+    (d / "warnings-mp-set-test.json").write_text(json.dumps(held_report(0.2, 4.0, 0.004)))
+    (d / "warnings-mp-real-test.json").write_text(json.dumps(held_report(0.56, 0.56, 0.9)))
+    # Written before time held existed: no figure, a dash.
+    (d / "warnings-p-set-test.json").write_text(json.dumps({"grid": [{"non_falling_minutes": 4.0}]}))
+    rows = model_card.time_held_rows(d, [("mp", "mp-pp-s1"), ("p", "p-pp-s1"), ("emp", "emp-pp-s1")])
+    mp = next(r for r in rows if r.startswith("| MP"))
+    assert "| 3.0% (0.60 of 20.0 min) | 5.0% (0.20 of 4.0 min) | 100.0% (0.56 of 0.6 min) | 0.4% / 90.0% |" in mp
+    p = next(r for r in rows if r.startswith("| P"))
+    assert p == "| P (p-pp-s1) | - | - | - | - |"
+    assert not any(r.startswith("| EMP") for r in rows), "no report, no row"
+
+
+def test_calibration_is_tabled_under_both_protocols(tmp_path):
+    def proto(name: str, ece: float) -> dict:
+        return {"protocol": name, "horizons": [
+            {"horizon_ms": 500.0, "ece_ci95": [{"ece": ece, "lower": ece - 0.01, "upper": ece + 0.01, "floor": 0.02}]}]}
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (runs / "emp-pp--emp-pp-s3.json").write_text(json.dumps(
+        {"protocols": [proto("paper", 0.035), proto("deployment", 0.231)]}))
+    rows = model_card.calibration_rows(tmp_path, [("emp", "emp-pp-s3"), ("mp", "mp-pp-s1")])
+    assert "| EMP (emp-pp-s3) | paper | 0.035 [0.025, 0.045], floor 0.020 |" in rows
+    assert "| EMP (emp-pp-s3) | deployment | 0.231 [0.221, 0.241], floor 0.020 |" in rows
+    assert not any("MP (mp-pp-s1)" in r for r in rows)
