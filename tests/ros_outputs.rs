@@ -235,7 +235,7 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
         .collect();
     assert_eq!(imminent[..3], [false, true, false], "{imminent:?}");
     assert!(imminent.windows(2).all(|w| w[0] != w[1]), "{imminent:?}");
-    // Diagnostics: one status per stream plus the model, levels and key-values.
+    // Diagnostics: one status per stream, the model and its inputs, levels and key-values.
     let diagnostics = on("/diagnostics");
     let d = diagnostics[0];
     let status = d["status"].as_array().expect("status");
@@ -248,7 +248,8 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
             "fall_guard: plan",
             "fall_guard: servo bus lower",
             "fall_guard: publishers",
-            "fall_guard: model"
+            "fall_guard: model",
+            "fall_guard: inputs"
         ]
     );
     // DiagnosticStatus.level is a `byte`: rclpy gives it as bytes.
@@ -265,7 +266,11 @@ async fn rclpy_receives_forecast_imminent_and_diagnostics() {
     };
     assert_eq!(
         status.iter().map(level).collect::<Vec<_>>(),
-        [0, 3, 0, 2, 0, 1]
+        [0, 3, 0, 2, 0, 1, 0]
+    );
+    assert_eq!(
+        status[6]["message"],
+        "inside the ranges the network was trained on"
     );
     // No publish failed: the publishers' status is OK and says so per topic.
     let publishers = &status[4];

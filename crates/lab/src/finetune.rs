@@ -269,6 +269,12 @@ pub fn run_finetune(args: &FinetuneOptions) -> CommandResult<FinetuneCard> {
         .unwrap_or_else(|| "model".into());
     let trained = args.out.join(format!("{name}.finetuned.bpk"));
     let horizons = shipped.horizons_ticks.clone();
+    // Trained and calibrated under the shipped network's protocol.
+    let protocol = if shipped.protocol.as_deref() == Some(Protocol::Paper.name()) {
+        Protocol::Paper
+    } else {
+        Protocol::Deployment
+    };
     run_train(&TrainOptions {
         data: args.out.join("set"),
         ablation: shipped.ablation.to_string(),
@@ -293,11 +299,7 @@ pub fn run_finetune(args: &FinetuneOptions) -> CommandResult<FinetuneCard> {
             args.owner_copies,
             data_name(&sim.dir)
         ),
-        protocol: if shipped.protocol.as_deref() == Some(Protocol::Paper.name()) {
-            Protocol::Paper
-        } else {
-            Protocol::Deployment
-        },
+        protocol,
         per_horizon: false,
         trajectory: shipped.config.trajectory,
         device: args.device,
@@ -312,9 +314,9 @@ pub fn run_finetune(args: &FinetuneOptions) -> CommandResult<FinetuneCard> {
             split: "validation".into(),
             draws: 10,
             sample_seed: 12345,
-            protocol: Protocol::Deployment,
+            protocol,
             out: trained.clone(),
-            half: false,
+            half: true,
             form: FormChoice::Auto,
         })?;
     }
