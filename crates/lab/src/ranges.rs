@@ -152,9 +152,13 @@ pub fn run_ranges(args: &RangesOptions) -> crate::error::CommandResult<String> {
         camera: meta.ablation.uses_vision(),
         plan: meta.ablation.uses_plan(),
     };
-    let episodes = dataset
-        .load_split(args.split, &spec, needs)
-        .doing(|| format!("reading the {} split of {}", args.split, args.data.display()))?;
+    let episodes = dataset.load_split(args.split, &spec, needs).doing(|| {
+        format!(
+            "reading the {} split of {}",
+            args.split,
+            args.data.display()
+        )
+    })?;
     let set = crate::dataset::data_name(&dataset.dir);
     let (ranges, measured) = measure(&episodes, &meta, "")?;
     let on = describe(&set, args.split.name(), &measured);
