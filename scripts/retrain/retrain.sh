@@ -232,14 +232,14 @@ GENERATE_ON=()
 step_data() {
   log "data: $SET (2,000 episodes, seed 1, $JOBS jobs)"
   "$PY" -m sim generate --out "$SET" --episodes 2000 --seed 1 --jobs "$JOBS" "${GENERATE_ON[@]}" --quiet >>"$LOG"
-  touch "$SET/.complete"
+  [ -e "$SET/.complete" ] || touch "$SET/.complete"   # once: a run is current while newer than it
   log "data: $WALK (300 walking episodes, sigma 0.005/0.01, no ball, seed 3)"
   "$PY" -m sim generate --out "$WALK" --episodes 300 --seed 3 --jobs "$JOBS" "${GENERATE_ON[@]}" --sigmas 0.005,0.01 \
     --ball-probability 0 --quiet >>"$LOG"
-  touch "$WALK/.complete"
+  [ -e "$WALK/.complete" ] || touch "$WALK/.complete"   # once: a run is current while newer than it
   log "data: $HELDOUT (600 episodes, seed 11: plans no other set walks)"
   "$PY" -m sim generate --out "$HELDOUT" --episodes 600 --seed 11 --jobs "$JOBS" "${GENERATE_ON[@]}" --quiet >>"$LOG"
-  touch "$HELDOUT/.complete"
+  [ -e "$HELDOUT/.complete" ] || touch "$HELDOUT/.complete"   # once: a run is current while newer than it
   "$PY" -m sim stats "$SET" --counterfactual 150 --jobs "$JOBS" >"$REPORTS/set-stats.json.partial"
   mv "$REPORTS/set-stats.json.partial" "$REPORTS/set-stats.json"
   "$PY" -m sim stats "$WALK" >"$REPORTS/walk-stats.json.partial"
