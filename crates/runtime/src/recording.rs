@@ -832,29 +832,12 @@ pub fn cut(
             reason: "a falling episode is not cut (label the parts instead)".into(),
         });
     }
-    let raw = RawMcap::read(input)?;
-    let mut partial = out.as_os_str().to_owned();
-    partial.push(".partial");
-    let partial = PathBuf::from(partial);
-    let span = from_ns.max(0) as u64..to_ns.max(0) as u64;
-    let result = (|| {
-        let mut w = RecordingWriter::create(&partial)?;
-        for name in &raw.metadata_order {
-            if let Some(map) = raw.metadata.get(name) {
-                w.write_metadata(name, map.clone())?;
-            }
-        }
-        copy_messages(input, &raw, &mut w, &[], span, |_, _| Ok(()))?;
-        w.finish()?;
-        std::fs::rename(&partial, out).map_err(|source| RecordingError::Io {
-            path: out.to_path_buf(),
-            source,
-        })
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&partial);
-    }
-    result
+    copy_span(
+        input,
+        out,
+        from_ns.max(0) as u64..to_ns.max(0) as u64,
+        |_, _| Ok(()),
+    )
 }
 
 /// Marks the fall onset of a recording, in place: `fall_at_s` seconds after
@@ -1033,7 +1016,17 @@ pub fn copy_with(
     out: impl AsRef<Path>,
     merge: impl FnMut(&mut RecordingWriter, Option<u64>) -> Result<(), RecordingError>,
 ) -> Result<(), RecordingError> {
-    let (input, out) = (input.as_ref(), out.as_ref());
+    copy_span(input.as_ref(), out.as_ref(), 0..u64::MAX, merge)
+}
+
+/// [`copy_with`] of the messages whose log time lies in `log_times` (and
+/// the metadata), written as `out.partial` and renamed when complete.
+fn copy_span(
+    input: &Path,
+    out: &Path,
+    log_times: std::ops::Range<u64>,
+    merge: impl FnMut(&mut RecordingWriter, Option<u64>) -> Result<(), RecordingError>,
+) -> Result<(), RecordingError> {
     let raw = RawMcap::read(input)?;
     let mut partial = out.as_os_str().to_owned();
     partial.push(".partial");
@@ -1045,7 +1038,7 @@ pub fn copy_with(
                 w.write_metadata(name, map.clone())?;
             }
         }
-        copy_messages(input, &raw, &mut w, &[], 0..u64::MAX, merge)?;
+        copy_messages(input, &raw, &mut w, &[], log_times, merge)?;
         w.finish()?;
         std::fs::rename(&partial, out).map_err(|source| RecordingError::Io {
             path: out.to_path_buf(),
