@@ -493,6 +493,7 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
     )
     .map_err(refused)?;
     cfg.trajectory = args.trajectory;
+    let mut init_meta = None;
     if let Some(init) = &args.init {
         let (im, _) = fall_guard_runtime::model::file::load_emp(
             init,
@@ -519,6 +520,7 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
             ));
         }
         cfg = im.config.clone();
+        init_meta = Some(im);
     }
     cfg.validate().map_err(refused)?;
     let spec = WindowSpec {
@@ -557,12 +559,8 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
     let input_ranges = match ablation {
         Some(a) => {
             let probe = ModelMeta::new(cfg.clone(), a, args.rate_hz, joint_names.clone());
-            let (ranges, measured) = crate::ranges::measure(&train_eps, &probe, "")?;
-            let on = crate::ranges::describe(&data_name(&dataset.dir), "train", &measured);
-            Some(fall_guard_runtime::model::ranges::InputRanges {
-                measured_on: on,
-                ..ranges
-            })
+            let set = data_name(&dataset.dir);
+            Some(crate::ranges::measure(&train_eps, &probe, &set, "train")?.0)
         }
         None => None,
     };
@@ -615,7 +613,10 @@ pub fn run_train(args: &TrainOptions) -> CommandResult<()> {
             validation,
             &out,
             net.as_ref(),
-            input_ranges.as_ref(),
+            &NetworkStart {
+                input_ranges: input_ranges.clone(),
+                init: init_meta.clone(),
+            },
         )?;
         if let Some(net) = &net {
             net.finish()?;
@@ -762,6 +763,15 @@ impl RunCheckpoint {
     }
 }
 
+/// What every network of one `train` run starts from besides its config.
+struct NetworkStart {
+    /// The training split's input ranges (the daemon's out-of-range guard).
+    input_ranges: Option<fall_guard_runtime::model::ranges::InputRanges>,
+    /// `--init`: that file's metadata, whose standardisation its weights
+    /// were trained on.
+    init: Option<ModelMeta>,
+}
+
 /// Trains and writes one model of `cfg`'s horizons (a network checkpointed
 /// in `checkpoint` every epoch).
 #[allow(clippy::too_many_arguments)]
@@ -774,7 +784,7 @@ fn train_one(
     validation: SplitEpoch,
     out: &Path,
     checkpoint: Option<&NetworkCheckpoint>,
-    input_ranges: Option<&fall_guard_runtime::model::ranges::InputRanges>,
+    start: &NetworkStart,
 ) -> CommandResult<()> {
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).doing(|| format!("creating {}", parent.display()))?;
@@ -798,17 +808,12 @@ fn train_one(
         Some(ablation) => {
             let mut meta = ModelMeta::new(cfg, ablation, args.rate_hz, joint_names.to_vec());
             meta.trained_on = args.trained_on.clone();
-            if let Some(init) = &args.init {
+            if let Some(im) = &start.init {
                 // The weights were trained on this standardisation.
-                let (im, _) = fall_guard_runtime::model::file::load_emp(
-                    init,
-                    &fall_guard_runtime::model::cpu_device(),
-                )
-                .doing(|| format!("reading {}", init.display()))?;
-                meta.joint_mean = im.joint_mean;
-                meta.joint_std = im.joint_std;
-                meta.plan_mean = im.plan_mean;
-                meta.plan_std = im.plan_std;
+                meta.joint_mean.clone_from(&im.joint_mean);
+                meta.joint_std.clone_from(&im.joint_std);
+                meta.plan_mean.clone_from(&im.plan_mean);
+                meta.plan_std.clone_from(&im.plan_std);
             }
             meta.protocol = Some(args.protocol.name().into());
             let mut rates = match args.rates.as_str() {
@@ -837,7 +842,7 @@ fn train_one(
                 validation,
             };
             let (mut meta, model) = fit(meta, &mut source, &opts)?;
-            meta.input_ranges = input_ranges.cloned();
+            meta.input_ranges.clone_from(&start.input_ranges);
             save_model(out, &meta, &model)?;
             tracing::info!(
                 "{} model ({} trajectory, {} protocol, horizons {:?} ticks) written to {} (best epoch {}, val loss {:.4})",

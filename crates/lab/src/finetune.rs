@@ -223,29 +223,20 @@ fn warnings(
 }
 
 fn measure(args: &FinetuneOptions, model: &Path, pair: (f32, f32)) -> CommandResult<Measured> {
-    let first = |r: crate::warning::WarningsReport| r.grid.into_iter().next();
-    let owner = first(warnings(
-        args,
-        model,
-        &args.out.join("owner"),
-        Split::Test,
-        pair,
-        false,
-    )?);
-    let simulated = first(warnings(
-        args,
-        model,
-        &args.out.join("set"),
-        Split::Test,
-        pair,
-        false,
-    )?);
+    // The test split of OUT/`set` at `pair`: its one row.
+    let on_test = |set: &str| -> CommandResult<WarningStats> {
+        warnings(args, model, &args.out.join(set), Split::Test, pair, false)?
+            .grid
+            .into_iter()
+            .next()
+            .ok_or_else(|| refused(format!("no figures on {set}")))
+    };
     Ok(Measured {
         model: data_name(model),
         trigger: pair.0,
         release: pair.1,
-        owner: owner.ok_or_else(|| refused("no owner figures"))?,
-        simulated: simulated.ok_or_else(|| refused("no simulated figures"))?,
+        owner: on_test("owner")?,
+        simulated: on_test("set")?,
     })
 }
 

@@ -30,12 +30,13 @@ pub struct Measured {
     pub frames: usize,
 }
 
-/// The ranges of `episodes` (read with the streams `meta`'s network
-/// needs), `measured_on` naming them.
+/// The ranges of `episodes`, the `split` split of data set `set` (read
+/// with the streams `meta`'s network needs), named by [`describe`].
 pub fn measure(
     episodes: &[EpisodeTicks],
     meta: &ModelMeta,
-    measured_on: &str,
+    set: &str,
+    split: &str,
 ) -> Result<(InputRanges, Measured), TrainError> {
     let cfg = &meta.config;
     let c = cfg.n_joints;
@@ -102,7 +103,8 @@ pub fn measure(
             count.plans += 1;
         }
     }
-    let mut ranges = meter.finish(measured_on.to_string()).ok_or_else(|| {
+    let measured_on = describe(set, split, &count);
+    let mut ranges = meter.finish(measured_on.clone()).ok_or_else(|| {
         TrainError::Data(format!(
             "{measured_on}: no tick with joint angles to measure the input ranges on"
         ))
@@ -160,12 +162,9 @@ pub fn run_ranges(args: &RangesOptions) -> crate::error::CommandResult<String> {
         )
     })?;
     let set = crate::dataset::data_name(&dataset.dir);
-    let (ranges, measured) = measure(&episodes, &meta, "")?;
-    let on = describe(&set, args.split.name(), &measured);
-    meta.input_ranges = Some(fall_guard_runtime::model::ranges::InputRanges {
-        measured_on: on.clone(),
-        ..ranges
-    });
+    let (ranges, measured) = measure(&episodes, &meta, &set, args.split.name())?;
+    let on = ranges.measured_on.clone();
+    meta.input_ranges = Some(ranges);
     let out = args.out.as_ref().unwrap_or(&args.model);
     fall_guard_runtime::model::file::rewrite_meta(&args.model, out, &meta)
         .doing(|| format!("writing {}", out.display()))?;
