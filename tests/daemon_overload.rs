@@ -100,9 +100,7 @@ fn a_slow_network_is_set_aside_for_a_lighter_one_and_taken_back() {
             s.name.ends_with(": model")
                 && s.message
                     .starts_with("overloaded: running MP (EMP set aside")
-                && s.values
-                    .iter()
-                    .any(|kv| kv.key == "set_aside" && kv.value == "EMP")
+                && status_value(s, "set_aside").as_deref() == Some("EMP")
         })
     });
     assert!(said, "the model status names the overload");

@@ -578,18 +578,9 @@ fn a_bad_message_in_a_recording_is_rejected_and_the_replay_goes_on() {
     // Both were counted at the joints boundary, per reason, on /diagnostics.
     let diagnostics = read_topic::<DiagnosticArray>(&out, "/diagnostics").expect("diagnostics");
     let (_, last_array) = diagnostics.last().expect("a diagnostics message");
-    let joints = last_array
-        .status
-        .iter()
-        .find(|s| s.name.ends_with(": joints"))
-        .expect("joints status");
+    let joints = status(last_array, "joints");
     let value = |key: &str| {
-        joints
-            .values
-            .iter()
-            .find(|kv| kv.key == key)
-            .map(|kv| kv.value.clone())
-            .unwrap_or_else(|| panic!("no {key} in {:?}", joints.values))
+        status_value(joints, key).unwrap_or_else(|| panic!("no {key} in {:?}", joints.values))
     };
     assert_eq!(value("rejected"), "2");
     assert_eq!(value("rejected_undecodable"), "1");

@@ -185,21 +185,9 @@ fn the_real_walk_is_named_at_its_first_full_window() {
         "published as NaN"
     );
     let diagnostics = read_topic::<DiagnosticArray>(&held, "/diagnostics").expect("diagnostics");
-    let last = &diagnostics.last().expect("published").1;
-    let inputs = last
-        .status
-        .iter()
-        .find(|s| s.name.ends_with(": inputs"))
-        .expect("inputs status");
+    let inputs = status(&diagnostics.last().expect("published").1, "inputs");
     assert_eq!(inputs.level, 1, "WARN: {inputs:?}");
-    let value = |key: &str| {
-        inputs
-            .values
-            .iter()
-            .find(|kv| kv.key == key)
-            .map(|kv| kv.value.clone())
-            .unwrap_or_default()
-    };
+    let value = |key: &str| status_value(inputs, key).unwrap_or_default();
     assert!(!value("out_of_range").is_empty(), "{inputs:?}");
     assert_eq!(value("policy"), "hold");
     assert!(

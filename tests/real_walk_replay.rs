@@ -126,24 +126,10 @@ fn the_real_walk_replays_through_mp_with_the_recordings_own_joints() {
     }
     let diagnostics = read_topic::<DiagnosticArray>(&out, "/diagnostics").expect("diagnostics");
     let last = &diagnostics.last().expect("diagnostics published").1;
-    let model = last
-        .status
-        .iter()
-        .find(|s| s.name.ends_with(": model"))
-        .expect("model status");
-    let value = |key: &str| {
-        model
-            .values
-            .iter()
-            .find(|kv| kv.key == key)
-            .map(|kv| kv.value.clone())
-    };
+    let model = status(last, "model");
+    let value = |key: &str| status_value(model, key);
     assert_eq!(value("active_model").as_deref(), Some("MP"), "{model:?}");
     assert_eq!(value("valid").as_deref(), Some("true"), "{model:?}");
-    let joints = last
-        .status
-        .iter()
-        .find(|s| s.name.ends_with(": joints"))
-        .expect("joints status");
+    let joints = status(last, "joints");
     assert_eq!(joints.level, 0, "joints OK at the end: {joints:?}");
 }

@@ -18,7 +18,7 @@
 //!   runs open, with a WARN (and the same decision without the daemon).
 
 mod daemon_common;
-use daemon_common::{bundled_config_on, Daemon};
+use daemon_common::{bundled_config_on, status_value, Daemon};
 
 #[path = "ros/support.rs"]
 mod support;
@@ -180,11 +180,7 @@ fn secured_daemon(args: &[&str], keystore: &Path, strategy: &str) -> Daemon {
 /// The value of `key` in the status whose name ends with `suffix`.
 fn diag_value(d: &DiagnosticArray, suffix: &str, key: &str) -> Option<String> {
     let status = d.status.iter().find(|s| s.name.ends_with(suffix))?;
-    status
-        .values
-        .iter()
-        .find(|kv| kv.key == key)
-        .map(|kv| kv.value.clone())
+    status_value(status, key)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

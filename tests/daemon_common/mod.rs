@@ -12,6 +12,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use fall_guard_runtime::model::{cpu_device, save_model, Ablation, Emp, ModelConfig, ModelMeta};
+use fall_guard_runtime::msgs::{DiagnosticArray, DiagnosticStatus};
 use fall_guard_runtime::recording::{topics, Recording, RecordingWriter};
 use fall_guard_runtime::robot::JointTable;
 use fall_guard_testkit::emulator::PoppyBuses;
@@ -480,4 +481,24 @@ impl Daemon {
             .status();
         self.wait()
     }
+}
+
+/// The status of `array` whose name ends with `: WHAT` (`model`, `joints`,
+/// `inputs`, ...).
+pub fn status<'a>(array: &'a DiagnosticArray, what: &str) -> &'a DiagnosticStatus {
+    let suffix = format!(": {what}");
+    array
+        .status
+        .iter()
+        .find(|s| s.name.ends_with(&suffix))
+        .unwrap_or_else(|| panic!("no {what} status in {array:?}"))
+}
+
+/// The value of `key` in `status`.
+pub fn status_value(status: &DiagnosticStatus, key: &str) -> Option<String> {
+    status
+        .values
+        .iter()
+        .find(|kv| kv.key == key)
+        .map(|kv| kv.value.clone())
 }
