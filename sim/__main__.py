@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -40,6 +41,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated perturbation sigmas to draw from (default 0.005,0.01,0.035,0.04)")
     g.add_argument("--ball-probability", type=float, default=None,
                    help="share of episodes with a ball rolled at the robot (default 0.2)")
+    g.add_argument("--gait", choices=("dynamic", "hardware"), default="dynamic",
+                   help="the gait family of the set's plans: dynamic (walks through the balance feedback) "
+                        "or hardware (the real Poppy walk's step, randomised; sim/README.md)")
     g.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run each plan group as a task on the Ray cluster at ADDRESS (host:port or auto; "
                         "without ADDRESS: $RAY_ADDRESS, else a local one); the files are the same")
@@ -71,6 +75,14 @@ def main(argv: list[str] | None = None) -> int:
     pm.add_argument("--commit", default=None, help="poppy-muffin commit the buffers come from (metadata)")
     pm.add_argument("--tracking", action="store_true",
                     help="print the real servos' tracking and the simulator's on the same commanded path")
+    mg = sub.add_parser("merge", help="one data set of several generated ones (links and a joined manifest)")
+    mg.add_argument("--out", type=Path, required=True, help="the merged set's directory")
+    mg.add_argument("sets", type=Path, nargs="+", help="the generated sets, each complete")
+    hs = sub.add_parser("hardware-step",
+                        help="write the hardware gait's step (sim/model/poppy_muffin_step.json) from a real walk")
+    hs.add_argument("--real", type=Path, default=FIXTURES_DIR / "real" / "poppy_muffin_walk.mcap",
+                    help="the converted real walk (default tests/fixtures/real/poppy_muffin_walk.mcap)")
+    hs.add_argument("--out", type=Path, default=None, help="default: sim/model/poppy_muffin_step.json")
     args = parser.parse_args(argv)
 
     try:
@@ -82,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                              progress=not args.quiet, sigmas=args.sigmas or SIGMAS,
                              hazard_probability=(HAZARD_PROBABILITY if args.ball_probability is None
                                                  else args.ball_probability),
-                             use_ray=args.ray is not None, ray_address=args.ray or None)
+                             use_ray=args.ray is not None, ray_address=args.ray or None, gait=args.gait)
             cpu = cpu_seconds() - cpu0
             made = len(stats)
             falls = sum(s["fall_onset_tick"] is not None for s in stats)
@@ -127,6 +139,18 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(pmf.convert(args.buffers, args.out, args.commit or pmf.SOURCE_COMMIT)))
             if args.tracking:
                 print(json.dumps(pmf.tracking_report(pmf.load_scratchbuf(args.buffers)), indent=2))
+        elif args.command == "merge":
+            from .dataset import merge
+            print(json.dumps(merge(args.out, args.sets)))
+        elif args.command == "hardware-step":
+            from .gait import STEP_KNOTS_PATH
+            from .poppy_muffin import step_knots
+            out = args.out or STEP_KNOTS_PATH
+            step = step_knots(args.real)
+            tmp = out.with_name(out.name + ".partial")
+            tmp.write_text(json.dumps(step) + "\n")
+            os.replace(tmp, out)
+            print(json.dumps({"out": str(out), "knots": len(step["time_s"]), "step_s": step["time_s"][-1]}))
         elif args.command == "build-model":
             from .build_model import build
             if args.reference is None:

@@ -98,11 +98,12 @@ def local_cluster(worker_nodes: int, head_cpus: int):
 
 
 def _group_task(out: str, seed: int, episodes: int, duration_s: float, group: int, indices: list[int],
-                search: bool, sigmas: tuple[float, ...], hazard_probability: float, progress) -> list[dict]:
+                search: bool, sigmas: tuple[float, ...], hazard_probability: float, progress,
+                gait: str = "dynamic") -> list[dict]:
     """Search GROUP's plan if SEARCH, then make its episodes INDICES; returns their stats."""
     from . import dataset
     if search:
-        dataset.find_plan(out, seed, group, duration_s)
+        dataset.find_plan(out, seed, group, duration_s, gait)
     plan = dataset.read_plan(Path(out), group).as_dict()
     rows = []
     for i in indices:
@@ -113,7 +114,8 @@ def _group_task(out: str, seed: int, episodes: int, duration_s: float, group: in
 
 
 def make_all(out: Path, seed: int, episodes: int, duration_s: float, todo: list[int], missing_plans: list[int],
-             sigmas: tuple[float, ...], hazard_probability: float, address: str | None, bar) -> list[dict]:
+             sigmas: tuple[float, ...], hazard_probability: float, address: str | None, bar,
+             gait: str = "dynamic") -> list[dict]:
     """Make the TODO episodes (and the MISSING_PLANS) as one Ray task per plan group; returns per-episode stats."""
     from .dataset import plan_group
     ray = connect(address)
@@ -137,7 +139,7 @@ def make_all(out: Path, seed: int, episodes: int, duration_s: float, todo: list[
     # The groups whose plan must be searched first: they are the longest tasks.
     order = sorted(groups, key=lambda g: (g not in missing_plans, g))
     pending = [task.remote(str(out), seed, episodes, duration_s, g, groups[g], g in missing_plans, sigmas,
-                           hazard_probability, progress) for g in order]
+                           hazard_probability, progress, gait) for g in order]
     stats: list[dict] = []
     shown = 0
     while pending:

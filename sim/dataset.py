@@ -38,6 +38,7 @@ from .episode import (BACKGROUND_SIGMA_MAX, BACKGROUND_SIGMAS, DURATION_S, EVENT
                       OBSTACLE_KINDS, PERTURBATION_SCALE, PHYSICS_HZ, PLAN_STREAM, PUSH_DURATION_S, PUSH_IMPULSE_NS,
                       PUSH_START_S, RATE_HZ, SIGMAS, VALIDATION_BACKGROUND_SIGMA, VALIDATION_DRAWS, VALIDATION_SIGMA,
                       KeptPlan, outside_cause_probabilities, search_plan, simulate_episode)
+from .gait import GAIT_FAMILIES
 from .recording import write_episode
 from .robot import FALL_FRACTION, JOINT_NAMES, ROBOT_NAME
 
@@ -102,7 +103,8 @@ def split_names(n: int, base_seed: int) -> dict[str, list[str]]:
 
 
 def check_args(out: Path, episodes: int, seed: int, jobs: int, duration_s: float,
-               sigmas: tuple[float, ...] = SIGMAS, hazard_probability: float = HAZARD_PROBABILITY) -> None:
+               sigmas: tuple[float, ...] = SIGMAS, hazard_probability: float = HAZARD_PROBABILITY,
+               gait: str = "dynamic") -> None:
     if episodes < 1:
         raise DatasetError(f"--episodes must be at least 1 (got {episodes})")
     if episodes >= SEED_STRIDE:
@@ -117,6 +119,8 @@ def check_args(out: Path, episodes: int, seed: int, jobs: int, duration_s: float
         raise DatasetError(f"--sigmas must be one or more values within 0..0.2 (got {list(sigmas)})")
     if not 0.0 <= hazard_probability <= 1.0:
         raise DatasetError(f"--ball-probability must be within 0..1 (got {hazard_probability})")
+    if gait not in GAIT_FAMILIES:
+        raise DatasetError(f"--gait must be one of {', '.join(GAIT_FAMILIES)} (got {gait!r})")
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out}: exists and is not a directory")
     try:
@@ -137,10 +141,10 @@ def _write_manifest(path: Path, manifest: dict) -> None:
     os.replace(tmp, path)
 
 
-def find_plan(out: str, base_seed: int, group: int, duration_s: float) -> dict:
-    """Search the plan of GROUP and write it to plans/ (.partial, then renamed)."""
+def find_plan(out: str, base_seed: int, group: int, duration_s: float, gait: str = "dynamic") -> dict:
+    """Search the plan of GROUP (from the GAIT family) and write it to plans/ (.partial, then renamed)."""
     t0 = time.perf_counter()
-    plan = search_plan(plan_rng(base_seed, group), duration_s, plan_id(base_seed, group))
+    plan = search_plan(plan_rng(base_seed, group), duration_s, plan_id(base_seed, group), gait)
     path = Path(out) / "plans" / plan_name(group)
     tmp = path.with_name(path.name + ".partial")
     tmp.write_text(json.dumps(plan.as_dict(), sort_keys=True) + "\n")
@@ -167,7 +171,8 @@ def make_one(out: str, index: int, seed: int, duration_s: float, plan: dict,
 
 
 def _make_all(out: Path, seed: int, episodes: int, duration_s: float, todo: list[int], missing_plans: list[int],
-              sigmas: tuple[float, ...], hazard_probability: float, jobs: int, bar) -> list[dict]:
+              sigmas: tuple[float, ...], hazard_probability: float, jobs: int, bar,
+              gait: str = "dynamic") -> list[dict]:
     """Search the missing plans and make the TODO episodes, all in one pool of JOBS workers.
 
     An episode is submitted as soon as its plan exists, so the workers are not
@@ -187,14 +192,14 @@ def _make_all(out: Path, seed: int, episodes: int, duration_s: float, todo: list
     ready = [t for g in sorted(set(waiting) - set(missing_plans)) for t in episode_tasks(g)]
     if jobs == 1:
         for g in missing_plans:
-            find_plan(str(out), seed, g, duration_s)
+            find_plan(str(out), seed, g, duration_s, gait)
             ready += episode_tasks(g)
         for t in ready:
             stats.append(make_one(*t))
             bar.update(1)
         return stats
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        pending = {pool.submit(find_plan, str(out), seed, g, duration_s) for g in missing_plans}
+        pending = {pool.submit(find_plan, str(out), seed, g, duration_s, gait) for g in missing_plans}
         pending |= {pool.submit(make_one, *t) for t in ready}
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
@@ -217,14 +222,15 @@ def cpu_seconds() -> float:
 def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: float = DURATION_S,
              progress: bool = True, sigmas: tuple[float, ...] = SIGMAS,
              hazard_probability: float = HAZARD_PROBABILITY, ray_address: str | None = None,
-             use_ray: bool = False) -> list[dict]:
+             use_ray: bool = False, gait: str = "dynamic") -> list[dict]:
     """Make the missing plans and episodes of the data set and (re)write its manifest; returns per-episode stats.
 
     With USE_RAY the plan groups run as tasks on the Ray cluster at RAY_ADDRESS
     (``sim/cluster.py``; JOBS is then the cluster's affair); the files are the same.
+    GAIT is the family every plan of the set is searched from (``gait.GAIT_FAMILIES``).
     """
     sigmas = tuple(float(x) for x in sigmas)
-    check_args(out, episodes, seed, jobs, duration_s, sigmas, hazard_probability)
+    check_args(out, episodes, seed, jobs, duration_s, sigmas, hazard_probability, gait)
     manifest_path = out / "manifest.json"
     groups = plan_groups(episodes)
     generator = {
@@ -244,7 +250,7 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
         "push": {"start_s": list(PUSH_START_S), "impulse_ns": list(PUSH_IMPULSE_NS), "duration_s": PUSH_DURATION_S},
         "obstacle": {"kinds": list(OBSTACLE_KINDS), "distance_m": {k: list(v) for k, v in OBSTACLE_DIST_M.items()}},
         "balance": {"kh": KH, "khd": KHD, "kr": KR, "krd": KRD, "limit_rad": LIMIT_RAD},
-        "plan_groups": groups, "episodes_per_plan": EPISODES_PER_PLAN,
+        "plan_groups": groups, "episodes_per_plan": EPISODES_PER_PLAN, "gait": gait,
     }
     if manifest_path.exists():
         try:
@@ -252,7 +258,8 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
         except (OSError, json.JSONDecodeError) as e:
             raise DatasetError(f"{manifest_path}: unreadable manifest ({e}); remove it or use another --out") from e
         old.setdefault("version", 1)  # generator 1 wrote no version
-        for key in ("version", "seed", "duration_s", "episodes", "sigmas", "hazard_probability"):
+        old.setdefault("gait", "dynamic")  # a set made before the hardware gait is a dynamic one
+        for key in ("version", "seed", "duration_s", "episodes", "sigmas", "hazard_probability", "gait"):
             if old.get(key, generator[key]) != generator[key]:
                 raise DatasetError(f"{manifest_path}: made with {key}={old[key]}, asked {key}={generator[key]}; "
                                    "use another --out or the same arguments")
@@ -272,10 +279,65 @@ def generate(out: Path, episodes: int, seed: int, jobs: int = 1, duration_s: flo
     if use_ray:
         from .cluster import make_all as make_all_on_ray
         stats = make_all_on_ray(out, seed, episodes, duration_s, todo, missing_plans, sigmas, hazard_probability,
-                                ray_address, bar)
+                                ray_address, bar, gait)
     else:
         stats = _make_all(out, seed, episodes, duration_s, todo, missing_plans, sigmas, hazard_probability, jobs,
-                          bar)
+                          bar, gait)
     bar.close()
     _write_manifest(manifest_path, manifest)
     return sorted(stats, key=lambda s: s["index"])
+
+
+def merge(out: Path, sets: list[Path]) -> dict:
+    """One data set made of complete generated SETS: OUT holds a symbolic link
+    ``<set>--episode_NNNNN.mcap`` per episode and a manifest whose splits are
+    the sets' splits joined (a plan stays in its split: the sets' seeds differ,
+    so their plans do), ``plans`` likewise, and ``generator`` the first set's
+    parameters with ``merged``: each set's name, episode count and parameters.
+    Refuses sets of one seed (their plans would be the same plans), a set
+    without a manifest, and an OUT that holds anything but such links and
+    its manifest. Run again, it writes the same manifest."""
+    if len(sets) < 2:
+        raise DatasetError("merge: give two or more data sets")
+    manifests = []
+    for d in sets:
+        try:
+            manifests.append(json.loads((d / "manifest.json").read_text()))
+        except (OSError, json.JSONDecodeError) as e:
+            raise DatasetError(f"merge: {d}: no readable manifest.json ({e}); generate the set first") from e
+    seeds = [m.get("generator", {}).get("seed") for m in manifests]
+    if len(set(seeds)) != len(seeds):
+        raise DatasetError(f"merge: the sets' seeds {seeds} repeat: their plans would be shared across splits")
+    names = [d.resolve().name for d in sets]
+    if len(set(names)) != len(names):
+        raise DatasetError(f"merge: the sets' directory names {names} repeat")
+    out.mkdir(parents=True, exist_ok=True)
+    merged: dict = {"train": [], "validation": [], "test": [], "plans": {}}
+    links: dict[str, Path] = {}
+    for d, name, m in zip(sets, names, manifests):
+        for split in ("train", "validation", "test"):
+            for episode in m[split]:
+                link = f"{name}--{episode}"
+                if not (d / episode).is_file():
+                    raise DatasetError(f"merge: {d / episode} is in the manifest but missing: finish the set first")
+                merged[split].append(link)
+                links[link] = (d / episode).resolve()
+        for episode, plan in m.get("plans", {}).items():
+            merged["plans"][f"{name}--{episode}"] = f"{name}:{plan}"
+    for entry in out.iterdir():
+        if entry.name in ("manifest.json", "manifest.json.partial", ".complete") or entry.name in links:
+            continue
+        raise DatasetError(f"merge: {entry} is not one of the merged episodes; use an empty --out")
+    for link, target in links.items():
+        path = out / link
+        if path.is_symlink() and path.resolve() == target:
+            continue
+        if path.is_symlink():
+            path.unlink()
+        path.symlink_to(target)
+    generator = dict(manifests[0].get("generator", {}))
+    generator["merged"] = [{"set": name, "episodes": len(m["train"]) + len(m["validation"]) + len(m["test"]),
+                            "generator": m.get("generator", {})} for name, m in zip(names, manifests)]
+    merged["generator"] = generator
+    _write_manifest(out / "manifest.json", merged)
+    return {"out": str(out), "sets": names, **{k: len(merged[k]) for k in ("train", "validation", "test")}}

@@ -61,7 +61,7 @@ import pybullet as pb
 from PIL import Image
 
 from .balance import KH, KHD, KR, KRD, LIMIT_RAD, Balance
-from .gait import GaitParams, gait_waypoints, standing_pose
+from .gait import GaitParams, HardwareGaitParams, params_from_dict, plan_waypoints, standing_pose
 from .robot import FALL_FRACTION, JOINT_NAMES, PHYSICS_HZ, ROBOT_NAME, Robot
 from .scene import FLOOR_FRICTION, build_room
 from .sensors import (FRAME_DROP_PROBABILITY, FREEZE_START_PROBABILITY, MISS_PROBABILITY, READ_HZ,
@@ -149,7 +149,7 @@ class KeptPlan:
     PLAN_ID names it in the data set (``"<base seed>:<plan group>"``);
     episodes that share a plan share this record.
     """
-    params: GaitParams
+    params: GaitParams | HardwareGaitParams
     attempts: int
     progress_m: float
     plan_id: str = ""
@@ -160,7 +160,7 @@ class KeptPlan:
 
     @staticmethod
     def from_dict(d: dict) -> "KeptPlan":
-        return KeptPlan(GaitParams(**d["params"]), int(d["attempts"]), float(d["progress_m"]),
+        return KeptPlan(params_from_dict(d["params"]), int(d["attempts"]), float(d["progress_m"]),
                         str(d.get("plan_id", "")))
 
 
@@ -388,7 +388,7 @@ class Obstacle:
 class Episode:
     seed: int
     sigma: float
-    params: GaitParams | None
+    params: GaitParams | HardwareGaitParams | None
     n_ticks: int
     joints_rad: np.ndarray           # [n_ticks, 25]
     plan_rad: np.ndarray             # [PLAN_PAST_TICKS + n_ticks + PLAN_FUTURE_TICKS + 1, 25]
@@ -780,11 +780,16 @@ def _add_ball(client: int, hazard: Hazard) -> int:
                               basePosition=(*HAZARD_PARK_XY, hazard.radius_m), physicsClientId=client)
 
 
-def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_id: str = "") -> KeptPlan:
+def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_id: str = "",
+                family: str = "dynamic") -> KeptPlan:
     """Search a walking plan on a bare floor: the first proposed gait that stays up
     and walks unperturbed and survives VALIDATION_DRAWS knot perturbations at
     VALIDATION_SIGMA (each validation run stops at its first fall, and the
     candidate at its first failed run).
+
+    FAMILY ``"dynamic"`` proposes ``GaitParams``; ``"hardware"`` proposes
+    ``HardwareGaitParams`` (the real walk's step), run without the feedback
+    and kept without a distance to walk (the real step is quasi-static).
 
     Every run goes through the balance feedback, as the episodes do. A kept
     plan walks MIN_PROGRESS_M or more in 10 s (the farthest ~0.6 m; the
@@ -820,12 +825,16 @@ def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_i
             if resume is None:
                 pb.restoreState(initial_state, physicsClientId=world.client)
             run = _rollout(world, robot, candidate, n_ticks, threshold, True, None, save_at=save_at,
-                           resume=resume)
+                           resume=resume, balance=feedback)
             return run.onset_tick is None, float(robot.base_xy() @ direction), run.saved
 
+        propose = {"dynamic": GaitParams.propose, "hardware": HardwareGaitParams.propose}[family]
+        feedback = family == "dynamic"
+        if family != "dynamic":
+            min_progress_m = -math.inf
         for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):
-            cand = GaitParams.propose(rng)
-            cand_plan = gait_waypoints(cand, n_plan, RATE_HZ)
+            cand = propose(rng)
+            cand_plan = plan_waypoints(cand, n_plan, RATE_HZ)
             ok, moved, saved = stays_up(cand_plan, save_at=from_tick)
             ok = ok and moved >= min_progress_m and saved is not None
             for _ in range(VALIDATION_DRAWS if ok else 0):
@@ -907,7 +916,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
         plan = search_plan(np.random.default_rng([seed, PLAN_STREAM]), duration_s)
     if plan is not None and gait:
         params, attempts, progress = plan.params, plan.attempts, plan.progress_m
-        base_plan = gait_waypoints(params, n_plan, RATE_HZ)
+        base_plan = plan_waypoints(params, n_plan, RATE_HZ)
     else:
         params, attempts, progress = None, 0, 0.0
         base_plan = np.tile(standing_pose(), (n_plan, 1))
@@ -947,7 +956,9 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
 
         reads = draw_reads(seed, n_ticks, RATE_HZ) if daemon_view else None
         pb.restoreState(initial_state, physicsClientId=world.client)
+        feedback = params.feedback if params is not None else True
         run = _rollout(world, robot, final, n_ticks, threshold, False, camera, bodies, haz, ball, push=the_push,
+                       balance=feedback,
                        read_steps=reads.physics_steps() if reads is not None else None,
                        watch=the_obstacle.surface if the_obstacle is not None else None)
         if sigma == 0:
@@ -963,7 +974,7 @@ def simulate_episode(seed: int, sigma: float | None = None, duration_s: float = 
             cf_eta[redraw] = cf_rng.normal(0.0, 1.0, (int(redraw.sum()), len(JOINT_NAMES))) * (background if counterfactual_walking else amp[redraw, None])
             pb.restoreState(initial_state, physicsClientId=world.client)
             cf_run = _rollout(world, robot, perturbed(cf_eta), n_ticks, threshold, True, None,
-                              bodies, haz, ball, push=the_push)
+                              bodies, haz, ball, push=the_push, balance=feedback)
             cf_onset = cf_run.onset_tick
     finally:
         world.close()

@@ -11,11 +11,24 @@ hardware walk does (and the authors' keyframe walk: shoulders 20-45 deg out,
 planner keeps a sample only if the robot, simulated without perturbation and
 with the balance feedback of ``balance.py``, stays up and walks forward (see
 ``episode.search_plan``).
+
+A second family, the **hardware gait** (``HardwareGaitParams``), is the real
+Poppy walk's own commanded step, replayed open loop and randomised around
+it: a quasi-static step (the trunk swings to one side, +-36 deg on ``abs_x``
+with ``bust_x`` the same way, the arms out, the unloaded leg kicks forward,
+the trunk swings back), mirrored every step. Its knots are
+``model/poppy_muffin_step.json``, taken from the committed real walk's
+published plan (``poppy_muffin.step_knots``). The real robot walks it
+slowly and with little progress; it is in the family so that the postures
+of the real walk (the trunk's full sway, the knee's 46 deg kick) are in the
+training data, not for distance.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -80,6 +93,9 @@ class GaitParams:
     head_y_rad: float = 0.0
     head_z_rad: float = 0.0
 
+    family = "dynamic"
+    feedback = True  # walks through the balance feedback
+
     @staticmethod
     def sample(rng: np.random.Generator) -> "GaitParams":
         return GaitParams(**{k: float(rng.uniform(lo, hi)) for k, (lo, hi) in PARAM_RANGES.items()})
@@ -132,3 +148,125 @@ def gait_waypoints(p: GaitParams, n_ticks: int, rate_hz: float) -> np.ndarray:
     w[:, J["l_shoulder_y"]] = -ramp * p.arm_swing_rad * np.cos(phase - p.lift_lag)
     w[:, J["r_shoulder_y"]] = ramp * p.arm_swing_rad * np.cos(phase - p.lift_lag)
     return w
+
+
+#: One step of the real Poppy walk's commanded path (``poppy_muffin.step_knots``): the
+#: knots (s, model order rad) from the initial pose to its mirror image.
+STEP_KNOTS_PATH = Path(__file__).parent / "model" / "poppy_muffin_step.json"
+
+#: Joints whose sign flips when the step is mirrored left for right (roll and yaw axes);
+#: pitch joints keep their sign. Left and right joints swap.
+MIRROR_NEGATED = ("hip_x", "hip_z", "abs_x", "abs_z", "bust_x", "head_z", "shoulder_x", "arm_z")
+
+
+def mirror_index_and_sign() -> tuple[np.ndarray, np.ndarray]:
+    """For each model joint: the joint whose angle it takes in the mirror image, and the sign."""
+    index, sign = [], []
+    for name in JOINT_NAMES:
+        other = ("r_" + name[2:] if name.startswith("l_") else "l_" + name[2:]
+                 if name.startswith("r_") else name)
+        index.append(J[other])
+        sign.append(-1.0 if any(name.endswith(k) for k in MIRROR_NEGATED) else 1.0)
+    return np.array(index), np.array(sign)
+
+
+def mirrored(q: np.ndarray) -> np.ndarray:
+    """Angles [..., 25] mirrored left for right."""
+    index, sign = mirror_index_and_sign()
+    return q[..., index] * sign
+
+
+def load_step_knots(path: Path = STEP_KNOTS_PATH) -> tuple[np.ndarray, np.ndarray]:
+    """The hardware step's knot times (s) and angles [K, 25] (rad)."""
+    d = json.loads(path.read_text())
+    if list(d["joint_names"]) != list(JOINT_NAMES):
+        raise ValueError(f"{path}: joint names are not the model's, in its order")
+    return np.asarray(d["time_s"], dtype=float), np.asarray(d["angles_rad"], dtype=float)
+
+
+#: The hardware gait's proposal ranges (uniform; ``mirrored`` is drawn 0 or 1).
+HARDWARE_RANGES: dict[str, tuple[float, float]] = {
+    "time_scale": (0.35, 1.0),   # the step's duration x this (1: the real walk's 25.6 s)
+    "trunk_scale": (0.8, 1.15),  # abs_x and bust_x (1: +-36 deg)
+    "arm_scale": (0.6, 1.2),     # shoulder_x (1: 36 deg out)
+    "leg_scale": (0.8, 1.1),     # hip_y, knee_y, ankle_y away from the initial pose (1: the knee's 46 deg)
+    "lean_scale": (0.5, 1.3),    # abs_y (1: 11 deg forward at rest)
+    "head_y_rad": (-0.15, 0.3),
+    "head_z_rad": (-0.25, 0.25),
+}
+
+_GROUPS: dict[str, tuple[str, ...]] = {
+    "trunk_scale": ("abs_x", "bust_x"),
+    "arm_scale": ("l_shoulder_x", "r_shoulder_x"),
+    "leg_scale": tuple(f"{s}_{j}" for s in "lr" for j in ("hip_y", "knee_y", "ankle_y")),
+    "lean_scale": ("abs_y",),
+}
+
+
+@dataclass(frozen=True)
+class HardwareGaitParams:
+    time_scale: float
+    trunk_scale: float
+    arm_scale: float
+    leg_scale: float
+    lean_scale: float
+    mirrored: float
+    head_y_rad: float = 0.0
+    head_z_rad: float = 0.0
+
+    family = "hardware"
+    #: The balance feedback is off: the real walk's step is quasi-static and
+    #: stays up open loop; the feedback's hip corrections tip it over.
+    feedback = False
+
+    @staticmethod
+    def propose(rng: np.random.Generator) -> "HardwareGaitParams":
+        drawn = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in HARDWARE_RANGES.items()}
+        return HardwareGaitParams(mirrored=float(rng.integers(2)), **drawn)
+
+    def as_dict(self) -> dict[str, float | str]:
+        return {"family": self.family, **asdict(self)}
+
+
+def hardware_waypoints(p: HardwareGaitParams, n_ticks: int, rate_hz: float,
+                       knots: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Waypoints [n_ticks, 25] (rad) of the hardware gait P: the real step, then its mirror
+    image, and so on, each step TIME_SCALE x as long as the real one, scaled around its start pose."""
+    t_k, q_k = knots if knots is not None else load_step_knots()
+    step_s = float(t_k[-1])
+    q0 = q_k[0]
+    scaled = q_k.copy()
+    for key, names in _GROUPS.items():
+        cols = [J[n] for n in names]
+        scaled[:, cols] = q0[cols] + getattr(p, key) * (q_k[:, cols] - q0[cols])
+    t = np.arange(n_ticks) / rate_hz / p.time_scale
+    step_no = np.floor(t / step_s).astype(int)
+    within = t - step_no * step_s
+    w = np.column_stack([np.interp(within, t_k, scaled[:, j]) for j in range(len(JOINT_NAMES))])
+    flip = (step_no + int(p.mirrored)) % 2 == 1
+    w[flip] = mirrored(w[flip])
+    w[:, J["head_y"]] += p.head_y_rad
+    w[:, J["head_z"]] += p.head_z_rad
+    return w
+
+
+def plan_waypoints(p: "GaitParams | HardwareGaitParams", n_ticks: int, rate_hz: float) -> np.ndarray:
+    """Waypoints of either family's gait."""
+    if isinstance(p, HardwareGaitParams):
+        return hardware_waypoints(p, n_ticks, rate_hz)
+    return gait_waypoints(p, n_ticks, rate_hz)
+
+
+def params_from_dict(d: dict) -> "GaitParams | HardwareGaitParams":
+    """Gait parameters as ``as_dict`` wrote them (no ``family``: the dynamic gait)."""
+    d = dict(d)
+    family = d.pop("family", "dynamic")
+    if family == "hardware":
+        return HardwareGaitParams(**d)
+    if family != "dynamic":
+        raise ValueError(f"unknown gait family {family!r}")
+    return GaitParams(**d)
+
+
+#: The gait families a data set can be made of (``generate --gait``).
+GAIT_FAMILIES = ("dynamic", "hardware")

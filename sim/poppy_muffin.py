@@ -302,6 +302,43 @@ def convert(buffers: Path, out: Path, source_commit: str = SOURCE_COMMIT,
 # --- tracking: the real servos against the simulator's on the same commanded path ---
 
 
+def step_knots(recording: Path) -> dict:
+    """One step of the walk's commanded path, from a converted recording's published plan:
+    the knots from the walk's start to the first knot where the pose is the start pose's
+    mirror image (the trunk back upright, the other leg forward), as ``gait.load_step_knots``
+    reads them. The hardware gait of the simulator repeats this step, mirrored every other time."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from .gait import mirrored
+
+    points: dict[int, np.ndarray] = {}
+    with open(recording, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, _, _, msg in reader.iter_decoded_messages(topics=[TOPIC_PLAN], log_time_order=True):
+            if list(msg.joint_names) != list(JOINT_NAMES):
+                raise ValueError(f"{recording}: the plan's joints are not the model's, in its order")
+            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            for p in msg.points:
+                t = stamp + p.time_from_start.sec * 1_000_000_000 + p.time_from_start.nanosec
+                points[int(round(t / 1e6))] = np.asarray(p.positions, dtype=float)
+    ms = np.array(sorted(k for k in points if k >= 0))
+    if len(ms) < 3 or ms[0] != 0:
+        raise ValueError(f"{recording}: no plan point at the walk's start")
+    q = np.array([points[k] for k in ms])
+    home = mirrored(q[0])
+    ends = [i for i in range(1, len(ms)) if np.abs(q[i] - home).max() < np.deg2rad(0.05)
+            and np.abs(q[:i] - q[0]).max() > np.deg2rad(10)]
+    if not ends:
+        raise ValueError(f"{recording}: the plan never reaches the start pose's mirror image")
+    end = ends[0]
+    return {"source": f"{SOURCE_REPOSITORY} {SCRATCHBUF_PATH} (commit {SOURCE_COMMIT}), {SOURCE_LICENCE}; "
+                      "the commanded path's knots from the walk's start to the start pose's mirror image",
+            "joint_names": list(JOINT_NAMES),
+            "time_s": [round(float(x) / 1e3, 3) for x in ms[:end + 1]],
+            "angles_rad": [[round(float(v), 6) for v in row] for row in q[:end + 1]]}
+
+
 def tracking_errors(position_rad: np.ndarray, target_rad: np.ndarray) -> dict[str, dict[str, float]]:
     """|position - target| (deg) per joint group: mean and 95th percentile over samples and joints."""
     err = np.rad2deg(np.abs(position_rad - target_rad))
@@ -379,5 +416,5 @@ def tracking_report(walk: RealWalk) -> dict:
     }
 
 
-__all__ = ["convert", "load_scratchbuf", "walk_from_runs", "model_rad", "model_order", "plan_points",
+__all__ = ["convert", "step_knots", "load_scratchbuf", "walk_from_runs", "model_rad", "model_order", "plan_points",
            "write_recording", "metadata", "tracking_report", "RealWalk"]

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The whole retrain, from simulated data to the networks that ship:
 #
-#   data      generate the 2,000-episode set, the long walking set and a
-#             second, held-out test set of its own seed (sim/)
+#   data      generate the training set (2,000 episodes of the dynamic gait
+#             and 400 of the hardware gait, merged), the long walking set
+#             and a second, held-out test set of its own seed (sim/)
 #   train     every network of the plan below, RETRAIN_PARALLEL at a time
 #   calibrate Platt scaling or beta calibration (per horizon, by
 #             cross-validation) of every network on the validation split
@@ -55,8 +56,10 @@ PARALLEL=${RETRAIN_PARALLEL:-2}
 DEVICE=${RETRAIN_DEVICE:-cpu}
 FG=${FALL_GUARD_LAB_BIN:-$REPO/target/release/fall-guard-lab}
 PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
-SET_NAME=simv6                     # the 2,000-episode set's name (generator 6)
-SET=$DATA_ROOT/$SET_NAME            # the 2,000-episode set (seed 1)
+SET_NAME=simv6-mixed               # the training set's name: the two sets below, merged
+SET=$DATA_ROOT/$SET_NAME            # (links to their episodes and a joined manifest)
+DYNAMIC=$DATA_ROOT/simv6            # 2,000 episodes of the dynamic gait (generator 6, seed 1)
+HARDWARE=$DATA_ROOT/simv6-hw        # 400 episodes of the hardware gait (the real walk's step, seed 21)
 WALK=$DATA_ROOT/walk                # low sigma, no ball: false alarms per minute
 HELDOUT=$DATA_ROOT/heldout          # a second test set, of its own seed (11) and plans
 RUNS=$DATA_ROOT/runs
@@ -187,7 +190,7 @@ LATCH_MS=${RETRAIN_LATCH_MS:-2000}
 # The latch releases after this long below release (`[model].release_hold_ms`
 # of the shipped configs; it delays a release, never an assertion).
 HOLD_MS=${RETRAIN_RELEASE_HOLD_MS:-1000}
-TRAINED_ON="$SET_NAME (sim generator 6, 2,000 episodes, seed 1; simulated data)"
+TRAINED_ON="$SET_NAME (sim generator 6: 2,000 dynamic-gait episodes, seed 1, and 400 hardware-gait episodes, seed 21; simulated data)"
 
 # The shipped networks are calibrated runs of this plan: in a data directory
 # without their run, put them back (RUNS/NAME.cal.bpk and NAME.done), with the
@@ -230,8 +233,13 @@ GENERATE_ON=()
 [ -n "$RAY" ] && GENERATE_ON=(--ray "$RAY")
 
 step_data() {
-  log "data: $SET (2,000 episodes, seed 1, $JOBS jobs)"
-  "$PY" -m sim generate --out "$SET" --episodes 2000 --seed 1 --jobs "$JOBS" "${GENERATE_ON[@]}" --quiet >>"$LOG"
+  log "data: $DYNAMIC (2,000 episodes of the dynamic gait, seed 1, $JOBS jobs)"
+  "$PY" -m sim generate --out "$DYNAMIC" --episodes 2000 --seed 1 --jobs "$JOBS" "${GENERATE_ON[@]}" --quiet >>"$LOG"
+  log "data: $HARDWARE (400 episodes of the hardware gait, seed 21)"
+  "$PY" -m sim generate --out "$HARDWARE" --episodes 400 --seed 21 --gait hardware --jobs "$JOBS" \
+    "${GENERATE_ON[@]}" --quiet >>"$LOG"
+  log "data: $SET (the two merged)"
+  "$PY" -m sim merge --out "$SET" "$DYNAMIC" "$HARDWARE" >>"$LOG"
   [ -e "$SET/.complete" ] || touch "$SET/.complete"   # once: a run is current while newer than it
   log "data: $WALK (300 walking episodes, sigma 0.005/0.01, no ball, seed 3)"
   "$PY" -m sim generate --out "$WALK" --episodes 300 --seed 3 --jobs "$JOBS" "${GENERATE_ON[@]}" --sigmas 0.005,0.01 \

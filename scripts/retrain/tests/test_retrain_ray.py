@@ -59,8 +59,8 @@ def retrain_train(data: Path, **env: str) -> subprocess.CompletedProcess:
 
 def test_a_training_sweep_through_ray_writes_the_local_model_files(cluster, tmp_path):
     data = tmp_path / "data"
-    shutil.copytree(FIXTURES, data / "simv6", ignore=shutil.ignore_patterns("real"))
-    (data / "simv6" / ".complete").touch()
+    shutil.copytree(FIXTURES, data / "simv6-mixed", ignore=shutil.ignore_patterns("real"))
+    (data / "simv6-mixed" / ".complete").touch()
 
     local = retrain_train(data, RETRAIN_PARALLEL="2")
     assert local.returncode == 0, local.stderr
