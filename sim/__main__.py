@@ -75,9 +75,6 @@ def main(argv: list[str] | None = None) -> int:
     pm.add_argument("--commit", default=None, help="poppy-muffin commit the buffers come from (metadata)")
     pm.add_argument("--tracking", action="store_true",
                     help="print the real servos' tracking and the simulator's on the same commanded path")
-    mg = sub.add_parser("merge", help="one data set of several generated ones (links and a joined manifest)")
-    mg.add_argument("--out", type=Path, required=True, help="the merged set's directory")
-    mg.add_argument("sets", type=Path, nargs="+", help="the generated sets, each complete")
     hs = sub.add_parser("hardware-step",
                         help="write the hardware gait's step (sim/model/poppy_muffin_step.json) from a real walk")
     hs.add_argument("--real", type=Path, default=FIXTURES_DIR / "real" / "poppy_muffin_walk.mcap",
@@ -139,9 +136,6 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(pmf.convert(args.buffers, args.out, args.commit or pmf.SOURCE_COMMIT)))
             if args.tracking:
                 print(json.dumps(pmf.tracking_report(pmf.load_scratchbuf(args.buffers)), indent=2))
-        elif args.command == "merge":
-            from .dataset import merge
-            print(json.dumps(merge(args.out, args.sets)))
         elif args.command == "hardware-step":
             from .gait import STEP_KNOTS_PATH
             from .poppy_muffin import step_knots

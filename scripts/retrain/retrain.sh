@@ -2,7 +2,7 @@
 # The whole retrain, from simulated data to the networks that ship:
 #
 #   data      generate the training set (2,000 episodes of the dynamic gait
-#             and 400 of the hardware gait, merged), the long walking set
+#             and 400 of the hardware gait, joined), the long walking set
 #             and a second, held-out test set of its own seed (sim/)
 #   train     every network of the plan below, RETRAIN_PARALLEL at a time
 #   calibrate Platt scaling or beta calibration (per horizon, by
@@ -56,8 +56,8 @@ PARALLEL=${RETRAIN_PARALLEL:-2}
 DEVICE=${RETRAIN_DEVICE:-cpu}
 FG=${FALL_GUARD_LAB_BIN:-$REPO/target/release/fall-guard-lab}
 PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
-SET_NAME=simv6-mixed               # the training set's name: the two sets below, merged
-SET=$DATA_ROOT/$SET_NAME            # (links to their episodes and a joined manifest)
+SET_NAME=simv6-mixed               # the training set's name: the two sets below, joined
+SET=$DATA_ROOT/$SET_NAME            # split by split (links to their episodes, compose_set.py)
 DYNAMIC=$DATA_ROOT/simv6            # 2,000 episodes of the dynamic gait (generator 6, seed 1)
 HARDWARE=$DATA_ROOT/simv6-hw        # 400 episodes of the hardware gait (the real walk's step, seed 21)
 WALK=$DATA_ROOT/walk                # low sigma, no ball: false alarms per minute
@@ -238,8 +238,10 @@ step_data() {
   log "data: $HARDWARE (400 episodes of the hardware gait, seed 21)"
   "$PY" -m sim generate --out "$HARDWARE" --episodes 400 --seed 21 --gait hardware --jobs "$JOBS" \
     "${GENERATE_ON[@]}" --quiet >>"$LOG"
-  log "data: $SET (the two merged)"
-  "$PY" -m sim merge --out "$SET" "$DYNAMIC" "$HARDWARE" >>"$LOG"
+  log "data: $SET (the two joined split by split)"
+  "$PY" "$REPO/scripts/retrain/compose_set.py" "$SET" --train "$DYNAMIC:train" --train "$HARDWARE:train" \
+    --validation "$DYNAMIC:validation" --validation "$HARDWARE:validation" \
+    --test "$DYNAMIC:test" --test "$HARDWARE:test" >>"$LOG"
   [ -e "$SET/.complete" ] || touch "$SET/.complete"   # once: a run is current while newer than it
   log "data: $WALK (300 walking episodes, sigma 0.005/0.01, no ball, seed 3)"
   "$PY" -m sim generate --out "$WALK" --episodes 300 --seed 3 --jobs "$JOBS" "${GENERATE_ON[@]}" --sigmas 0.005,0.01 \

@@ -1,4 +1,4 @@
-"""The hardware gait (the real Poppy walk's step, randomised) and merged data sets."""
+"""The hardware gait: the real Poppy walk's step, randomised."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.dataset import DatasetError, check_args, generate, merge
+from sim.dataset import DatasetError, check_args, generate
 from sim.episode import KeptPlan, search_plan, simulate_episode
 from sim.gait import (HARDWARE_RANGES, J, GaitParams, HardwareGaitParams, hardware_waypoints, load_step_knots,
                       mirrored, params_from_dict)
@@ -99,22 +99,3 @@ def test_gait_argument_is_checked(tmp_path):
     with pytest.raises(DatasetError, match="gait=hardware, asked gait=dynamic"):
         generate(tmp_path / "hw", episodes=1, seed=4, jobs=1, duration_s=2.0, progress=False)
 
-
-def test_merge_joins_splits_and_refuses_shared_seeds(small_dataset, tmp_path):
-    a, _ = small_dataset
-    b = tmp_path / "b"
-    generate(b, episodes=1, seed=4, jobs=1, duration_s=2.0, progress=False, gait="hardware")
-    out = tmp_path / "m"
-    first = merge(out, [a, b])
-    text = (out / "manifest.json").read_text()
-    assert merge(out, [a, b]) == first and (out / "manifest.json").read_text() == text
-    m = json.loads(text)
-    names = m["train"] + m["validation"] + m["test"]
-    assert len(names) == 3 and all((out / n).is_file() for n in names)
-    assert sorted(x["set"] for x in m["generator"]["merged"]) == sorted([a.name, "b"])
-    assert [x["generator"]["gait"] for x in m["generator"]["merged"]] == ["dynamic", "hardware"]
-    with pytest.raises(DatasetError, match="seeds .* repeat"):
-        merge(tmp_path / "m2", [b, b])
-    (out / "stray.txt").write_text("x")
-    with pytest.raises(DatasetError, match="not one of the merged episodes"):
-        merge(out, [a, b])
