@@ -34,11 +34,15 @@ def chosen_pairs(reports: Path) -> dict[str, tuple[float, float, str]]:
             continue
         abl = line.split()[0]
         r = json.loads((reports / f"{abl}-thresholds.json").read_text())
-        c, note = r["chosen"], f"<= {r['max_false_alarms_per_min']} false alarms / min on validation"
+        held = r.get("max_held_share")
+        budget = f"<= {r['max_false_alarms_per_min']} false alarms / min" + (
+            f" and <= {held:.0%} of walking held" if held is not None else "")
+        c, note = r["chosen"], f"{budget} on validation"
         if c is None:
             c = max(r["grid"], key=lambda s: s["trigger"])
             note = f"no pair kept {note}: the grid's highest trigger"
-        pairs[abl] = (round(c["trigger"], 2), round(c["release"], 2), note)
+        # Three places: the grid's top steps (0.995) are not 2-place numbers.
+        pairs[abl] = (round(c["trigger"], 3), round(c["release"], 3), note)
     return pairs
 
 

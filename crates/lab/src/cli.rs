@@ -506,8 +506,9 @@ pub struct WarningsArgs {
     /// ... for this long, ms, as `[model].release_hold_ms` (0: at once).
     #[arg(long, default_value_t = 0)]
     pub release_hold_ms: u32,
-    /// Search the thresholds on this split instead (trigger 0.30..0.95,
-    /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
+    /// Search the thresholds on this split instead (trigger 0.30..0.95 by
+    /// 0.05, then 0.97, 0.98, 0.99 and 0.995; release = trigger - 0.3, at
+    /// least 0.05): the lowest trigger whose
     /// false-alarm rate is within --max-false-alarms-per-min and whose time
     /// held within --max-held-share.
     #[arg(long)]

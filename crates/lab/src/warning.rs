@@ -47,8 +47,9 @@ pub struct WarningsOptions {
     pub release: f32,
     /// ... for this long, ms (`[model].release_hold_ms`; 0: at once).
     pub release_hold_ms: u32,
-    /// Search the thresholds on this split instead (trigger 0.30..0.95,
-    /// release = trigger - 0.3, at least 0.05): the lowest trigger whose
+    /// Search the thresholds on this split instead (trigger 0.30..0.95 by
+    /// 0.05, then 0.97, 0.98, 0.99 and 0.995; release = trigger - 0.3, at
+    /// least 0.05): the lowest trigger whose
     /// false-alarm rate is within --max-false-alarms-per-min.
     pub choose: bool,
     /// False-alarm budget for --choose, per minute of non-falling walking.
@@ -209,13 +210,14 @@ pub fn warning_stats(
     })
 }
 
-/// The threshold grid of `--choose`.
+/// The threshold grid of `--choose`: 0.30..0.95 by 0.05, then the steps a
+/// network trained on balanced windows needs at its top (its probabilities
+/// crowd there on walking that a stop must leave alone).
 pub fn threshold_grid() -> Vec<(f32, f32)> {
     (0..=13)
-        .map(|i| {
-            let trigger = 0.30 + 0.05 * i as f32;
-            (trigger, (trigger - 0.3).max(0.05))
-        })
+        .map(|i| 0.30 + 0.05 * i as f32)
+        .chain([0.97, 0.98, 0.99, 0.995])
+        .map(|trigger| (trigger, (trigger - 0.3).max(0.05)))
         .collect()
 }
 
