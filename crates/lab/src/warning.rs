@@ -283,6 +283,15 @@ pub struct WarningsReport {
     pub max_held_share: f64,
 }
 
+/// A threshold as the grid has it: two places, three where it has them (0.995).
+fn threshold(x: f32) -> String {
+    let three = format!("{x:.3}");
+    match three.strip_suffix('0') {
+        Some(two) => two.to_string(),
+        None => three,
+    }
+}
+
 impl WarningsReport {
     /// The figures as a Markdown table, and the choice.
     pub fn table(&self) -> String {
@@ -292,9 +301,9 @@ impl WarningsReport {
         let opt = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.2}"));
         for s in &self.grid {
             t += &format!(
-                "| {:.2} | {:.2} | {}/{} ({:.0}%) | {} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) | {:.1}% ({:.2} min) | {:.2}% of ticks{} |\n",
-                s.trigger,
-                s.release,
+                "| {} | {} | {}/{} ({:.0}%) | {} ({:.0}%) | {} | {} | {:.2} ({} in {:.1} min) | {:.1}% ({:.2} min) | {:.2}% of ticks{} |\n",
+                threshold(s.trigger),
+                threshold(s.release),
                 s.warned,
                 s.falling_episodes,
                 100.0 * s.warned_share,
@@ -314,10 +323,10 @@ impl WarningsReport {
         if self.searched {
             t += &match &self.chosen {
                 Some(c) => format!(
-                    "chosen on {}: trigger {:.2}, release {:.2} (false alarms <= {} / min, time held <= {:.1}%)\n",
+                    "chosen on {}: trigger {}, release {} (false alarms <= {} / min, time held <= {:.1}%)\n",
                     self.split,
-                    c.trigger,
-                    c.release,
+                    threshold(c.trigger),
+                    threshold(c.release),
                     self.max_false_alarms_per_min,
                     100.0 * self.max_held_share
                 ),
@@ -485,6 +494,17 @@ mod tests {
         assert!(c.is_some_and(|t| (t - 0.95).abs() < 1e-6), "{c:?}");
         assert!(choose(&grid(true), 10.0, 0.01).is_none());
         assert!(choose(&grid(true), 10.0, 0.1).is_some());
+    }
+
+    #[test]
+    fn thresholds_print_as_the_grid_has_them() {
+        let printed: Vec<String> = threshold_grid()
+            .iter()
+            .map(|&(t, _)| threshold(t))
+            .collect();
+        assert_eq!(printed[0], "0.30");
+        assert_eq!(printed[13], "0.95");
+        assert_eq!(&printed[14..], ["0.97", "0.98", "0.99", "0.995"]);
     }
 
     #[test]
