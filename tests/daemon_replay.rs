@@ -416,7 +416,7 @@ fn joints_gap_invalidates_forecasts_until_the_window_refills() {
 }
 
 /// Latch chatter around a network switch (reported: four flips in 0.5 s
-/// around P -> MP). The shipped networks on the bundled generator-2
+/// around P -> MP). The shipped networks on the bundled simulated
 /// episodes with the camera gone (so MP, as `camera = "none"` runs) and
 /// the plan lost from 1.5 s to 3.2 s: MP -> P when the plan goes stale,
 /// P -> MP on the tick a fresh plan message is there again (the window's

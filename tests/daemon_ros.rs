@@ -65,7 +65,7 @@ use daemon_common::{
 /// others side by side (read).
 static ALONE: tokio::sync::RwLock<()> = tokio::sync::RwLock::const_new(());
 
-/// The bundled replay's episode: a ball hits the robot, which falls at 8.67 s.
+/// The bundled replay's episode: a ball hits the robot, which falls at 5.07 s.
 const FALLING_FIXTURE: &str = "tests/fixtures/episode_00007.mcap";
 
 fn repo(path: &str) -> PathBuf {

@@ -105,7 +105,7 @@ fn ranges_leave_the_weights_and_a_training_episode_untouched() {
         );
     }
 
-    // A training episode (a fall at 6.17 s): every window before the fall
+    // A training episode (a fall by a push at 5.0 s): every window before the fall
     // lies inside the ranges, so its forecasts are the same bits.
     let recording = in_repo("tests/fixtures/episode_00003.mcap");
     let onset = Recording::open(&recording)

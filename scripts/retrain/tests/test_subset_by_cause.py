@@ -43,9 +43,9 @@ def test_the_subsets_hold_each_cause_with_the_walks(tmp_path):
     assert split_of(out, "validation-collision", FIXTURES) == ["episode_00004.mcap"]
     stats = json.loads((out / "causes.json").read_text())
     assert (stats["falls"], stats["walks"], list(stats["causes"])) == (1, 1, ["collision"])
-    # Generator 2 wrote no cause_ns: the fall is counted, not timed.
-    assert stats["causes"]["collision"]["cause_to_onset_s"] is None
-    assert stats["causes"]["collision"]["timed_falls"] == 0
+    # Generator 6 times the fall from the ball's first touch (cause_ns): 0.9 s before the onset.
+    assert stats["causes"]["collision"]["cause_to_onset_s"]["median"] == 0.9
+    assert stats["causes"]["collision"]["timed_falls"] == 1
 
 
 S = 1_000_000_000
