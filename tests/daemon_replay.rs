@@ -591,3 +591,77 @@ fn a_bad_message_in_a_recording_is_rejected_and_the_replay_goes_on() {
         value("last_rejection")
     );
 }
+
+/// The end of a replay of a labelled fall says what the safety signal did
+/// before it: asserted how far ahead, not asserted, or held throughout; a
+/// recording without a fall says nothing of it.
+#[test]
+fn a_replayed_fall_reports_the_warnings_lead() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = std::fs::read_to_string(root.join("config/replay.toml"))
+        .expect("config")
+        .replace(
+            "dir = \"models\"",
+            &format!("dir = \"{}\"", root.join("models").display()),
+        )
+        .replace("[ros]\nenabled = true", "[ros]\nenabled = false");
+    let config = dir.path().join("replay.toml");
+    std::fs::write(&config, text).expect("config");
+    let replay = |episode: &str| {
+        let recording = root.join(format!("tests/fixtures/{episode}.mcap"));
+        let out = fall_guard(&[
+            "replay",
+            "--config",
+            config.to_str().expect("utf8"),
+            "--recording",
+            recording.to_str().expect("utf8"),
+            "--max-speed",
+        ]);
+        assert!(out.status.success(), "{episode}: {}", stderr(&out));
+        (parse_lines(&out.stdout), stderr(&out))
+    };
+
+    // The ball's fall at 5.07 s (tick 152).
+    let (lines, log) = replay("episode_00007");
+    let said = log
+        .lines()
+        .find_map(|l| {
+            l.split_once("the recording falls at 5.07 s: ")
+                .map(|(_, r)| r)
+        })
+        .unwrap_or_else(|| panic!("no lead in: {log}"));
+    let before: Vec<&Line> = lines.iter().filter(|l| l.tick < 152).collect();
+    let last = before.last().expect("ticks before the fall");
+    if let Some(rest) = said.strip_prefix("fall_imminent asserted at ") {
+        // The tick it went on, and on from there to the fall.
+        let at: f64 = rest.split(' ').next().expect("time").parse().expect("s");
+        let lead: f64 = rest
+            .split(", ")
+            .nth(1)
+            .and_then(|r| r.strip_suffix(" s ahead"))
+            .expect("lead")
+            .parse()
+            .expect("s");
+        assert!((at + lead - 5.07).abs() < 0.011, "{said}");
+        // (A tick's stamp and its index agree within one tick.)
+        let on_tick = (at * 30.0).round() as i64;
+        assert!(before
+            .iter()
+            .filter(|l| l.tick > on_tick)
+            .all(|l| l.imminent));
+        assert!(before.iter().any(|l| l.tick < on_tick - 1 && !l.imminent));
+    } else if said.starts_with("fall_imminent was not asserted") {
+        assert!(!last.imminent);
+    } else {
+        assert!(
+            said.starts_with("fall_imminent held from the start"),
+            "{said}"
+        );
+        assert!(before.iter().all(|l| l.imminent));
+    }
+
+    // A walk: no fall, no lead.
+    let (_, log) = replay("episode_00006");
+    assert!(!log.contains("the recording falls at"), "{log}");
+}

@@ -176,7 +176,14 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
     };
     let (ticks, dispatched, overruns) = (count("ticks"), count("dispatched"), count("overruns"));
     assert_eq!(ticks, dispatched + overruns, "{finished}");
-    assert_eq!(lines.len(), dispatched, "one forecast per dispatched tick");
+    // Every tick is printed: a dispatched one with its forecast, a skipped
+    // one as NaN with the reason.
+    assert_eq!(lines.len(), ticks, "one line per tick");
+    let skipped = lines
+        .iter()
+        .filter(|l| l.reason.starts_with("skipped"))
+        .count();
+    assert_eq!(skipped, overruns, "each overrun printed as a skipped tick");
     let valid: Vec<_> = lines.iter().filter(|l| l.valid).collect();
     assert!(
         valid.len() > 50,
@@ -184,7 +191,9 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         valid.len()
     );
     let first_valid = valid[0].tick;
-    assert!(lines.iter().all(|l| l.valid || l.tick < first_valid));
+    assert!(lines
+        .iter()
+        .all(|l| l.valid || l.tick < first_valid || l.reason.starts_with("skipped")));
 
     // The same episode offline, through the lab's `eval` (what
     // `fall-guard-lab eval --recording --per-tick-out` runs).
@@ -270,7 +279,11 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
         .fall_onset_ns
         .expect("the falling fixture falls");
     let onset_tick = (onset_ns as f64 * 30.0 / 1e9).round() as i64;
-    assert!(lines.iter().filter(|l| !l.valid).all(|l| l.imminent));
+    // Not valid: asserted (a skipped tick leaves the latch as it was).
+    assert!(lines
+        .iter()
+        .filter(|l| !l.valid && !l.reason.starts_with("skipped"))
+        .all(|l| l.imminent));
     let first_warned = valid
         .iter()
         .find(|l| l.probabilities[1] >= trigger)
@@ -647,6 +660,7 @@ async fn servo_faults_make_forecasts_not_valid_and_the_daemon_recovers() {
     let dir = tempfile::tempdir().expect("tempdir");
     let table = JointTable::poppy_humanoid();
     let buses = PoppyBuses::start(&table, dir.path()).expect("emulated buses");
+    buses.stand(&table).expect("standing pose");
     // The lower bus uses the USB2AX sync read, the upper one per-motor reads
     // (the only ones that carry each motor's error bits).
     let config = servo_config(
@@ -806,6 +820,7 @@ async fn one_missing_servo_degrades_per_motor_and_diagnostics_recover_to_ok() {
     let dir = tempfile::tempdir().expect("tempdir");
     let table = JointTable::poppy_humanoid();
     let buses = PoppyBuses::start(&table, dir.path()).expect("emulated buses");
+    buses.stand(&table).expect("standing pose");
     // The upper bus is a plain USB-serial adapter: the USB2AX sync read is
     // configured (the default) but never answered, so the reader falls back
     // to one READ_DATA per motor. A mode, not a fault.
@@ -1127,6 +1142,7 @@ async fn a_noisy_servo_bus_keeps_the_forecast_and_publishes_only_values_read() {
     let dir = tempfile::tempdir().expect("tempdir");
     let table = JointTable::poppy_humanoid();
     let buses = Arc::new(PoppyBuses::start(&table, dir.path()).expect("emulated buses"));
+    buses.stand(&table).expect("standing pose");
     // Both buses read with the USB2AX sync read (the default); a motor's
     // lost reply gives FF bytes in the adapter's answer (12% of them), and
     // the reader asks again for those motors in the same cycle (1.4% lost

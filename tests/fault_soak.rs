@@ -578,6 +578,7 @@ async fn an_hour_of_faults_in_short_keeps_the_signal_valid_named_and_recovering(
     let domain = domain_id(0);
     let dir = tempfile::tempdir().expect("tempdir");
     let buses = Arc::new(PoppyBuses::start(&table, dir.path()).expect("emulated buses"));
+    buses.stand(&table).expect("standing pose");
     let config = soak_config(dir.path(), domain, &buses);
 
     // The motors move all along; every raw position a motor held is kept.

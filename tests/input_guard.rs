@@ -1,10 +1,12 @@
 //! The out-of-range guard through the daemon: the shipped networks given the
-//! input ranges of the fixture set's training split (`fall-guard-lab
-//! ranges`), then
+//! input ranges of a split of the fixture set (`fall-guard-lab ranges`), then
 //! - a simulated training episode replays bit for bit as without ranges
-//!   before its fall (every window inside them: nothing clipped);
-//! - the real walk, whose trunk and arms no simulated episode holds, is
-//!   named at the first full window: under `hold` the forecast is not valid
+//!   before its fall, given the training split's ranges (every window
+//!   inside them: nothing clipped);
+//! - the real walk, given the ranges of the validation split (two episodes
+//!   of the dynamic gait, whose trunk sways less than the real one: the
+//!   training split holds a walk of the hardware gait, the real walk's own
+//!   step), is named at the first full window: under `hold` the forecast is not valid
 //!   and says which input, how far out and since when, and `/diagnostics`
 //!   names it; under `forecast` it is published, the excursion beside it.
 
@@ -22,17 +24,21 @@ use fall_guard_runtime::recording::{read_topic, Recording};
 
 const NETWORKS: [&str; 4] = ["emp", "mp", "ep", "p"];
 
-/// The shipped networks with the fixture set's training ranges, in `dir`.
-fn networks_with_ranges(dir: &Path) {
+/// The shipped networks with the ranges of the fixture set's `split`, in `dir`.
+fn networks_with_ranges(dir: &Path, split: Split) {
+    let episodes = match split {
+        Split::Train => "4 episodes",
+        _ => "2 episodes",
+    };
     for name in NETWORKS {
         let message = run_ranges(&RangesOptions {
             model: in_repo(&format!("models/{name}.bpk")),
             data: in_repo("tests/fixtures"),
-            split: Split::Train,
+            split,
             out: Some(dir.join(format!("{name}.bpk"))),
         })
         .expect("ranges written");
-        assert!(message.contains("4 episodes"), "{message}");
+        assert!(message.contains(episodes), "{message}");
     }
 }
 
@@ -81,7 +87,7 @@ fn replay(config: &Path, out: &Path) -> (Vec<Line>, String) {
 fn ranges_leave_the_weights_and_a_training_episode_untouched() {
     let scratch = tempfile::tempdir().expect("tempdir");
     let dir = scratch.path();
-    networks_with_ranges(dir);
+    networks_with_ranges(dir, Split::Train);
     for name in NETWORKS {
         let shipped = LoadedModel::load(in_repo(&format!("models/{name}.bpk"))).expect("shipped");
         let ranged = LoadedModel::load(dir.join(format!("{name}.bpk"))).expect("with ranges");
@@ -91,9 +97,11 @@ fn ranges_leave_the_weights_and_a_training_episode_untouched() {
             "{ranges:?}"
         );
         assert_eq!(ranges.joints.len(), shipped.meta.joint_names.len());
-        let mut without = ranged.meta.clone();
+        // A shipped file may carry its own training set's ranges: they are replaced.
+        let (mut without, mut shipped_meta) = (ranged.meta.clone(), shipped.meta.clone());
         without.input_ranges = None;
-        assert_eq!(without, shipped.meta, "{name}: only the ranges added");
+        shipped_meta.input_ranges = None;
+        assert_eq!(without, shipped_meta, "{name}: only the ranges changed");
         let tail = |p: PathBuf| {
             let bytes = std::fs::read(p).expect("read");
             let json = u64::from_le_bytes(bytes[8..16].try_into().expect("8")) as usize;
@@ -144,14 +152,15 @@ fn ranges_leave_the_weights_and_a_training_episode_untouched() {
         assert!(!line.reason.contains("training range"), "{line:?}");
         compared += usize::from(line.valid);
     }
-    assert!(compared > 100, "{compared} valid forecasts before the fall");
+    // The window fills at 2 s and the fall comes at 5.0 s: 90 ticks.
+    assert!(compared >= 80, "{compared} valid forecasts before the fall");
 }
 
 #[test]
 fn the_real_walk_is_named_at_its_first_full_window() {
     let scratch = tempfile::tempdir().expect("tempdir");
     let dir = scratch.path();
-    networks_with_ranges(dir);
+    networks_with_ranges(dir, Split::Validation);
     let walk = in_repo("tests/fixtures/real/poppy_muffin_walk.mcap");
     let config = "tests/fixtures/real/replay.toml";
 
@@ -191,7 +200,7 @@ fn the_real_walk_is_named_at_its_first_full_window() {
     assert!(!value("out_of_range").is_empty(), "{inputs:?}");
     assert_eq!(value("policy"), "hold");
     assert!(
-        value("bounds").starts_with("measured on the train split of"),
+        value("bounds").starts_with("measured on the validation split of"),
         "{inputs:?}"
     );
     assert!(

@@ -39,7 +39,7 @@ python3 - "$tmp" "$CONFIG" models/*.bpk <<'EOF'
 import json, math, re, sys, tomllib
 from pathlib import Path
 
-sys.path.insert(0, "scripts")
+sys.path.insert(0, "scripts/retrain")
 from model_meta import read_meta
 
 tmp, config_path, models = Path(sys.argv[1]), sys.argv[2], sys.argv[3:]

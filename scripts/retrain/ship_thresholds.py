@@ -11,7 +11,8 @@ each config, `[model].trigger` / `release` (EMP's pair: the default) and the
 the pairs were chosen at), with `--release-hold-ms` its release hold
 (`[model].release_hold_ms`). A network
 for which no pair on the grid kept false alarms within the budget gets the
-grid's highest trigger, as the evaluation used, and the config says so.
+grid's highest trigger, as the evaluation used, and the config says so. A
+network not among the selected keeps the line the config has for it.
 Each file is written as FILE.partial and renamed. Standard library only.
 """
 
@@ -56,11 +57,18 @@ def rewrite(text: str, pairs: dict[str, tuple[float, float, str]], horizon_ms: i
         t, r, _ = pairs["emp"]
         text = re.sub(r"(?m)^trigger = [0-9.]+", f"trigger = {t}", text, count=1)
         text = re.sub(r"(?m)^release = [0-9.]+", f"release = {r}", text, count=1)
+    # A network not shipped this time keeps the line it has (its file is unchanged).
+    kept = {}
+    if BEGIN in text:
+        old = text[text.index(BEGIN):text.index(END)] if END in text else ""
+        kept = {m.group(1): m.group(0) for m in re.finditer(r"(?m)^(emp|mp|ep|p) = \[.*$", old)}
     block = [BEGIN, "[model.thresholds]   # [trigger, release] of each network, chosen for it on validation"]
     for abl in ("emp", "mp", "ep", "p"):
         if abl in pairs:
             t, r, note = pairs[abl]
             block.append(f"{abl} = [{t}, {r}]".ljust(21) + f"# {note}")
+        elif abl in kept:
+            block.append(kept[abl])
     block.append(END)
     if BEGIN in text:
         text = re.sub(re.escape(BEGIN) + r".*?" + re.escape(END), "\n".join(block), text, flags=re.S)

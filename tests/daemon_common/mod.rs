@@ -95,8 +95,9 @@ pub fn write_head_jpeg(dir: &Path) -> PathBuf {
 pub type HeldRaws = Arc<Mutex<BTreeMap<u8, BTreeSet<u16>>>>;
 
 /// The emulated motors moving all along (a step every 40 ms, each within
-/// 24 raw units of its range's centre), every raw position a motor held
-/// kept in `held`.
+/// 12 raw units of its standing pose, 0 deg: inside the shipped
+/// networks' training ranges, as a standing robot sways), every raw
+/// position a motor held kept in `held`.
 pub struct MovingMotors {
     pub held: HeldRaws,
     moving: Arc<AtomicBool>,
@@ -114,9 +115,7 @@ impl MovingMotors {
                 let mut step = 0u16;
                 while moving.load(Ordering::Relaxed) {
                     for (i, joint) in joints.iter().enumerate() {
-                        let centre =
-                            joint.deg_to_raw(0.5 * (joint.lower_limit_deg + joint.upper_limit_deg));
-                        let raw = centre + step.wrapping_add(i as u16) % 24;
+                        let raw = joint.deg_to_raw(0.0) - 12 + step.wrapping_add(i as u16) % 24;
                         held.lock()
                             .expect("held")
                             .entry(joint.id)

@@ -728,4 +728,15 @@ impl PoppyBuses {
     pub fn set_raw_position(&self, id: u8, raw: u16) -> Result<(), EmulatorError> {
         self.bus_of(id).set_raw_position(id, raw)
     }
+
+    /// Every motor of `table` at the standing pose: each joint at 0 in the
+    /// robot's convention (upright, arms down), where a real Poppy stands
+    /// and inside the shipped networks' training ranges. The motors start
+    /// at their raw centre, which puts the shoulders at +-90 deg.
+    pub fn stand(&self, table: &JointTable) -> Result<(), EmulatorError> {
+        for joint in table.joints() {
+            self.set_raw_position(joint.id, joint.rad_to_raw(0.0))?;
+        }
+        Ok(())
+    }
 }

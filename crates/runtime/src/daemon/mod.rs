@@ -19,6 +19,7 @@ use crate::clock::ReplayClock;
 use crate::config::{Config, ConfigError};
 use crate::daemon::replay::replay_samples;
 use crate::outputs::latch::SafetyLatch;
+use crate::outputs::lead::{fall_warning, FallWarning};
 use crate::outputs::recorder::Recorder;
 use crate::pipeline::models::{ablation_name, ForecastError, ModelSet};
 use crate::pipeline::tick::{LiveTaps, StreamSlot, TickCounters, TickSettings};
@@ -167,6 +168,9 @@ pub struct ReplayReport {
     pub counters: TickCounters,
     pub final_ablation: &'static str,
     pub interrupted: bool,
+    /// What `fall_imminent` did before the recording's labelled fall
+    /// (`None`: no fall onset in its metadata, or not measured).
+    pub warning: Option<FallWarning>,
 }
 
 /// `fall-guard replay`.
@@ -191,6 +195,7 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
     let mut daemon = Running::<Replay>::start(config, &recording)?;
     let mut shutdown = daemon.shutdown();
     let collector_shutdown = daemon.shutdown();
+    let lead_shutdown = daemon.shutdown();
     let Replay {
         forecasting,
         recording: replayed,
@@ -202,6 +207,13 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
             daemon.config.ros.node_name.clone(),
         )
     });
+    let lead_watch = replayed.fall_onset_ns.map(|onset| {
+        (
+            onset,
+            crate::outputs::lead::watch(&forecasting.bus, lead_shutdown),
+        )
+    });
+    let start_ns = replayed.start_ns;
     tracing::info!(recording = %recording.display(), ?pacing, "replay started");
     let summary = replay_samples(
         &mut forecasting.tick_loop,
@@ -237,12 +249,43 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
         overruns = counters.overruns,
         "replay finished"
     );
+    let mut warning = None;
+    if let Some((onset_ns, watch)) = lead_watch {
+        let s = |ns: i64| (ns - start_ns) as f64 / 1e9;
+        match watch.await.ok().flatten() {
+            Some(ticks) if !summary.interrupted => {
+                let w = fall_warning(&ticks, onset_ns);
+                match w {
+                    FallWarning::Warned { asserted_ns, lead_ns } => tracing::info!(
+                        "the recording falls at {:.2} s: fall_imminent asserted at {:.2} s, {:.2} s ahead",
+                        s(onset_ns),
+                        s(asserted_ns),
+                        lead_ns as f64 / 1e9
+                    ),
+                    FallWarning::NotWarned => tracing::info!(
+                        "the recording falls at {:.2} s: fall_imminent was not asserted before it",
+                        s(onset_ns)
+                    ),
+                    FallWarning::HeldThroughout => tracing::info!(
+                        "the recording falls at {:.2} s: fall_imminent held from the start, never released (no warning to measure)",
+                        s(onset_ns)
+                    ),
+                }
+                warning = Some(w);
+            }
+            _ => tracing::info!(
+                "the recording falls at {:.2} s: the lead is not measured (replay interrupted or forecasts lost)",
+                s(onset_ns)
+            ),
+        }
+    }
     Ok(ReplayReport {
         recording,
         samples: summary.samples,
         counters,
         final_ablation,
         interrupted: summary.interrupted,
+        warning,
     })
 }
 

@@ -24,6 +24,7 @@
 pub mod annotate;
 pub mod diagnostics;
 pub mod latch;
+pub mod lead;
 pub mod recorder;
 pub mod ros;
 
