@@ -7,7 +7,8 @@
         name it), else 1
     reports.py shipped-run MODEL_FILE TRAINED_ON
         prints "SAME ABLATION SEED TRAJECTORY SUFFIX": whether the file was
-        trained on TRAINED_ON (True/False), its ablation in lower case, seed,
+        trained on TRAINED_ON by a run that ran its course (True/False;
+        `ran_its_course`), its ablation in lower case, seed,
         trajectory input, and "-pp" when trained under the paper protocol
     reports.py chosen-pair THRESHOLDS_JSON
         prints "TRIGGER RELEASE": the pair chosen, or when none kept within
@@ -38,9 +39,22 @@ def is_current(report: str, model: str, horizon_ms: int, hold_ms: int, data_root
             and r.get("release_hold_ms") == hold_ms)
 
 
+#: The plan's training: at most this many epochs, stopped after this many without a better one.
+PLAN_EPOCHS, PLAN_PATIENCE = 10, 3
+
+
+def ran_its_course(meta: dict) -> bool:
+    """The run behind a model file ended as the plan's runs end: early stopped (PLAN_PATIENCE
+    epochs after its best) or at PLAN_EPOCHS. A file written part-way (`--epochs 3` while the
+    validation loss still fell) is not the plan's run: its run resumes instead of being restored."""
+    epochs = len(meta.get("history", []))
+    return epochs >= PLAN_EPOCHS or epochs - int(meta.get("best_epoch", 0)) >= PLAN_PATIENCE
+
+
 def shipped_run(model_file: str, trained_on: str) -> str:
     m = read_meta(model_file)
-    return " ".join(map(str, (m["trained_on"] == trained_on, m["ablation"].lower(), m["seed"],
+    same = m["trained_on"] == trained_on and ran_its_course(m)
+    return " ".join(map(str, (same, m["ablation"].lower(), m["seed"],
                               m["config"].get("trajectory", "planned"),
                               "-pp" if m.get("protocol") == "paper" else "")))
 

@@ -9,7 +9,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[3]
 SCRIPT = REPO / "scripts" / "retrain" / "reports.py"
-SIMV5 = "simv5 (sim generator 5, 2,000 episodes, seed 1; simulated data)"
+MIXED = ("simv6-mixed (sim generator 6: 2,000 dynamic-gait episodes, seed 1, and 400 hardware-gait episodes, "
+         "seed 21; simulated data)")
 
 
 def reports(*args) -> subprocess.CompletedProcess:
@@ -32,10 +33,13 @@ def test_a_report_is_current_only_for_its_model_horizon_and_hold(tmp_path):
 
 
 def test_a_shipped_file_names_its_run():
-    r = reports("shipped-run", REPO / "models" / "p.bpk", SIMV5)
+    r = reports("shipped-run", REPO / "models" / "p.bpk", MIXED)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == ["True", "p", "3", "planned", "-pp"]
+    # P early-stopped (best epoch 5 of 8): the plan's run, restored in a new data directory.
+    assert r.stdout.split() == ["True", "p", "1", "planned", "-pp"]
     assert reports("shipped-run", REPO / "models" / "p.bpk", "another set").stdout.split()[0] == "False"
+    # EMP was written after 3 of its epochs, the loss still falling: its run resumes instead.
+    assert reports("shipped-run", REPO / "models" / "emp.bpk", MIXED).stdout.split()[:2] == ["False", "emp"]
 
 
 def test_the_chosen_pair_or_the_highest_trigger(tmp_path):
