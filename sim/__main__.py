@@ -16,6 +16,7 @@ from pathlib import Path
 
 from .cluster import ClusterError
 from .dataset import DatasetError, generate
+from .gait import GAIT_FAMILIES
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 FIXTURES_DIR = REPO_ROOT / "tests" / "fixtures"
@@ -41,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated perturbation sigmas to draw from (default 0.005,0.01,0.035,0.04)")
     g.add_argument("--ball-probability", type=float, default=None,
                    help="share of episodes with a ball rolled at the robot (default 0.2)")
-    g.add_argument("--gait", choices=("dynamic", "hardware"), default="dynamic",
+    g.add_argument("--gait", choices=GAIT_FAMILIES, default="dynamic",
                    help="the gait family of the set's plans: dynamic (walks through the balance feedback) "
                         "or hardware (the real Poppy walk's step, randomised; sim/README.md)")
     g.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",

@@ -61,7 +61,7 @@ import pybullet as pb
 from PIL import Image
 
 from .balance import KH, KHD, KR, KRD, LIMIT_RAD, Balance
-from .gait import GaitParams, HardwareGaitParams, params_from_dict, plan_waypoints, standing_pose
+from .gait import FAMILIES, GaitParams, HardwareGaitParams, params_from_dict, plan_waypoints, standing_pose
 from .robot import FALL_FRACTION, JOINT_NAMES, PHYSICS_HZ, ROBOT_NAME, Robot
 from .scene import FLOOR_FRICTION, build_room
 from .sensors import (FRAME_DROP_PROBABILITY, FREEZE_START_PROBABILITY, MISS_PROBABILITY, READ_HZ,
@@ -828,12 +828,12 @@ def search_plan(rng: np.random.Generator, duration_s: float = DURATION_S, plan_i
                            resume=resume, balance=feedback)
             return run.onset_tick is None, float(robot.base_xy() @ direction), run.saved
 
-        propose = {"dynamic": GaitParams.propose, "hardware": HardwareGaitParams.propose}[family]
-        feedback = family == "dynamic"
-        if family != "dynamic":
+        params_class = FAMILIES[family]
+        feedback = params_class.feedback
+        if not params_class.walks:
             min_progress_m = -math.inf
         for attempts in range(1, MAX_PLAN_ATTEMPTS + 1):
-            cand = propose(rng)
+            cand = params_class.propose(rng)
             cand_plan = plan_waypoints(cand, n_plan, RATE_HZ)
             ok, moved, saved = stays_up(cand_plan, save_at=from_tick)
             ok = ok and moved >= min_progress_m and saved is not None

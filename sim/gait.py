@@ -95,6 +95,7 @@ class GaitParams:
 
     family = "dynamic"
     feedback = True  # walks through the balance feedback
+    walks = True     # a kept plan walks MIN_PROGRESS_M or more (``episode.search_plan``)
 
     @staticmethod
     def sample(rng: np.random.Generator) -> "GaitParams":
@@ -218,6 +219,8 @@ class HardwareGaitParams:
     #: The balance feedback is off: the real walk's step is quasi-static and
     #: stays up open loop; the feedback's hip corrections tip it over.
     feedback = False
+    #: Kept without a distance to walk: the real step is quasi-static.
+    walks = False
 
     @staticmethod
     def propose(rng: np.random.Generator) -> "HardwareGaitParams":
@@ -257,16 +260,15 @@ def plan_waypoints(p: "GaitParams | HardwareGaitParams", n_ticks: int, rate_hz: 
     return gait_waypoints(p, n_ticks, rate_hz)
 
 
+#: The gait families a data set can be made of (``generate --gait``), by name.
+FAMILIES: dict[str, type] = {cls.family: cls for cls in (GaitParams, HardwareGaitParams)}
+GAIT_FAMILIES = tuple(FAMILIES)
+
+
 def params_from_dict(d: dict) -> "GaitParams | HardwareGaitParams":
     """Gait parameters as ``as_dict`` wrote them (no ``family``: the dynamic gait)."""
     d = dict(d)
     family = d.pop("family", "dynamic")
-    if family == "hardware":
-        return HardwareGaitParams(**d)
-    if family != "dynamic":
+    if family not in FAMILIES:
         raise ValueError(f"unknown gait family {family!r}")
-    return GaitParams(**d)
-
-
-#: The gait families a data set can be made of (``generate --gait``).
-GAIT_FAMILIES = ("dynamic", "hardware")
+    return FAMILIES[family](**d)

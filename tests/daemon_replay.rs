@@ -133,18 +133,7 @@ fn camera_frames_of_any_size_replay_as_their_resized_frames() {
     let first = image::load_from_memory(&big_rec.images[0].msg.data).expect("jpeg");
     assert_eq!((first.width(), first.height()), (320, 240));
 
-    let replay = |recording: &std::path::Path| {
-        let out = fall_guard(&[
-            "replay",
-            "--config",
-            scene.config.to_str().expect("utf8"),
-            "--max-speed",
-            "--recording",
-            recording.to_str().expect("utf8"),
-        ]);
-        assert!(out.status.success(), "replay failed: {}", stderr(&out));
-        parse_lines(&out.stdout)
-    };
+    let replay = |recording: &std::path::Path| replay_recording(&scene.config, recording).0;
     let from_big = replay(&big);
     let from_resized = replay(&resized);
     assert!(
@@ -427,19 +416,7 @@ fn joints_gap_invalidates_forecasts_until_the_window_refills() {
 fn network_switches_do_not_make_the_latch_chatter() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().expect("tempdir");
-    let text = std::fs::read_to_string(root.join("config/replay.toml")).expect("config");
-    let text = text
-        .replace(
-            "dir = \"models\"",
-            &format!("dir = \"{}\"", root.join("models").display()),
-        )
-        .replace("[ros]\nenabled = true", "[ros]\nenabled = false");
-    assert!(
-        text.contains("enabled = false"),
-        "config/replay.toml changed shape"
-    );
-    let config = dir.path().join("replay.toml");
-    std::fs::write(&config, text).expect("config");
+    let config = bundled_config_without_ros(dir.path());
     for episode in ["episode_00000", "episode_00003", "episode_00007"] {
         let src = root.join(format!("tests/fixtures/{episode}.mcap"));
         let t0 = Recording::open(&src).expect("fixture").joint_states[0].log_time_ns;
@@ -453,16 +430,7 @@ fn network_switches_do_not_make_the_latch_chatter() {
             t0 + 1_500_000_000,
             t0 + 3_200_000_000,
         );
-        let out = fall_guard(&[
-            "replay",
-            "--config",
-            config.to_str().expect("utf8"),
-            "--recording",
-            cut.to_str().expect("utf8"),
-            "--max-speed",
-        ]);
-        assert!(out.status.success(), "{episode}: {}", stderr(&out));
-        let lines = parse_lines(&out.stdout);
+        let (lines, _) = replay_recording(&config, &cut);
         let switches: Vec<(i64, &str)> = lines
             .windows(2)
             .filter(|w| w[0].ablation != w[1].ablation)
@@ -597,29 +565,10 @@ fn a_bad_message_in_a_recording_is_rejected_and_the_replay_goes_on() {
 /// recording without a fall says nothing of it.
 #[test]
 fn a_replayed_fall_reports_the_warnings_lead() {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().expect("tempdir");
-    let text = std::fs::read_to_string(root.join("config/replay.toml"))
-        .expect("config")
-        .replace(
-            "dir = \"models\"",
-            &format!("dir = \"{}\"", root.join("models").display()),
-        )
-        .replace("[ros]\nenabled = true", "[ros]\nenabled = false");
-    let config = dir.path().join("replay.toml");
-    std::fs::write(&config, text).expect("config");
+    let config = bundled_config_without_ros(dir.path());
     let replay = |episode: &str| {
-        let recording = root.join(format!("tests/fixtures/{episode}.mcap"));
-        let out = fall_guard(&[
-            "replay",
-            "--config",
-            config.to_str().expect("utf8"),
-            "--recording",
-            recording.to_str().expect("utf8"),
-            "--max-speed",
-        ]);
-        assert!(out.status.success(), "{episode}: {}", stderr(&out));
-        (parse_lines(&out.stdout), stderr(&out))
+        replay_recording(&config, &in_repo(&format!("tests/fixtures/{episode}.mcap")))
     };
 
     // The ball's fall at 5.07 s (tick 152).

@@ -79,6 +79,45 @@ pub fn bundled_config_on(domain: u16) -> String {
     text
 }
 
+/// `config/replay.toml` with the shipped networks' directory made absolute
+/// and ROS 2 off, written to `dir/replay.toml`: the offline replays' config.
+pub fn bundled_config_without_ros(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(in_repo("config/replay.toml"))
+        .expect("config/replay.toml")
+        .replace(
+            "dir = \"models\"",
+            &format!("dir = \"{}\"", in_repo("models").display()),
+        )
+        .replace("[ros]\nenabled = true", "[ros]\nenabled = false");
+    assert!(
+        text.contains("enabled = false"),
+        "config/replay.toml changed shape"
+    );
+    let config = dir.join("replay.toml");
+    std::fs::write(&config, text).expect("config");
+    config
+}
+
+/// `fall-guard replay --config CONFIG --recording RECORDING --max-speed`,
+/// which must succeed: its forecast lines and its log.
+pub fn replay_recording(config: &Path, recording: &Path) -> (Vec<Line>, String) {
+    let out = fall_guard(&[
+        "replay",
+        "--config",
+        config.to_str().expect("utf8"),
+        "--recording",
+        recording.to_str().expect("utf8"),
+        "--max-speed",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}: replay failed: {}",
+        recording.display(),
+        stderr(&out)
+    );
+    (parse_lines(&out.stdout), stderr(&out))
+}
+
 /// A 64 x 48 JPEG for a ROS 2 camera peer to publish, `dir/head.jpg`.
 pub fn write_head_jpeg(dir: &Path) -> PathBuf {
     let path = dir.join("head.jpg");

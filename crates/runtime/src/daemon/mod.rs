@@ -168,9 +168,6 @@ pub struct ReplayReport {
     pub counters: TickCounters,
     pub final_ablation: &'static str,
     pub interrupted: bool,
-    /// What `fall_imminent` did before the recording's labelled fall
-    /// (`None`: no fall onset in its metadata, or not measured).
-    pub warning: Option<FallWarning>,
 }
 
 /// `fall-guard replay`.
@@ -249,35 +246,27 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
         overruns = counters.overruns,
         "replay finished"
     );
-    let mut warning = None;
     if let Some((onset_ns, watch)) = lead_watch {
         let s = |ns: i64| (ns - start_ns) as f64 / 1e9;
-        match watch.await.ok().flatten() {
-            Some(ticks) if !summary.interrupted => {
-                let w = fall_warning(&ticks, onset_ns);
-                match w {
-                    FallWarning::Warned { asserted_ns, lead_ns } => tracing::info!(
-                        "the recording falls at {:.2} s: fall_imminent asserted at {:.2} s, {:.2} s ahead",
-                        s(onset_ns),
-                        s(asserted_ns),
-                        lead_ns as f64 / 1e9
-                    ),
-                    FallWarning::NotWarned => tracing::info!(
-                        "the recording falls at {:.2} s: fall_imminent was not asserted before it",
-                        s(onset_ns)
-                    ),
-                    FallWarning::HeldThroughout => tracing::info!(
-                        "the recording falls at {:.2} s: fall_imminent held from the start, never released (no warning to measure)",
-                        s(onset_ns)
-                    ),
+        let said = match watch.await.ok().flatten() {
+            Some(ticks) if !summary.interrupted => match fall_warning(&ticks, onset_ns) {
+                FallWarning::Warned {
+                    asserted_ns,
+                    lead_ns,
+                } => format!(
+                    "fall_imminent asserted at {:.2} s, {:.2} s ahead",
+                    s(asserted_ns),
+                    lead_ns as f64 / 1e9
+                ),
+                FallWarning::NotWarned => "fall_imminent was not asserted before it".to_string(),
+                FallWarning::HeldThroughout => {
+                    "fall_imminent held from the start, never released (no warning to measure)"
+                        .to_string()
                 }
-                warning = Some(w);
-            }
-            _ => tracing::info!(
-                "the recording falls at {:.2} s: the lead is not measured (replay interrupted or forecasts lost)",
-                s(onset_ns)
-            ),
-        }
+            },
+            _ => "the lead is not measured (replay interrupted or forecasts lost)".to_string(),
+        };
+        tracing::info!("the recording falls at {:.2} s: {said}", s(onset_ns));
     }
     Ok(ReplayReport {
         recording,
@@ -285,7 +274,6 @@ pub async fn replay(args: ReplayOptions) -> Result<ReplayReport, ServiceError> {
         counters,
         final_ablation,
         interrupted: summary.interrupted,
-        warning,
     })
 }
 

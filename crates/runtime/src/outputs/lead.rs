@@ -2,7 +2,7 @@
 //! `fall_imminent` went on and stayed on, from a replay's ticks. `replay`
 //! reports it at the end of a recording that carries a fall onset.
 
-use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::broadcast::error::{RecvError, TryRecvError};
 use tokio::task::JoinHandle;
 
 use super::OutputBus;
@@ -31,7 +31,7 @@ pub fn watch(bus: &OutputBus, mut shutdown: Shutdown) -> JoinHandle<Option<Vec<(
             match sub.forecasts.try_recv() {
                 Ok(f) if !f.skipped => ticks.push((f.stamp_ns, f.imminent)),
                 Ok(_) => {}
-                Err(tokio::sync::broadcast::error::TryRecvError::Lagged(_)) => lost = true,
+                Err(TryRecvError::Lagged(_)) => lost = true,
                 Err(_) => break,
             }
         }
@@ -55,7 +55,7 @@ pub enum FallWarning {
 /// The warning of `ticks` (stamp, `fall_imminent` after the tick, in tick
 /// order; skipped ticks left out) on a fall at `onset_ns`.
 pub fn fall_warning(ticks: &[(i64, bool)], onset_ns: i64) -> FallWarning {
-    let before: Vec<&(i64, bool)> = ticks.iter().take_while(|(t, _)| *t < onset_ns).collect();
+    let before = &ticks[..ticks.partition_point(|(t, _)| *t < onset_ns)];
     match before.last() {
         Some((_, true)) => {}
         _ => return FallWarning::NotWarned,
