@@ -148,6 +148,10 @@ pub struct TrainArgs {
     /// table's (the sim table's 1e-6 barely moves the encoder in 10 epochs).
     #[arg(long)]
     pub vision_lr: Option<f64>,
+    /// Every learning rate multiplied by this (after --vision-lr); below 1
+    /// to fine-tune (`--init`) without undoing what the network learnt.
+    #[arg(long, default_value_t = 1.0)]
+    pub lr_scale: f64,
     /// Window length N, ticks.
     #[arg(long, default_value_t = 60)]
     pub n_ticks: usize,
@@ -211,6 +215,7 @@ impl From<TrainArgs> for TrainOptions {
             batch: a.batch,
             rates: a.rates,
             vision_lr: a.vision_lr,
+            lr_scale: a.lr_scale,
             n_ticks: a.n_ticks,
             horizons: a.horizons,
             rate_hz: a.rate_hz,
@@ -331,6 +336,11 @@ pub struct FinetuneArgs {
     /// Training epochs at most.
     #[arg(long, default_value_t = 3)]
     pub epochs: usize,
+    /// The shipped network's learning rates (the sim table) multiplied by
+    /// this: small, so that the fine-tune adds the owner's walking to what
+    /// the network learnt instead of training it anew.
+    #[arg(long, default_value_t = 0.1)]
+    pub lr_scale: f64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// The latch's horizon, ms, as `[model].horizon_ms`.
@@ -339,11 +349,22 @@ pub struct FinetuneArgs {
     /// As `[model].release_hold_ms`.
     #[arg(long, default_value_t = 1000)]
     pub release_hold_ms: u32,
-    /// The shipped network's pair (its `[model.thresholds]`).
-    #[arg(long, default_value_t = 0.8)]
-    pub trigger: f32,
-    #[arg(long, default_value_t = 0.5)]
-    pub release: f32,
+    /// The daemon config whose `[model.thresholds]` holds the shipped
+    /// network's pair (default: the embedded one, the shipped pairs).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// The shipped network's pair, in place of the config's (with --release).
+    #[arg(long, requires = "release")]
+    pub trigger: Option<f32>,
+    #[arg(long, requires = "trigger")]
+    pub release: Option<f32>,
+    /// The data set whose validation split the new pair is chosen on: the
+    /// retrain's choice set (`$FALL_GUARD_DATA/choice`: validation falls and
+    /// walking), as the shipped pair was chosen. Default: the validation
+    /// split of the set made from --data, whose non-falling episodes
+    /// include the hard ones the robot rode out, so the pair chosen rises.
+    #[arg(long)]
+    pub choice: Option<PathBuf>,
     /// Budgets of the new pair's choice on the validation walks.
     #[arg(long, default_value_t = 0.1)]
     pub max_false_alarms_per_min: f64,
@@ -364,11 +385,13 @@ impl From<FinetuneArgs> for fall_guard_lab::finetune::FinetuneOptions {
             holdout: a.holdout,
             owner_copies: a.owner_copies,
             epochs: a.epochs,
+            lr_scale: a.lr_scale,
             seed: a.seed,
             horizon_ms: a.horizon_ms,
             release_hold_ms: a.release_hold_ms,
-            trigger: a.trigger,
-            release: a.release,
+            pair: a.trigger.zip(a.release),
+            config: a.config,
+            choice: a.choice,
             max_false_alarms_per_min: a.max_false_alarms_per_min,
             max_held_share: a.max_held_share,
             device: a.device,

@@ -55,6 +55,9 @@ pub struct TrainOptions {
     pub rates: String,
     /// The vision encoder's learning rate in place of the table's.
     pub vision_lr: Option<f64>,
+    /// Every learning rate multiplied by this (after `vision_lr`): 1 to
+    /// train, less to fine-tune a trained network without undoing it.
+    pub lr_scale: f64,
     /// Window length N, ticks.
     pub n_ticks: usize,
     /// Horizons, ticks, comma-separated.
@@ -697,6 +700,9 @@ pub(crate) fn run_arguments(args: &TrainOptions, dataset: &Dataset) -> serde_jso
     if let Some(lr) = args.vision_lr {
         arguments["vision_lr"] = lr.into();
     }
+    if args.lr_scale != 1.0 {
+        arguments["lr_scale"] = args.lr_scale.into();
+    }
     arguments
 }
 
@@ -825,6 +831,13 @@ fn train_one(
                 rates.vision.lr = lr;
                 meta.vision_lr = Some(lr);
             }
+            if !(args.lr_scale > 0.0 && args.lr_scale.is_finite()) {
+                return Err(refused(format!(
+                    "--lr-scale {}: a positive factor",
+                    args.lr_scale
+                )));
+            }
+            rates = rates.scaled(args.lr_scale);
             let opts = FitOptions {
                 seed: args.seed,
                 max_epochs: args.epochs,

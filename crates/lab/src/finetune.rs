@@ -24,8 +24,9 @@ use crate::device::TrainDevice;
 use crate::error::{refused, CommandResult, Doing};
 use crate::sampler::Protocol;
 use crate::warning::{run_warnings, WarningStats, WarningsOptions};
+use fall_guard_runtime::config::Config;
 use fall_guard_runtime::model::file::load_emp;
-use fall_guard_runtime::model::{cpu_device, ModelMeta};
+use fall_guard_runtime::model::{cpu_device, Ablation, ModelMeta};
 use fall_guard_runtime::recording::{cut, Recording};
 
 /// `fall-guard-lab finetune`.
@@ -45,12 +46,23 @@ pub struct FinetuneOptions {
     pub owner_copies: usize,
     /// Training epochs at most.
     pub epochs: usize,
+    /// The shipped rates multiplied by this while fine-tuning.
+    pub lr_scale: f64,
     pub seed: u64,
-    /// The latch: horizon watched, release hold, the shipped pair.
+    /// The latch: horizon watched, release hold.
     pub horizon_ms: u32,
     pub release_hold_ms: u32,
-    pub trigger: f32,
-    pub release: f32,
+    /// The shipped network's pair: `Some` as given, `None` read from
+    /// `config` (its `[model.thresholds]` line for the network, else
+    /// `[model].trigger` / `release`).
+    pub pair: Option<(f32, f32)>,
+    /// The daemon's config that holds the shipped pair; `None`: the
+    /// embedded default (`config/replay.toml`, the shipped pairs).
+    pub config: Option<PathBuf>,
+    /// The data set whose validation split the new pair is chosen on (the
+    /// retrain's choice set, as the shipped pair was); `None`: the
+    /// simulated set's validation split.
+    pub choice: Option<PathBuf>,
     /// Budgets of the threshold choice (validation: simulated).
     pub max_false_alarms_per_min: f64,
     pub max_held_share: f64,
@@ -198,6 +210,27 @@ fn make_sets(args: &FinetuneOptions, sim: &Dataset) -> CommandResult<(f64, f64, 
     Ok((fit_s, held_s, falls))
 }
 
+/// The pair the daemon runs `network` with under `config` (the embedded
+/// default when `None`).
+fn shipped_pair(config: Option<&Path>, network: Ablation) -> CommandResult<(f32, f32)> {
+    let (config, origin) = match config {
+        Some(path) => (Config::load(path), path.display().to_string()),
+        None => (
+            Config::embedded_replay(),
+            "the embedded default config".to_string(),
+        ),
+    };
+    let latch = config
+        .and_then(|c| c.latch_thresholds())
+        .map_err(|e| refused(format!("the shipped pair from {origin}: {e}")))?;
+    let pair = latch
+        .per_network
+        .iter()
+        .find(|(a, _)| *a == network)
+        .map_or(latch.default, |&(_, t)| t);
+    Ok((pair.trigger(), pair.release()))
+}
+
 fn warnings(
     args: &FinetuneOptions,
     model: &Path,
@@ -251,6 +284,10 @@ pub fn run_finetune(args: &FinetuneOptions) -> CommandResult<FinetuneCard> {
     }
     let (shipped, _): (ModelMeta, _) = load_emp(&args.model, &cpu_device())
         .doing(|| format!("reading {}", args.model.display()))?;
+    let shipped_pair = match args.pair {
+        Some(pair) => pair,
+        None => shipped_pair(args.config.as_deref(), shipped.ablation)?,
+    };
     let sim = Dataset::open(&args.data).doing(|| format!("opening {}", args.data.display()))?;
     let (fit_s, held_s, falls) = make_sets(args, &sim)?;
     let name = args
@@ -277,18 +314,22 @@ pub fn run_finetune(args: &FinetuneOptions) -> CommandResult<FinetuneCard> {
         batch: 4,
         rates: "sim".into(),
         vision_lr: shipped.vision_lr,
+        lr_scale: args.lr_scale,
         n_ticks: shipped.n_ticks,
         horizons,
         rate_hz: shipped.rate_hz,
         frame_size: shipped.frame_size,
         joint_names: Some(shipped.joint_names.clone()),
         trained_on: format!(
-            "{}, fine-tuned on {:.0} s of the owner's recordings ({} listed x{}) mixed with {}",
+            "{}, fine-tuned on {:.0} s of the owner's recordings ({} listed x{}) mixed with {} \
+             (learning rates x{}, {} epochs at most)",
             shipped.trained_on,
             fit_s,
             args.recordings.len(),
             args.owner_copies,
-            data_name(&sim.dir)
+            data_name(&sim.dir),
+            args.lr_scale,
+            args.epochs
         ),
         protocol,
         per_horizon: false,
@@ -311,12 +352,13 @@ pub fn run_finetune(args: &FinetuneOptions) -> CommandResult<FinetuneCard> {
             form: FormChoice::Auto,
         })?;
     }
+    let choice = args.choice.clone().unwrap_or_else(|| args.out.join("set"));
     let chosen = warnings(
         args,
         &trained,
-        &args.out.join("set"),
+        &choice,
         Split::Validation,
-        (args.trigger, args.release),
+        shipped_pair,
         true,
     )?
     .chosen
@@ -325,10 +367,10 @@ pub fn run_finetune(args: &FinetuneOptions) -> CommandResult<FinetuneCard> {
         tracing::warn!(
             "no threshold pair keeps the validation walks within budget: the shipped pair is kept"
         );
-        (args.trigger, args.release)
+        shipped_pair
     });
     let card = FinetuneCard {
-        shipped: measure(args, &args.model, (args.trigger, args.release))?,
+        shipped: measure(args, &args.model, shipped_pair)?,
         finetuned: measure(args, &trained, pair)?,
         owner_fit_s: fit_s,
         owner_held_s: held_s,

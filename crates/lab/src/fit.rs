@@ -193,6 +193,20 @@ pub struct EncoderRates {
 }
 
 impl EncoderRates {
+    /// Every learning rate multiplied by `factor` (weight decays kept).
+    pub fn scaled(self, factor: f64) -> Self {
+        let s = |r: Rate| Rate {
+            lr: r.lr * factor,
+            ..r
+        };
+        EncoderRates {
+            motion: s(self.motion),
+            trajectory: s(self.trajectory),
+            vision: s(self.vision),
+            classifier: s(self.classifier),
+        }
+    }
+
     /// SimP column (simulation, 30 Hz).
     pub fn sim() -> Self {
         EncoderRates {

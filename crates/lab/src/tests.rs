@@ -167,6 +167,7 @@ fn fixture_training(ablation: &str, out: std::path::PathBuf) -> super::commands:
         batch: 4,
         rates: "sim".into(),
         vision_lr: None,
+        lr_scale: 1.0,
         n_ticks: 20,
         horizons: vec![10, 20],
         rate_hz: 30.0,

@@ -26,12 +26,15 @@ fn a_shipped_network_is_fine_tuned_on_the_first_part_of_a_walk_and_measured_on_t
         holdout: 0.4,
         owner_copies: 2,
         epochs: 1,
+        lr_scale: 0.1,
         seed: 1,
         horizon_ms: 2000,
         release_hold_ms: 1000,
-        // The shipped MP's pair (config/poppy_humanoid.toml).
-        trigger: 0.85,
-        release: 0.55,
+        // The shipped MP's pair, read from the daemon's config.
+        pair: None,
+        config: Some(repo("config/poppy_humanoid.toml")),
+        // The pair chosen on the fixture set's own validation split.
+        choice: Some(repo("tests/fixtures")),
         max_false_alarms_per_min: 0.1,
         max_held_share: 0.01,
         device: TrainDevice::Cpu,
@@ -64,7 +67,19 @@ fn a_shipped_network_is_fine_tuned_on_the_first_part_of_a_walk_and_measured_on_t
         card.shipped.owner.non_falling_minutes,
         card.finetuned.owner.non_falling_minutes
     );
-    assert_eq!((card.shipped.trigger, card.shipped.release), (0.85, 0.55));
+    // The shipped pair is the config's line for MP.
+    let latch = fall_guard_runtime::config::Config::load(&repo("config/poppy_humanoid.toml"))
+        .and_then(|c| c.latch_thresholds())
+        .expect("config");
+    let (_, mp) = latch
+        .per_network
+        .iter()
+        .find(|(a, _)| *a == fall_guard_runtime::model::Ablation::MP)
+        .expect("an MP line in [model.thresholds]");
+    assert_eq!(
+        (card.shipped.trigger, card.shipped.release),
+        (mp.trigger(), mp.release())
+    );
 
     // The new network: the shipped one's sizes and standardisation, new
     // weights, input ranges of the mixed training split, and says so.
@@ -78,6 +93,11 @@ fn a_shipped_network_is_fine_tuned_on_the_first_part_of_a_walk_and_measured_on_t
         tuned
             .trained_on
             .contains("fine-tuned on 21 s of the owner's recordings"),
+        "{}",
+        tuned.trained_on
+    );
+    assert!(
+        tuned.trained_on.contains("learning rates x0.1"),
         "{}",
         tuned.trained_on
     );

@@ -108,6 +108,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         batch: 4,
         rates: "sim".into(),
         vision_lr: None,
+        lr_scale: 1.0,
         n_ticks: 12,
         horizons: vec![3, 6, 9, 12],
         rate_hz: rate,
