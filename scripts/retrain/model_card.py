@@ -424,8 +424,10 @@ def calibration_rows(keep: Path, selected: list[tuple[str, str]]) -> list[str]:
     the floor a calibrated network would show on the same windows."""
     rows = []
     for abl, name in selected:
-        prefix = name.rsplit("-s", 1)[0]
-        report = load(keep / "runs" / f"{prefix}--{name}.json")
+        # The run's record under its group, whatever the group is named (a run
+        # written after part of its epochs, emp3-pp-s1, is one of emp-pp's).
+        records = sorted((keep / "runs").glob(f"*--{name}.json"))
+        report = load(records[0]) if records else None
         if not report:
             continue
         for proto in ("paper", "deployment"):
