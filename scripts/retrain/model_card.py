@@ -424,10 +424,12 @@ def calibration_rows(keep: Path, selected: list[tuple[str, str]]) -> list[str]:
     the floor a calibrated network would show on the same windows."""
     rows = []
     for abl, name in selected:
-        # The run's record under its group, whatever the group is named (a run
-        # written after part of its epochs, emp3-pp-s1, is one of emp-pp's).
-        records = sorted((keep / "runs").glob(f"*--{name}.json"))
-        report = load(records[0]) if records else None
+        # The run's record on the test split: under its own group (the name without
+        # its seed), or, for a run written after part of its epochs (emp3-pp-s1),
+        # under its ablation's (emp-pp); never a subset's (emp-pp-collision).
+        prefix = name.rsplit("-s", 1)[0]
+        groups = [prefix, abl + ("-pp" if prefix.endswith("-pp") else "")]
+        report = next(filter(None, (load(keep / "runs" / f"{g}--{name}.json") for g in groups)), None)
         if not report:
             continue
         for proto in ("paper", "deployment"):

@@ -220,14 +220,10 @@ fn shipped_pair(config: Option<&Path>, network: Ablation) -> CommandResult<(f32,
             "the embedded default config".to_string(),
         ),
     };
-    let latch = config
+    let pair = config
         .and_then(|c| c.latch_thresholds())
-        .map_err(|e| refused(format!("the shipped pair from {origin}: {e}")))?;
-    let pair = latch
-        .per_network
-        .iter()
-        .find(|(a, _)| *a == network)
-        .map_or(latch.default, |&(_, t)| t);
+        .map_err(|e| refused(format!("the shipped pair from {origin}: {e}")))?
+        .of(network);
     Ok((pair.trigger(), pair.release()))
 }
 

@@ -68,14 +68,10 @@ fn a_shipped_network_is_fine_tuned_on_the_first_part_of_a_walk_and_measured_on_t
         card.finetuned.owner.non_falling_minutes
     );
     // The shipped pair is the config's line for MP.
-    let latch = fall_guard_runtime::config::Config::load(&repo("config/poppy_humanoid.toml"))
+    let mp = fall_guard_runtime::config::Config::load(&repo("config/poppy_humanoid.toml"))
         .and_then(|c| c.latch_thresholds())
-        .expect("config");
-    let (_, mp) = latch
-        .per_network
-        .iter()
-        .find(|(a, _)| *a == fall_guard_runtime::model::Ablation::MP)
-        .expect("an MP line in [model.thresholds]");
+        .expect("config")
+        .of(fall_guard_runtime::model::Ablation::MP);
     assert_eq!(
         (card.shipped.trigger, card.shipped.release),
         (mp.trigger(), mp.release())

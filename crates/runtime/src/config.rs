@@ -229,6 +229,17 @@ pub struct LatchThresholds {
     pub per_network: Vec<(crate::model::Ablation, Thresholds)>,
 }
 
+impl LatchThresholds {
+    /// The pair the latch uses while `network` makes the forecasts: its
+    /// own, else the default.
+    pub fn of(&self, network: crate::model::Ablation) -> Thresholds {
+        self.per_network
+            .iter()
+            .find(|(a, _)| *a == network)
+            .map_or(self.default, |&(_, pair)| pair)
+    }
+}
+
 /// `[model].fallbacks`: when the fallback networks are in memory.
 #[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "snake_case")]
@@ -1002,6 +1013,11 @@ mod tests {
                 ),
             ]
         );
+        // A network's own pair, else `[model].trigger` / `release`.
+        let latch = config.latch_thresholds().expect("pairs");
+        let p = latch.of(crate::model::Ablation::P);
+        assert_eq!((p.trigger(), p.release()), (0.55, 0.2));
+        assert_eq!(latch.of(crate::model::Ablation::MP), latch.default);
         let bad = format!("{base}\n[model.thresholds]\nmp = [0.3, 0.5]\n");
         let err = parse(&bad).expect_err("release above trigger");
         assert_eq!(err.key(), Some("[model.thresholds].mp"), "{err}");

@@ -303,6 +303,8 @@ def test_calibration_is_tabled_under_both_protocols(tmp_path):
         {"protocols": [proto("paper", 0.035), proto("deployment", 0.231)]}))
     # A run written after part of its epochs is kept under its run's group.
     (runs / "ep-pp--ep5-pp-s1.json").write_text(json.dumps({"protocols": [proto("paper", 0.075)]}))
+    # Its record on a subset of the test split is not its calibration.
+    (runs / "ep-pp-collision--ep5-pp-s1.json").write_text(json.dumps({"protocols": [proto("paper", 0.5)]}))
     rows = model_card.calibration_rows(tmp_path, [("emp", "emp-pp-s3"), ("mp", "mp-pp-s1"), ("ep", "ep5-pp-s1")])
     assert "| EMP (emp-pp-s3) | paper | 0.035 [0.025, 0.045], floor 0.020 |" in rows
     assert "| EMP (emp-pp-s3) | deployment | 0.231 [0.221, 0.241], floor 0.020 |" in rows
