@@ -19,6 +19,7 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use thiserror::Error;
 
+pub use crate::outputs::latch::LatchThresholds;
 use crate::outputs::latch::{LatchError, Thresholds};
 
 /// The default replay configuration, compiled into the binary.
@@ -216,27 +217,6 @@ impl NetworkThresholds {
         .into_iter()
         .filter_map(|(a, key, pair)| pair.map(|p| (a, key, p)))
         .collect()
-    }
-}
-
-/// The safety latch's pairs of `[model]`, checked
-/// ([`Config::latch_thresholds`]).
-#[derive(Debug, Clone, PartialEq)]
-pub struct LatchThresholds {
-    /// `[model].trigger`, `[model].release`: for a network without its own.
-    pub default: Thresholds,
-    /// `[model.thresholds]`: each network's own.
-    pub per_network: Vec<(crate::model::Ablation, Thresholds)>,
-}
-
-impl LatchThresholds {
-    /// The pair the latch uses while `network` makes the forecasts: its
-    /// own, else the default.
-    pub fn of(&self, network: crate::model::Ablation) -> Thresholds {
-        self.per_network
-            .iter()
-            .find(|(a, _)| *a == network)
-            .map_or(self.default, |&(_, pair)| pair)
     }
 }
 

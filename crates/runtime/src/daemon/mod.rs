@@ -121,14 +121,7 @@ pub fn latch_for(config: &Config, models: &ModelSet) -> Result<SafetyLatch, Serv
         config.model.release_hold_ms,
         models.spec().rate_hz,
     );
-    let thresholds = config.latch_thresholds()?;
-    let latch = SafetyLatch::new(index, thresholds.default).with_release_hold(hold_ticks);
-    Ok(thresholds
-        .per_network
-        .into_iter()
-        .fold(latch, |latch, (network, pair)| {
-            latch.with_network(network, pair)
-        }))
+    Ok(SafetyLatch::with_pairs(index, config.latch_thresholds()?).with_release_hold(hold_ticks))
 }
 
 /// The tick settings of `config` for streams with these sources

@@ -11,7 +11,7 @@
 //! on at the first tick at or above `trigger`.
 //!
 //! Each network may have its own pair, chosen for it on validation
-//! ([`SafetyLatch::with_network`]): the latch uses the pair of the network
+//! ([`LatchThresholds`], [`SafetyLatch::with_pairs`]): the latch uses the pair of the network
 //! that made the forecast ([`SafetyLatch::select`]), and keeps its state
 //! across a model switch.
 //!
@@ -73,6 +73,27 @@ impl Thresholds {
     }
 }
 
+/// A latch's pairs (`[model]`'s, checked by `Config::latch_thresholds`): the
+/// default and each network's own.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LatchThresholds {
+    /// `[model].trigger`, `[model].release`: for a network without its own.
+    pub default: Thresholds,
+    /// `[model.thresholds]`: each network's own.
+    pub per_network: Vec<(Ablation, Thresholds)>,
+}
+
+impl LatchThresholds {
+    /// The pair the latch uses while `network` makes the forecasts: its
+    /// own, else the default.
+    pub fn of(&self, network: Ablation) -> Thresholds {
+        self.per_network
+            .iter()
+            .find(|(a, _)| *a == network)
+            .map_or(self.default, |&(_, pair)| pair)
+    }
+}
+
 /// Hysteresis on one horizon's fall probability.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SafetyLatch {
@@ -87,10 +108,8 @@ pub struct SafetyLatch {
     blind: bool,
     /// Log each switch (the daemon); off for offline analysis.
     log: bool,
-    /// The pair given to `new`, for a network without its own.
-    default: Thresholds,
-    /// Pairs chosen for one network.
-    per_network: Vec<(Ablation, Thresholds)>,
+    /// The default pair and each network's own.
+    pairs: LatchThresholds,
     /// Valid ticks in a row below `release` that release the latch (>= 1).
     release_hold_ticks: usize,
     /// Valid ticks in a row below `release` so far while on.
@@ -112,10 +131,22 @@ impl SafetyLatch {
             triggers: 0,
             blind: false,
             log: true,
-            default: thresholds,
-            per_network: Vec::new(),
+            pairs: LatchThresholds {
+                default: thresholds,
+                per_network: Vec::new(),
+            },
             release_hold_ticks: 1,
             below: 0,
+        }
+    }
+
+    /// A latch watching `probabilities[horizon_index]` with these pairs,
+    /// the default in use until [`SafetyLatch::select`]; off at start.
+    pub fn with_pairs(horizon_index: usize, pairs: LatchThresholds) -> SafetyLatch {
+        let default = pairs.default;
+        SafetyLatch {
+            pairs,
+            ..SafetyLatch::new(horizon_index, default)
         }
     }
 
@@ -126,22 +157,10 @@ impl SafetyLatch {
         self
     }
 
-    /// The same latch with `network`'s own pair, used while that network
-    /// makes the forecasts.
-    pub fn with_network(mut self, network: Ablation, thresholds: Thresholds) -> SafetyLatch {
-        self.per_network.retain(|(a, _)| *a != network);
-        self.per_network.push((network, thresholds));
-        self
-    }
-
     /// Use the pair of `network` (its own, else the default) from the next
     /// update on; the latch's state is kept.
     pub fn select(&mut self, network: Ablation) {
-        self.thresholds = self
-            .per_network
-            .iter()
-            .find(|(a, _)| *a == network)
-            .map_or(self.default, |(_, pair)| *pair);
+        self.thresholds = self.pairs.of(network);
     }
 
     /// The pair in use.
@@ -304,8 +323,13 @@ mod tests {
 
     #[test]
     fn each_network_uses_its_own_pair_and_the_state_survives_a_switch() {
-        let mut latch =
-            SafetyLatch::new(0, pair(0.5, 0.3)).with_network(Ablation::EMP, pair(0.7, 0.4));
+        let mut latch = SafetyLatch::with_pairs(
+            0,
+            LatchThresholds {
+                default: pair(0.5, 0.3),
+                per_network: vec![(Ablation::EMP, pair(0.7, 0.4))],
+            },
+        );
         latch.select(Ablation::EMP);
         assert_eq!(latch.thresholds(), pair(0.7, 0.4));
         // 0.6 is below EMP's trigger.
