@@ -1,7 +1,7 @@
 //! The robot binary's command line: clap's parsing structs, each turned
 //! into the runtime's plain options struct (`daemon::RunOptions`,
 //! `model::bench::BenchOptions`, ...) by `From`. The runtime has no clap;
-//! `Ablation` and `ProjectionWeights` parse by `FromStr`. Training and
+//! `Ablation`, `ProjectionWeights` and `Convolutions` parse by `FromStr`. Training and
 //! evaluation are the lab's binary (`fall-guard-lab`), not this one.
 
 use std::path::PathBuf;
@@ -11,7 +11,7 @@ use clap::{Args, Parser, Subcommand};
 use fall_guard_runtime::daemon::bench::BenchDaemonOptions;
 use fall_guard_runtime::daemon::{LabelOptions, RecordOptions, ReplayOptions, RunOptions};
 use fall_guard_runtime::model::bench::BenchOptions;
-use fall_guard_runtime::model::{Ablation, ProjectionWeights};
+use fall_guard_runtime::model::{Ablation, Convolutions, ProjectionWeights};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -204,6 +204,10 @@ pub struct BenchArgs {
     /// daemon holds it by default (`[model].projection`), or `as-file`.
     #[arg(long, default_value = "int8")]
     pub projection: ProjectionWeights,
+    /// How the trajectory encoder's convolutions multiply: `int8`, as the
+    /// daemon runs them by default (`[model].convolutions`), or `f32`.
+    #[arg(long, default_value = "int8")]
+    pub convolutions: Convolutions,
 }
 
 impl From<BenchArgs> for BenchOptions {
@@ -215,6 +219,7 @@ impl From<BenchArgs> for BenchOptions {
             ticks: a.ticks,
             ablations: a.ablations,
             projection: a.projection,
+            convolutions: a.convolutions,
         }
     }
 }

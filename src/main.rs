@@ -81,7 +81,11 @@ fn main() -> Result<()> {
         }
         Command::Bench(args) => {
             let options = bench::BenchOptions::from(args);
-            eprintln!("input projection held {}", options.projection.name());
+            eprintln!(
+                "input projection held {}, convolutions in {}",
+                options.projection.name(),
+                options.convolutions.name()
+            );
             let report = bench::run_bench(&options)?;
             for ablation in &report.ablations {
                 eprintln!("{}", ablation.summary());

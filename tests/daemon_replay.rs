@@ -314,6 +314,49 @@ fn int8_projection_forecasts_close_to_the_stored_weights() {
     assert!(quantised.iter().any(|l| l.ablation == "MP" && l.valid));
 }
 
+/// `[model].convolutions = "int8"` (the default): the daemon logs it for
+/// every network and forecasts the same ticks with the same networks and
+/// validity as with `"f32"`, each probability within 0.01 and not every
+/// one unchanged.
+#[test]
+fn int8_convolutions_forecast_close_to_f32() {
+    let scene = camera_gap_scene();
+    let text = std::fs::read_to_string(&scene.config).expect("config");
+    let with = |convolutions: &str| {
+        let edited = text.replace(
+            "release = 0.3\n",
+            &format!("release = 0.3\nconvolutions = \"{convolutions}\"\n"),
+        );
+        assert_ne!(edited, text, "config edited");
+        std::fs::write(&scene.config, edited).expect("config");
+    };
+    with("f32");
+    let (plain, plain_log) = scene.replay_max_speed();
+    assert!(plain_log.contains("convolutions=\"f32\""), "{plain_log}");
+    // Without the key: int8, the default.
+    std::fs::write(&scene.config, &text).expect("config");
+    let (quantised, log) = scene.replay_max_speed();
+    assert!(log.contains("convolutions=\"int8\""), "{log}");
+    assert_eq!(plain.len(), quantised.len());
+    let mut moved = 0usize;
+    for (a, b) in plain.iter().zip(&quantised) {
+        assert_eq!(
+            (a.tick, &a.ablation, a.valid),
+            (b.tick, &b.ablation, b.valid)
+        );
+        for (x, y) in a.probabilities.iter().zip(&b.probabilities) {
+            assert!(
+                (x - y).abs() < 0.01 || (x.is_nan() && y.is_nan()),
+                "tick {}: {x} vs {y}",
+                a.tick
+            );
+            moved += usize::from(x != y && !x.is_nan());
+        }
+    }
+    assert!(moved > 0, "int8 changed no probability: not applied");
+    assert!(quantised.iter().any(|l| l.ablation == "EMP" && l.valid));
+}
+
 #[test]
 fn label_marks_the_fall_onset_in_place() {
     let dir = tempfile::tempdir().expect("tempdir");

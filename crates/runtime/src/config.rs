@@ -143,6 +143,12 @@ pub struct ModelConfig {
     /// (f16 for the shipped files: the product training evaluated).
     #[serde(default = "default_projection")]
     pub projection: crate::model::ProjectionWeights,
+    /// How the trajectory encoder's convolutions multiply: `"int8"` (default:
+    /// integer products, fewer instructions per tick; forecasts within
+    /// 0.004 of f32's on the bundled recordings, model card) or `"f32"`
+    /// (the products training evaluated).
+    #[serde(default = "default_convolutions")]
+    pub convolutions: crate::model::Convolutions,
     /// Horizon watched by the safety latch (`/fall_guard/fall_imminent`), ms;
     /// must be one of the model's horizons.
     pub horizon_ms: u32,
@@ -233,6 +239,10 @@ pub enum FallbackLoading {
 
 fn default_projection() -> crate::model::ProjectionWeights {
     crate::model::ProjectionWeights::Int8
+}
+
+fn default_convolutions() -> crate::model::Convolutions {
+    crate::model::Convolutions::Int8
 }
 
 fn default_model_dir() -> PathBuf {
@@ -873,6 +883,36 @@ mod tests {
         let config = Config::embedded_replay().expect("embedded config parses");
         assert!(config.replay.is_some());
         assert_eq!(config.origin, EMBEDDED_REPLAY_NAME);
+    }
+
+    /// `[model].convolutions`: int8 when absent, `"f32"` taken, anything
+    /// else refused naming the choices.
+    #[test]
+    fn convolutions_default_to_int8_and_parse() {
+        use crate::model::Convolutions;
+        // The embedded config without its `convolutions` line.
+        let text: String = EMBEDDED_REPLAY_CONFIG
+            .lines()
+            .filter(|l| !l.starts_with("convolutions"))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        assert_eq!(
+            parse(&text).expect("parses").model.convolutions,
+            Convolutions::Int8
+        );
+        let with = |v: &str| {
+            text.replacen(
+                "horizon_ms = ",
+                &format!("convolutions = \"{v}\"\nhorizon_ms = "),
+                1,
+            )
+        };
+        assert_eq!(
+            parse(&with("f32")).expect("f32").model.convolutions,
+            Convolutions::F32
+        );
+        let e = parse(&with("f16")).expect_err("f16 refused").to_string();
+        assert!(e.contains("f16"), "{e}");
     }
 
     #[test]

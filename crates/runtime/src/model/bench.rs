@@ -9,8 +9,8 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::model::{
-    cpu_device, Ablation, Emp, LoadedModel, ModelConfig, ModelError, ModelMeta, ProjectionWeights,
-    StreamingForecaster,
+    cpu_device, Ablation, Convolutions, Emp, LoadedModel, ModelConfig, ModelError, ModelMeta,
+    ProjectionWeights, StreamingForecaster,
 };
 
 /// Arguments of `fall-guard bench`.
@@ -31,6 +31,8 @@ pub struct BenchOptions {
     pub ablations: Vec<Ablation>,
     /// How the classifier's input projection is held.
     pub projection: ProjectionWeights,
+    /// How the streaming convolutions multiply.
+    pub convolutions: Convolutions,
 }
 
 /// Why the benchmark could not run.
@@ -117,6 +119,8 @@ pub struct BenchReport {
     pub threads: usize,
     /// How the input projection was held (`as_file` or `int8`).
     pub projection: ProjectionWeights,
+    /// How the streaming convolutions multiplied (`f32` or `int8`).
+    pub convolutions: Convolutions,
 }
 
 /// The backend compiled in.
@@ -161,7 +165,11 @@ pub fn noise(len: usize, seed: u64) -> Vec<f32> {
 /// Runs the benchmark.
 pub fn run_bench(args: &BenchOptions) -> Result<BenchReport, BenchError> {
     let file_model = match &args.model {
-        Some(p) => Some(LoadedModel::load(p)?.with_projection(args.projection)),
+        Some(p) => Some(
+            LoadedModel::load(p)?
+                .with_projection(args.projection)
+                .with_convolutions(args.convolutions),
+        ),
         None => None,
     };
     let cfg = match &file_model {
@@ -186,6 +194,7 @@ pub fn run_bench(args: &BenchOptions) -> Result<BenchReport, BenchError> {
                 let emp = Emp::new(&cfg, ablation, &device);
                 LoadedModel::from_parts(meta, &emp, device.clone(), "bench".into())
                     .with_projection(args.projection)
+                    .with_convolutions(args.convolutions)
             }
         };
         let mut stream = StreamingForecaster::new(&model);
@@ -246,6 +255,7 @@ pub fn run_bench(args: &BenchOptions) -> Result<BenchReport, BenchError> {
         ablations,
         threads: 1,
         projection: args.projection,
+        convolutions: args.convolutions,
     };
     if let Some(path) = &args.json {
         let text = serde_json::to_string_pretty(&report).expect("the report serialises");
@@ -294,6 +304,7 @@ mod tests {
             ticks: 300,
             ablations: Vec::new(),
             projection: ProjectionWeights::AsFile,
+            convolutions: Convolutions::F32,
         };
         let report = run_bench(&args).unwrap();
         println!("{}", serde_json::to_string_pretty(&report).unwrap());
@@ -309,6 +320,7 @@ mod tests {
             ticks: 3,
             ablations: vec![Ablation::P],
             projection: ProjectionWeights::AsFile,
+            convolutions: Convolutions::F32,
         };
         let e = run_bench(&args).expect_err("unknown configuration refused");
         assert!(e.to_string().starts_with("--config"), "{e}");

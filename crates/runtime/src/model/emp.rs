@@ -204,6 +204,17 @@ impl EmpInference {
         self.hidden = self.hidden.to_int8();
     }
 
+    /// Runs the trajectory encoder's convolutions in integers
+    /// ([`HostConv::to_int8`](super::host_conv::HostConv::to_int8)). The
+    /// vision encoder's stay f32: there each im2col value meets only 8-32
+    /// output channels, and quantising it costs about what the integer
+    /// products save (`docs/performance.md`).
+    pub fn quantize_convolutions(&mut self) {
+        if let Some(plan) = &mut self.plan_fused {
+            plan.to_int8();
+        }
+    }
+
     /// Bytes the classifier's input projection takes (f16 when the file was).
     pub fn projection_bytes(&self) -> usize {
         self.hidden.bytes()

@@ -649,6 +649,44 @@ impl std::str::FromStr for ProjectionWeights {
     }
 }
 
+/// How the trajectory encoder's convolutions multiply for inference
+/// (`[model].convolutions`, `bench --convolutions`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Convolutions {
+    /// f32 products, as training evaluated them.
+    #[default]
+    F32,
+    /// Weights in int8 (one scale per output channel), each im2col row in
+    /// 7 bits, integer sums: fewer instructions per tick on AVX2; forecasts
+    /// move by the amounts the model card gives.
+    Int8,
+}
+
+impl Convolutions {
+    /// As `[model].convolutions` spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Convolutions::F32 => "f32",
+            Convolutions::Int8 => "int8",
+        }
+    }
+}
+
+/// As the command lines spell it (`--convolutions f32|int8`).
+impl std::str::FromStr for Convolutions {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "f32" => Ok(Convolutions::F32),
+            "int8" => Ok(Convolutions::Int8),
+            other => Err(format!(
+                "unknown convolutions {other:?}: expected f32 or int8"
+            )),
+        }
+    }
+}
+
 /// A model ready for inference: metadata, fused network, device.
 #[derive(Debug, Clone)]
 pub struct LoadedModel {
@@ -676,6 +714,14 @@ impl LoadedModel {
     pub fn with_projection(mut self, projection: ProjectionWeights) -> Self {
         if projection == ProjectionWeights::Int8 {
             self.network.quantize_projection();
+        }
+        self
+    }
+
+    /// The same model with its trajectory convolutions as `convolutions` says.
+    pub fn with_convolutions(mut self, convolutions: Convolutions) -> Self {
+        if convolutions == Convolutions::Int8 {
+            self.network.quantize_convolutions();
         }
         self
     }

@@ -9,6 +9,7 @@ use std::cell::RefCell;
 use std::sync::Arc;
 
 use super::inception::FusedConv;
+use super::int8_gemm::{self, Int8Weights};
 
 thread_local! {
     /// The im2col matrix, reused between calls (no allocation per tick).
@@ -35,6 +36,26 @@ pub struct HostConv {
     weight_by_input: Option<Arc<[f32]>>,
     /// `[C_out]`.
     bias: Arc<[f32]>,
+    /// The layouts above in int8 ([`HostConv::to_int8`]): when present,
+    /// every product whose weight rows are whole int8 groups runs in
+    /// integers (`int8_gemm`).
+    int8: Option<Int8Layouts>,
+}
+
+/// [`HostConv`]'s weight layouts in int8.
+#[derive(Debug, Clone)]
+struct Int8Layouts {
+    rows: Int8Weights,
+    by_column: Option<Int8Weights>,
+    by_input: Option<Int8Weights>,
+}
+
+/// Which of [`HostConv`]'s weight layouts a product reads.
+#[derive(Debug, Clone, Copy)]
+enum Layout {
+    Rows,
+    ByColumn,
+    ByInput,
 }
 
 /// Where element `(i, j)` of a matrix is: `i·row + j·col`.
@@ -86,6 +107,56 @@ impl HostConv {
             weight_by_column,
             weight_by_input: None,
             bias: bias.into(),
+            int8: None,
+        }
+    }
+
+    /// This convolution with its products in integers: every weight layout
+    /// it holds also in int8, one scale per output column, and each im2col
+    /// row quantised to 7 bits as it is multiplied (`int8_gemm`). Not
+    /// lossless: what it changes in the forecasts is measured in the model
+    /// card. A product over rows that are not whole int8 groups of four
+    /// (three input channels a tap) stays f32. Call after
+    /// [`HostConv::with_tap_products`].
+    pub fn to_int8(mut self) -> HostConv {
+        let n = self.c_out;
+        let taps_n = self.k * self.k * n;
+        self.int8 = Some(Int8Layouts {
+            rows: Int8Weights::new(&self.weight, n),
+            by_column: self
+                .weight_by_column
+                .as_ref()
+                .map(|w| Int8Weights::new(w, n)),
+            by_input: self
+                .weight_by_input
+                .as_ref()
+                .map(|w| Int8Weights::new(w, taps_n)),
+        });
+        self
+    }
+
+    /// Whether the products run in integers ([`HostConv::to_int8`]).
+    pub fn is_int8(&self) -> bool {
+        self.int8.is_some()
+    }
+
+    /// A layout's f32 weights and its int8 twin, if any.
+    fn layout(&self, layout: Layout) -> (&[f32], Option<&Int8Weights>) {
+        let int8 = self.int8.as_ref();
+        match layout {
+            Layout::Rows => (&self.weight, int8.map(|q| &q.rows)),
+            Layout::ByColumn => (
+                self.weight_by_column
+                    .as_deref()
+                    .expect("kernel columns of a 2-D convolution"),
+                int8.and_then(|q| q.by_column.as_ref()),
+            ),
+            Layout::ByInput => (
+                self.weight_by_input
+                    .as_deref()
+                    .expect("HostConv::with_tap_products"),
+                int8.and_then(|q| q.by_input.as_ref()),
+            ),
         }
     }
 
@@ -144,19 +215,21 @@ impl HostConv {
     /// others read only zero padding, whose products are all zero), `dst`
     /// the `m x C_out` output, each stored with its strides.
     pub fn accumulate_taps(&self, taps: std::ops::Range<usize>, product: Product<'_>) {
-        self.gemm(&self.weight, taps, product);
+        self.gemm(Layout::Rows, taps, product, Write::Add, None);
     }
 
     /// [`accumulate_taps`](Self::accumulate_taps) over the kernel columns
     /// `cols` of a 2-D kernel, every kernel row: `a` is
     /// `m x cols.len()·k·C_in`, its columns ordered `(kx, ky, ci)`.
     pub fn accumulate_kernel_columns(&self, cols: std::ops::Range<usize>, product: Product<'_>) {
-        let weight = self
-            .weight_by_column
-            .as_ref()
-            .expect("kernel columns of a 2-D convolution");
         let k = self.k;
-        self.gemm(weight, cols.start * k..cols.end * k, product);
+        self.gemm(
+            Layout::ByColumn,
+            cols.start * k..cols.end * k,
+            product,
+            Write::Add,
+            None,
+        );
     }
 
     /// [`accumulate_taps`](Self::accumulate_taps) with `a`'s columns read
@@ -169,29 +242,34 @@ impl HostConv {
         product: Product<'_>,
         columns: &[usize],
     ) {
-        let n = self.c_out;
-        assert!(
-            taps.start < taps.end && taps.end * self.c_in * n <= self.weight.len(),
-            "taps inside the kernel"
-        );
-        let weight = &self.weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
         assert_eq!(
-            columns.len() * n,
-            weight.len(),
+            columns.len(),
+            taps.len() * self.c_in,
             "one offset per im2col column"
         );
-        gemm_rows(weight, n, product, Write::Add, Some(columns));
+        self.gemm(Layout::Rows, taps, product, Write::Add, Some(columns));
     }
 
-    /// `dst += a · weight[taps]`, `weight` one of this convolution's layouts.
-    fn gemm(&self, weight: &[f32], taps: std::ops::Range<usize>, product: Product<'_>) {
+    /// `dst (+)= a · weight[taps]` with one of this convolution's layouts
+    /// (`C_out` columns, `C_in` rows a tap), in integers when the layout
+    /// is held in int8 and the rows are whole groups.
+    fn gemm(
+        &self,
+        layout: Layout,
+        taps: std::ops::Range<usize>,
+        product: Product<'_>,
+        write: Write,
+        columns: Option<&[usize]>,
+    ) {
+        let (weight, int8) = self.layout(layout);
         let n = self.c_out;
         assert!(
             taps.start < taps.end && taps.end * self.c_in * n <= weight.len(),
             "taps inside the kernel"
         );
-        let weight = &weight[taps.start * self.c_in * n..taps.end * self.c_in * n];
-        gemm_rows(weight, n, product, Write::Add, None);
+        let rows = taps.start * self.c_in..taps.end * self.c_in;
+        let weight = &weight[rows.start * n..rows.end * n];
+        gemm_rows(weight, n, product, write, columns, int8.map(|q| (q, rows)));
     }
 
     /// Every kernel tap's product with every input position: `x`
@@ -211,10 +289,7 @@ impl HostConv {
     /// sums, it does not add them to what `y` held), so a buffer kept from
     /// one tick to the next is neither zeroed nor reallocated.
     pub fn tap_products_into(&self, x: &[f32], y: &mut Vec<f32>) {
-        let weight = self
-            .weight_by_input
-            .as_ref()
-            .expect("HostConv::with_tap_products");
+        let (weight, int8) = self.layout(Layout::ByInput);
         let c_in = self.c_in;
         assert_eq!(x.len() % c_in, 0, "input width");
         let (len, n) = (x.len() / c_in, self.k * self.k * self.c_out);
@@ -234,6 +309,7 @@ impl HostConv {
             },
             Write::Store,
             None,
+            int8.map(|q| (q, 0..c_in)),
         );
     }
 }
@@ -272,12 +348,17 @@ enum Write {
 /// Each output is `dst + Σ_p a[p]·w[p]`, the sum in the order of `p`
 /// with fused multiply-adds where the CPU has them: the same bits on
 /// every x86-64 CPU with AVX2 and FMA (with or without AVX-512).
+///
+/// `int8`: the same weights in int8 and the rows of that layout `weight`
+/// is; when the rows are whole int8 groups the product runs in integers
+/// there (`int8_gemm`), after the same bounds checks.
 fn gemm_rows(
     weight: &[f32],
     n: usize,
     product: Product<'_>,
     write: Write,
     columns: Option<&[usize]>,
+    int8: Option<(&Int8Weights, std::ops::Range<usize>)>,
 ) {
     let Product {
         m,
@@ -300,6 +381,21 @@ fn gemm_rows(
             let far = cols.iter().max().copied().unwrap_or(0) + (m - 1) * a_s.row;
             assert!(far < a.len(), "gathered columns inside their buffer");
         }
+    }
+    if let Some((q, rows)) = int8.filter(|(q, rows)| q.covers(rows)) {
+        assert_eq!(rows.len(), kk, "the int8 rows are the product's");
+        int8_gemm::gemm(
+            q,
+            rows,
+            m,
+            a,
+            a_s,
+            columns,
+            dst,
+            dst_s,
+            write == Write::Store,
+        );
+        return;
     }
     let ops = Operands {
         m,

@@ -12,6 +12,7 @@ pub mod grid_conv;
 pub mod host_conv;
 pub mod host_linear;
 pub mod inception;
+pub mod int8_gemm;
 pub mod motion;
 pub mod plan;
 pub mod ranges;
@@ -24,8 +25,8 @@ pub mod vision;
 pub use config::{Ablation, ModelConfig, TrajectoryInput};
 pub use emp::{Emp, EmpInference, EmpInput};
 pub use file::{
-    save_model, save_model_as, Calibration, EpochRecord, LoadedModel, ModelError, ModelMeta,
-    ProjectionWeights, WeightPrecision,
+    save_model, save_model_as, Calibration, Convolutions, EpochRecord, LoadedModel, ModelError,
+    ModelMeta, ProjectionWeights, WeightPrecision,
 };
 pub use streaming::StreamingForecaster;
 

@@ -43,6 +43,17 @@ pub struct PlanFused {
     dft: OnceLock<Dft>,
 }
 
+impl PlanFused {
+    /// Every convolution's products in integers ([`HostConv::to_int8`]).
+    pub fn to_int8(&mut self) {
+        for block in &mut self.blocks {
+            for conv in block.iter_mut() {
+                *conv = conv.clone().to_int8();
+            }
+        }
+    }
+}
+
 /// `cos` and `sin` DFT rows of one length, transposed: `[1, L, L/2 + 1]` each.
 #[derive(Debug, Clone)]
 struct Dft {

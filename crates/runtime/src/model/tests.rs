@@ -550,6 +550,48 @@ fn streaming_equals_whole_window() {
     }
 }
 
+/// `[model].convolutions = "int8"`: the streaming forecasts of a lite EMP
+/// with its trajectory and vision convolutions in integers stay within
+/// 0.01 of the f32 ones on every tick and horizon (noise inputs, random
+/// weights), and are not the same (the integer path ran).
+#[test]
+fn int8_convolutions_stream_close_to_f32() {
+    let cfg = ModelConfig::lite(24, 25, vec![6, 12, 18, 24], 64);
+    let (meta, emp) = model(&cfg, Ablation::EMP);
+    let f32_model = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+    let int8_model = f32_model.clone().with_convolutions(Convolutions::Int8);
+    let (c, s, l) = (cfg.n_joints, cfg.frame_size, cfg.plan_len());
+    let total = cfg.n_ticks + 5;
+    let mut streams = [
+        StreamingForecaster::new(&f32_model),
+        StreamingForecaster::new(&int8_model),
+    ];
+    let (mut worst, mut moved) = (0.0f32, 0usize);
+    for t in 0..total {
+        let joints = noise(c, 300 + t as u64);
+        let frame = noise(3 * s * s, 3000 + t as u64);
+        let plan = noise(l * c, 6000 + t as u64);
+        let mut out = Vec::new();
+        for stream in &mut streams {
+            stream
+                .push_parts(100 + t as i64, &joints, Some(&frame), Some(&plan))
+                .unwrap();
+            if t + 1 >= cfg.n_ticks {
+                out.push(stream.forecast().unwrap());
+            }
+        }
+        if let [a, b] = &out[..] {
+            for (x, y) in a.iter().zip(b) {
+                assert!(y.is_finite(), "tick {t}: {b:?}");
+                worst = worst.max((x - y).abs());
+                moved += usize::from(x != y);
+            }
+        }
+    }
+    assert!(worst < 0.01, "int8 moved a forecast by {worst}");
+    assert!(moved > 0, "int8 changed nothing: not applied");
+}
+
 /// Vision slices prepared while the window fills: the first forecast of the
 /// full window equals the whole-window forward and computes no more slices
 /// than a steady tick (without `prepare` it computes every slice).

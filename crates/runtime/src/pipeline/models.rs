@@ -9,7 +9,8 @@ use thiserror::Error;
 
 use crate::config::{Config, ConfigError, FallbackLoading, ModelFacts};
 use crate::model::{
-    Ablation, LoadedModel, ModelError, ProjectionWeights, StreamingForecaster, TrajectoryInput,
+    Ablation, Convolutions, LoadedModel, ModelError, ProjectionWeights, StreamingForecaster,
+    TrajectoryInput,
 };
 use crate::window::WindowSpec;
 
@@ -77,6 +78,8 @@ pub struct ModelSet {
     robot_joints: Vec<String>,
     /// `[model].projection`, applied to every network as it is loaded.
     projection: ProjectionWeights,
+    /// `[model].convolutions`, applied to every network as it is loaded.
+    convolutions: Convolutions,
 }
 
 /// One configured network: its file, and the network while in memory.
@@ -195,12 +198,14 @@ impl ModelSet {
             let Some(file) = file else { continue };
             let path = config.model_path(file);
             let model = load_checked(key, &path, expected, robot_joints, emp.as_ref())?
-                .with_projection(m.projection);
+                .with_projection(m.projection)
+                .with_convolutions(m.convolutions);
             let meta = &model.meta;
             tracing::info!(key, file = %path.display(), ablation = ablation_name(meta.ablation),
                 trained_on = %meta.trained_on, best_epoch = meta.best_epoch,
                 projection = m.projection.name(),
                 projection_mb = format!("{:.1}", model.network.projection_bytes() as f64 / 1e6),
+                convolutions = m.convolutions.name(),
                 "network ready");
             if emp.is_none() {
                 emp = Some(model.clone());
@@ -236,6 +241,7 @@ impl ModelSet {
             horizons_ms,
             robot_joints: robot_joints.to_vec(),
             projection: m.projection,
+            convolutions: m.convolutions,
         })
     }
 
@@ -250,6 +256,7 @@ impl ModelSet {
             horizons_ms,
             robot_joints,
             projection: ProjectionWeights::AsFile,
+            convolutions: Convolutions::F32,
             slots: models
                 .into_iter()
                 .map(|m| ModelSlot {
@@ -305,7 +312,8 @@ impl ModelSet {
             &self.robot_joints,
             emp.as_ref().filter(|e| e.meta.ablation != ablation),
         )?
-        .with_projection(self.projection);
+        .with_projection(self.projection)
+        .with_convolutions(self.convolutions);
         // As at start: hand the load's transient heap back to the system,
         // or the resident memory keeps the load's peak (`docs/performance.md`).
         release_freed_memory();
