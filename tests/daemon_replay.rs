@@ -10,7 +10,7 @@
 mod daemon_common;
 
 use daemon_common::*;
-use fall_guard_runtime::model::{LoadedModel, ProjectionWeights};
+use fall_guard_runtime::model::{Convolutions, LoadedModel, ProjectionWeights};
 use fall_guard_runtime::msgs::DiagnosticArray;
 use fall_guard_runtime::recording::{read_topic, topics, Recording};
 use fall_guard_runtime::window::{EpisodeTicks, Streams, WindowSpec};
@@ -59,10 +59,12 @@ fn replay_prints_one_forecast_per_tick_equal_to_offline_inference() {
     }
 
     // The same windows, cut offline and run through the same network, its
-    // input projection held in int8 as the daemon holds it by default.
+    // input projection and trajectory convolutions held in int8 as the daemon
+    // holds them by default.
     let emp = LoadedModel::load(scene.path("models/emp.fgm"))
         .expect("model")
-        .with_projection(ProjectionWeights::Int8);
+        .with_projection(ProjectionWeights::Int8)
+        .with_convolutions(Convolutions::Int8);
     for line in lines.iter().skip(N_TICKS - 1) {
         let window = episode
             .window_ending_at(line.tick, &spec(), Streams::ALL)

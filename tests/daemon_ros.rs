@@ -209,13 +209,17 @@ async fn replay_publishes_every_forecast_to_rclpy_and_warns_before_the_fall() {
     // The same episode offline, through the lab's `eval` (what
     // `fall-guard-lab eval --recording --per-tick-out` runs).
     let per_tick = dir.path().join("eval.jsonl");
-    fall_guard_lab::commands::run_eval(&fall_guard_lab::commands::EvalOptions::per_tick(
-        repo("models/emp.bpk"),
-        repo(FALLING_FIXTURE),
-        per_tick.clone(),
-        // The input projection held as the daemon holds it by default.
-        fall_guard_runtime::model::ProjectionWeights::Int8,
-    ))
+    fall_guard_lab::commands::run_eval(
+        &fall_guard_lab::commands::EvalOptions::per_tick(
+            repo("models/emp.bpk"),
+            repo(FALLING_FIXTURE),
+            per_tick.clone(),
+            // The input projection and the trajectory convolutions held as the
+            // daemon holds them by default.
+            fall_guard_runtime::model::ProjectionWeights::Int8,
+        )
+        .with_convolutions(fall_guard_runtime::model::Convolutions::Int8),
+    )
     .expect("offline per-tick forecasts");
     let offline: std::collections::HashMap<i64, Vec<f32>> = std::fs::read_to_string(&per_tick)
         .expect("per-tick output")

@@ -15,7 +15,7 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use daemon_common::*;
-use fall_guard_runtime::model::{LoadedModel, ProjectionWeights};
+use fall_guard_runtime::model::{Convolutions, LoadedModel, ProjectionWeights};
 use fall_guard_runtime::msgs::DiagnosticArray;
 use fall_guard_runtime::outputs::annotate::read_forecasts;
 use fall_guard_runtime::recording::{read_topic, topics, Recording};
@@ -53,7 +53,8 @@ fn the_real_walk_replays_through_mp_with_the_recordings_own_joints() {
     // spec: valid exactly from the first full window on, every one by MP.
     let mp = LoadedModel::load(Path::new(env!("CARGO_MANIFEST_DIR")).join("models/mp.bpk"))
         .expect("shipped MP network")
-        .with_projection(ProjectionWeights::Int8);
+        .with_projection(ProjectionWeights::Int8)
+        .with_convolutions(Convolutions::Int8);
     let spec = mp.meta.window_spec();
     let needs = Streams {
         joints: true,

@@ -16,7 +16,7 @@ use fall_guard_lab::dataset::Split;
 use fall_guard_lab::device::TrainDevice;
 use fall_guard_lab::sampler::Protocol;
 use fall_guard_lab::warning::WarningsOptions;
-use fall_guard_runtime::model::{ProjectionWeights, TrajectoryInput};
+use fall_guard_runtime::model::{Convolutions, ProjectionWeights, TrajectoryInput};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -272,6 +272,10 @@ pub struct EvalArgs {
     /// (as the file stores it) or `int8` (`[model].projection`).
     #[arg(long, default_value = "as-file")]
     pub projection: ProjectionWeights,
+    /// How each network's trajectory convolutions multiply: `f32` (as
+    /// training evaluated them) or `int8` (`[model].convolutions`).
+    #[arg(long, default_value = "f32")]
+    pub convolutions: Convolutions,
 }
 
 impl From<EvalArgs> for EvalOptions {
@@ -288,6 +292,7 @@ impl From<EvalArgs> for EvalOptions {
             recording: a.recording,
             per_tick_out: a.per_tick_out,
             projection: a.projection,
+            convolutions: a.convolutions,
         }
     }
 }
@@ -600,6 +605,11 @@ mod tests {
             }
         };
         assert_eq!(eval(&[]).projection, ProjectionWeights::AsFile);
+        assert_eq!(eval(&[]).convolutions, Convolutions::F32);
+        assert_eq!(
+            eval(&["--convolutions", "int8"]).convolutions,
+            Convolutions::Int8
+        );
         assert_eq!(
             eval(&["--projection", "int8"]).projection,
             ProjectionWeights::Int8

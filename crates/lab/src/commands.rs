@@ -23,7 +23,7 @@ use crate::dataset::{data_name, Dataset, Split};
 use crate::error::TrainError;
 use crate::sampler::{labels_at, Protocol, SamplerConfig, SamplerError, WindowSampler};
 use fall_guard_runtime::model::{
-    save_model, Ablation, LoadedModel, ModelConfig, ModelMeta, ProjectionWeights,
+    save_model, Ablation, Convolutions, LoadedModel, ModelConfig, ModelMeta, ProjectionWeights,
     StreamingForecaster, TrajectoryInput,
 };
 use fall_guard_runtime::window::{EpisodeTicks, Streams, WindowSpec};
@@ -123,6 +123,8 @@ pub struct EvalOptions {
     pub per_tick_out: Option<PathBuf>,
     /// How each network's classifier input projection is held.
     pub projection: ProjectionWeights,
+    /// How each network's trajectory convolutions multiply.
+    pub convolutions: Convolutions,
 }
 
 impl EvalOptions {
@@ -147,7 +149,15 @@ impl EvalOptions {
             recording: Some(recording),
             per_tick_out: Some(out),
             projection,
+            convolutions: Convolutions::F32,
         }
+    }
+
+    /// The same, the trajectory convolutions as `convolutions` says
+    /// (`--convolutions`).
+    pub fn with_convolutions(mut self, convolutions: Convolutions) -> EvalOptions {
+        self.convolutions = convolutions;
+        self
     }
 }
 
@@ -880,12 +890,18 @@ enum AnyModel {
     LogReg(Box<LogRegModel>, PathBuf),
 }
 
-fn load_any(path: &Path, projection: ProjectionWeights) -> CommandResult<AnyModel> {
+fn load_any(
+    path: &Path,
+    projection: ProjectionWeights,
+    convolutions: Convolutions,
+) -> CommandResult<AnyModel> {
     if let Some(m) = LogRegModel::load(path)? {
         return Ok(AnyModel::LogReg(Box::new(m), path.to_path_buf()));
     }
     Ok(AnyModel::Network(Box::new(
-        LoadedModel::load(path)?.with_projection(projection),
+        LoadedModel::load(path)?
+            .with_projection(projection)
+            .with_convolutions(convolutions),
     )))
 }
 
@@ -898,7 +914,9 @@ pub fn run_eval(args: &EvalOptions) -> CommandResult<Option<EvalReport>> {
             .per_tick_out
             .as_ref()
             .ok_or_else(|| refused("--recording needs --per-tick-out FILE"))?;
-        let model = LoadedModel::load(&args.model)?.with_projection(args.projection);
+        let model = LoadedModel::load(&args.model)?
+            .with_projection(args.projection)
+            .with_convolutions(args.convolutions);
         let n = per_tick_forecast(&model, rec, out)?;
         tracing::info!("{n} per-tick forecasts written to {}", out.display());
         if args.data.is_none() {
@@ -919,7 +937,7 @@ pub fn run_eval(args: &EvalOptions) -> CommandResult<Option<EvalReport>> {
     paths.extend(args.seeds.iter().cloned());
     let models: Vec<AnyModel> = paths
         .iter()
-        .map(|p| load_any(p, args.projection))
+        .map(|p| load_any(p, args.projection, args.convolutions))
         .collect::<CommandResult<_>>()?;
     // Windows come from the first model's description; the others must agree.
     let (spec, needs, horizons, rate_hz, ablation_name, history) = match &models[0] {

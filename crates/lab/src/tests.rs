@@ -69,6 +69,7 @@ fn per_horizon_paper_training_on_the_fixtures() {
             recording: None,
             per_tick_out: None,
             projection: fall_guard_runtime::model::ProjectionWeights::AsFile,
+            convolutions: fall_guard_runtime::model::Convolutions::F32,
         })
         .unwrap();
         let v: serde_json::Value =

@@ -137,6 +137,7 @@ fn train_and_eval_commands_on_synthetic_recordings() {
         recording: None,
         per_tick_out: None,
         projection: fall_guard_runtime::model::ProjectionWeights::AsFile,
+        convolutions: fall_guard_runtime::model::Convolutions::F32,
     };
     run_eval(&eval).unwrap();
     let metrics: serde_json::Value =
