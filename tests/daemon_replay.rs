@@ -271,6 +271,36 @@ fn fallbacks_loaded_when_needed_forecast_as_if_loaded_at_start() {
     }
 }
 
+/// Writes `text` (the scene's config) with `key = "value"` added to its
+/// `[model]` table.
+fn set_model_key(scene: &Scene, text: &str, key: &str, value: &str) {
+    let edited = text.replace(
+        "release = 0.3\n",
+        &format!("release = 0.3\n{key} = \"{value}\"\n"),
+    );
+    assert_ne!(edited, text, "config edited");
+    std::fs::write(&scene.config, edited).expect("config");
+}
+
+/// Two replays of one scene under two settings: the same ticks with the
+/// same networks and validity, each probability within `tolerance`; how
+/// many probabilities differ at all.
+fn probabilities_moved(a: &[Line], b: &[Line], tolerance: f32) -> usize {
+    assert_eq!(a.len(), b.len());
+    let mut moved = 0usize;
+    for (a, b) in a.iter().zip(b) {
+        assert_eq!(
+            (a.tick, &a.ablation, a.valid),
+            (b.tick, &b.ablation, b.valid)
+        );
+        for (x, y) in a.probabilities.iter().zip(&b.probabilities) {
+            assert!((x - y).abs() < tolerance, "tick {}: {x} vs {y}", a.tick);
+            moved += usize::from(x != y);
+        }
+    }
+    moved
+}
+
 /// `[model].projection = "int8"` (the default): every network's input
 /// projection held in int8 (logged at start); the daemon forecasts the
 /// same ticks with the same networks and validity, each probability moved
@@ -279,15 +309,7 @@ fn fallbacks_loaded_when_needed_forecast_as_if_loaded_at_start() {
 fn int8_projection_forecasts_close_to_the_stored_weights() {
     let scene = camera_gap_scene();
     let text = std::fs::read_to_string(&scene.config).expect("config");
-    let with = |projection: &str| {
-        let edited = text.replace(
-            "release = 0.3\n",
-            &format!("release = 0.3\nprojection = \"{projection}\"\n"),
-        );
-        assert_ne!(edited, text, "config edited");
-        std::fs::write(&scene.config, edited).expect("config");
-    };
-    with("as_file");
+    set_model_key(&scene, &text, "projection", "as_file");
     let (stored, stored_log) = scene.replay_max_speed();
     assert!(
         stored_log.contains("projection=\"as_file\""),
@@ -297,21 +319,10 @@ fn int8_projection_forecasts_close_to_the_stored_weights() {
     std::fs::write(&scene.config, &text).expect("config");
     let (_, default_log) = scene.replay_max_speed();
     assert!(default_log.contains("projection=\"int8\""), "{default_log}");
-    with("int8");
+    set_model_key(&scene, &text, "projection", "int8");
     let (quantised, log) = scene.replay_max_speed();
     assert!(log.contains("projection=\"int8\""), "{log}");
-    assert_eq!(stored.len(), quantised.len());
-    let mut moved = 0usize;
-    for (a, b) in stored.iter().zip(&quantised) {
-        assert_eq!(
-            (a.tick, &a.ablation, a.valid),
-            (b.tick, &b.ablation, b.valid)
-        );
-        for (x, y) in a.probabilities.iter().zip(&b.probabilities) {
-            assert!((x - y).abs() < 0.05, "tick {}: {x} vs {y}", a.tick);
-            moved += usize::from(x != y);
-        }
-    }
+    let moved = probabilities_moved(&stored, &quantised, 0.05);
     assert!(moved > 0, "int8 changed no probability: not applied");
     assert!(quantised.iter().any(|l| l.ablation == "MP" && l.valid));
 }
@@ -324,37 +335,14 @@ fn int8_projection_forecasts_close_to_the_stored_weights() {
 fn int8_convolutions_forecast_close_to_f32() {
     let scene = camera_gap_scene();
     let text = std::fs::read_to_string(&scene.config).expect("config");
-    let with = |convolutions: &str| {
-        let edited = text.replace(
-            "release = 0.3\n",
-            &format!("release = 0.3\nconvolutions = \"{convolutions}\"\n"),
-        );
-        assert_ne!(edited, text, "config edited");
-        std::fs::write(&scene.config, edited).expect("config");
-    };
-    with("f32");
+    set_model_key(&scene, &text, "convolutions", "f32");
     let (plain, plain_log) = scene.replay_max_speed();
     assert!(plain_log.contains("convolutions=\"f32\""), "{plain_log}");
     // Without the key: int8, the default.
     std::fs::write(&scene.config, &text).expect("config");
     let (quantised, log) = scene.replay_max_speed();
     assert!(log.contains("convolutions=\"int8\""), "{log}");
-    assert_eq!(plain.len(), quantised.len());
-    let mut moved = 0usize;
-    for (a, b) in plain.iter().zip(&quantised) {
-        assert_eq!(
-            (a.tick, &a.ablation, a.valid),
-            (b.tick, &b.ablation, b.valid)
-        );
-        for (x, y) in a.probabilities.iter().zip(&b.probabilities) {
-            assert!(
-                (x - y).abs() < 0.01 || (x.is_nan() && y.is_nan()),
-                "tick {}: {x} vs {y}",
-                a.tick
-            );
-            moved += usize::from(x != y && !x.is_nan());
-        }
-    }
+    let moved = probabilities_moved(&plain, &quantised, 0.01);
     assert!(moved > 0, "int8 changed no probability: not applied");
     assert!(quantised.iter().any(|l| l.ablation == "EMP" && l.valid));
 }

@@ -135,11 +135,6 @@ impl HostConv {
         self
     }
 
-    /// Whether the products run in integers ([`HostConv::to_int8`]).
-    pub fn is_int8(&self) -> bool {
-        self.int8.is_some()
-    }
-
     /// A layout's f32 weights and its int8 twin, if any.
     fn layout(&self, layout: Layout) -> (&[f32], Option<&Int8Weights>) {
         let int8 = self.int8.as_ref();
@@ -215,7 +210,7 @@ impl HostConv {
     /// others read only zero padding, whose products are all zero), `dst`
     /// the `m x C_out` output, each stored with its strides.
     pub fn accumulate_taps(&self, taps: std::ops::Range<usize>, product: Product<'_>) {
-        self.gemm(Layout::Rows, taps, product, Write::Add, None);
+        self.gemm(Layout::Rows, taps, product, None);
     }
 
     /// [`accumulate_taps`](Self::accumulate_taps) over the kernel columns
@@ -227,7 +222,6 @@ impl HostConv {
             Layout::ByColumn,
             cols.start * k..cols.end * k,
             product,
-            Write::Add,
             None,
         );
     }
@@ -247,10 +241,10 @@ impl HostConv {
             taps.len() * self.c_in,
             "one offset per im2col column"
         );
-        self.gemm(Layout::Rows, taps, product, Write::Add, Some(columns));
+        self.gemm(Layout::Rows, taps, product, Some(columns));
     }
 
-    /// `dst (+)= a · weight[taps]` with one of this convolution's layouts
+    /// `dst += a · weight[taps]` with one of this convolution's layouts
     /// (`C_out` columns, `C_in` rows a tap), in integers when the layout
     /// is held in int8 and the rows are whole groups.
     fn gemm(
@@ -258,7 +252,6 @@ impl HostConv {
         layout: Layout,
         taps: std::ops::Range<usize>,
         product: Product<'_>,
-        write: Write,
         columns: Option<&[usize]>,
     ) {
         let (weight, int8) = self.layout(layout);
@@ -269,7 +262,14 @@ impl HostConv {
         );
         let rows = taps.start * self.c_in..taps.end * self.c_in;
         let weight = &weight[rows.start * n..rows.end * n];
-        gemm_rows(weight, n, product, write, columns, int8.map(|q| (q, rows)));
+        gemm_rows(
+            weight,
+            n,
+            product,
+            Write::Add,
+            columns,
+            int8.map(|q| (q, rows)),
+        );
     }
 
     /// Every kernel tap's product with every input position: `x`

@@ -122,11 +122,6 @@ impl Int8Weights {
             && rows.start.is_multiple_of(GROUP)
             && (rows.end.is_multiple_of(GROUP) || rows.end == self.rows)
     }
-
-    /// Bytes held (weights, scales, column sums).
-    pub fn bytes(&self) -> usize {
-        self.q.len() + 4 * (self.scale.len() + self.prefix.len())
-    }
 }
 
 /// `dst (+)= a · w[rows]` in integers: `a` `m x rows.len()` read with its
@@ -510,16 +505,11 @@ mod avx2 {
 mod tests {
     use super::*;
 
-    /// A deterministic spread of values (no RNG needed).
-    fn values(len: usize, seed: u32) -> Vec<f32> {
-        let mut x = seed.wrapping_mul(2_654_435_761).wrapping_add(12345);
-        (0..len)
-            .map(|_| {
-                x ^= x << 13;
-                x ^= x >> 17;
-                x ^= x << 5;
-                (x % 2001) as f32 / 1000.0 - 1.0
-            })
+    /// `len` values in `[-1, 1)` from the bench's noise.
+    fn values(len: usize, seed: u64) -> Vec<f32> {
+        crate::model::bench::noise(len, seed)
+            .into_iter()
+            .map(|v| 2.0 * v - 1.0)
             .collect()
     }
 
@@ -547,7 +537,7 @@ mod tests {
         for m in 1..=7 {
             for rows in [0..total, 8..36, 4..8] {
                 let kk = rows.len();
-                let a = values(m * kk, m as u32 + 7);
+                let a = values(m * kk, m as u64 + 7);
                 let want = reference(&w, n, rows.clone(), &a, m);
                 let mut got = vec![1.0f32; m * n];
                 let s = Strides { row: kk, col: 1 };
