@@ -41,16 +41,18 @@ fn vision_slices(c: &mut Criterion) {
     let (mut c_in, mut hw) = (3usize, cfg.lowpassed_size());
     for (li, &c_out) in cfg.vision_channels.iter().enumerate() {
         let conv = HostConv::from_fused(&Inception3d::new(c_in, c_out, &device).fuse());
-        let slices: Vec<Vec<f32>> = (0..3).map(|i| noise(c_in * hw * hw, i)).collect();
-        let inner: Vec<Option<&[f32]>> = slices.iter().map(|s| Some(s.as_slice())).collect();
-        let mut end = inner.clone();
-        end[2] = None;
-        for (name, inputs) in [("inner", &inner), ("end", &end)] {
-            group.bench_function(
-                format!("layer{li}_{c_in}x{hw}x{hw}_to_{c_out}/{name}"),
-                |b| b.iter(|| std::hint::black_box(conv.forward_slice_pooled(inputs, hw))),
-            );
-        }
+        let input = noise(c_in * hw * hw, li as u64);
+        let terms = conv.slice_terms(&input, &[0, 1, 2], hw, &mut Vec::new());
+        let terms: Vec<&[f32]> = terms.iter().map(Vec::as_slice).collect();
+        let name = format!("layer{li}_{c_in}x{hw}x{hw}_to_{c_out}");
+        group.bench_function(format!("{name}/3_terms"), |b| {
+            b.iter(|| {
+                std::hint::black_box(conv.slice_terms(&input, &[0, 1, 2], hw, &mut Vec::new()))
+            })
+        });
+        group.bench_function(format!("{name}/pool_of_3_terms"), |b| {
+            b.iter(|| std::hint::black_box(conv.pooled_of_terms(&terms, hw)))
+        });
         c_in = c_out;
         hw /= 2;
     }

@@ -98,6 +98,14 @@ pub struct AblationBench {
     pub first_forecast_ms: f64,
     /// Whole-window forward (fused, no cache).
     pub whole_window: Latency,
+    /// Vision slices computed per streaming tick, all layers (mean over
+    /// the measured ticks; 0 without vision).
+    pub vision_slices_per_tick: f64,
+    /// Vision slice terms (one input slice through one time tap) computed
+    /// per streaming tick: the vision's convolution work.
+    pub vision_terms_per_tick: f64,
+    /// Terms kept from an earlier tick and summed again, per tick.
+    pub vision_terms_reused_per_tick: f64,
 }
 
 /// Everything `fall-guard bench` measures.
@@ -203,6 +211,7 @@ pub fn run_bench(args: &BenchOptions) -> Result<BenchReport, BenchError> {
         let mut cpu_per_tick = Vec::with_capacity(args.ticks);
         let mut fill = Vec::with_capacity(n);
         let mut first_forecast_ms = 0.0;
+        let mut steady_from = (0, 0, 0);
         for t in 0..total {
             let joints = noise(c, t as u64);
             let frame = noise(3 * s * s, 10_000 + t as u64);
@@ -221,6 +230,11 @@ pub fn run_bench(args: &BenchOptions) -> Result<BenchReport, BenchError> {
             let ms = start.elapsed().as_secs_f64() * 1e3;
             if t + 1 == n {
                 first_forecast_ms = ms;
+                steady_from = (
+                    stream.slices_computed(),
+                    stream.terms_computed(),
+                    stream.terms_reused(),
+                );
             } else {
                 per_tick.push(ms);
                 cpu_per_tick.push(thread_cpu_ms() - cpu_start);
@@ -243,6 +257,12 @@ pub fn run_bench(args: &BenchOptions) -> Result<BenchReport, BenchError> {
             fill_tick: Latency::from_ms(fill),
             first_forecast_ms,
             whole_window: Latency::from_ms(whole),
+            vision_slices_per_tick: (stream.slices_computed() - steady_from.0) as f64
+                / args.ticks.max(1) as f64,
+            vision_terms_per_tick: (stream.terms_computed() - steady_from.1) as f64
+                / args.ticks.max(1) as f64,
+            vision_terms_reused_per_tick: (stream.terms_reused() - steady_from.2) as f64
+                / args.ticks.max(1) as f64,
         };
         ablations.push(b);
     }
@@ -272,7 +292,8 @@ impl AblationBench {
     pub fn summary(&self) -> String {
         format!(
             "{:>3}: per tick median {:.2} ms p99 {:.2} ms (thread CPU median {:.2} p99 {:.2}) | \
-             fill tick median {:.2} ms | first forecast {:.2} ms | whole window median {:.2} ms",
+             fill tick median {:.2} ms | first forecast {:.2} ms | whole window median {:.2} ms | \
+             vision slices {:.1} terms {:.1} (and {:.1} kept) a tick",
             self.ablation,
             self.streaming_per_tick.median_ms,
             self.streaming_per_tick.p99_ms,
@@ -280,7 +301,10 @@ impl AblationBench {
             self.streaming_cpu_per_tick.p99_ms,
             self.fill_tick.median_ms,
             self.first_forecast_ms,
-            self.whole_window.median_ms
+            self.whole_window.median_ms,
+            self.vision_slices_per_tick,
+            self.vision_terms_per_tick,
+            self.vision_terms_reused_per_tick
         )
     }
 }

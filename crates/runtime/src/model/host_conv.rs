@@ -210,7 +210,7 @@ impl HostConv {
     /// others read only zero padding, whose products are all zero), `dst`
     /// the `m x C_out` output, each stored with its strides.
     pub fn accumulate_taps(&self, taps: std::ops::Range<usize>, product: Product<'_>) {
-        self.gemm(Layout::Rows, taps, product, None);
+        self.gemm(Layout::Rows, taps, product, None, Write::Add);
     }
 
     /// [`accumulate_taps`](Self::accumulate_taps) over the kernel columns
@@ -223,14 +223,16 @@ impl HostConv {
             cols.start * k..cols.end * k,
             product,
             None,
+            Write::Add,
         );
     }
 
-    /// [`accumulate_taps`](Self::accumulate_taps) with `a`'s columns read
-    /// in place: column `q` of the im2col matrix is `a` from `columns[q]`
-    /// on (rows `product.a_s.row` apart; `product.a_s.col` is not read),
-    /// so a matrix whose columns are runs of one buffer is not copied.
-    pub fn accumulate_taps_gathered(
+    /// `dst = a · weight[taps]` (what `dst` held is not read, so a reused
+    /// buffer needs no zeroing) with `a`'s columns read in place: column
+    /// `q` of the im2col matrix is `a` from `columns[q]` on (rows
+    /// `product.a_s.row` apart; `product.a_s.col` is not read), so a
+    /// matrix whose columns are runs of one buffer is not copied.
+    pub fn store_taps_gathered(
         &self,
         taps: std::ops::Range<usize>,
         product: Product<'_>,
@@ -241,7 +243,7 @@ impl HostConv {
             taps.len() * self.c_in,
             "one offset per im2col column"
         );
-        self.gemm(Layout::Rows, taps, product, Some(columns));
+        self.gemm(Layout::Rows, taps, product, Some(columns), Write::Store);
     }
 
     /// `dst += a · weight[taps]` with one of this convolution's layouts
@@ -253,6 +255,7 @@ impl HostConv {
         taps: std::ops::Range<usize>,
         product: Product<'_>,
         columns: Option<&[usize]>,
+        write: Write,
     ) {
         let (weight, int8) = self.layout(layout);
         let n = self.c_out;
@@ -262,14 +265,7 @@ impl HostConv {
         );
         let rows = taps.start * self.c_in..taps.end * self.c_in;
         let weight = &weight[rows.start * n..rows.end * n];
-        gemm_rows(
-            weight,
-            n,
-            product,
-            Write::Add,
-            columns,
-            int8.map(|q| (q, rows)),
-        );
+        gemm_rows(weight, n, product, write, columns, int8.map(|q| (q, rows)));
     }
 
     /// Every kernel tap's product with every input position: `x`
@@ -289,13 +285,20 @@ impl HostConv {
     /// sums, it does not add them to what `y` held), so a buffer kept from
     /// one tick to the next is neither zeroed nor reallocated.
     pub fn tap_products_into(&self, x: &[f32], y: &mut Vec<f32>) {
+        let len = x.len() / self.c_in;
+        y.resize(len * self.k * self.k * self.c_out, 0.0);
+        self.tap_products_of_rows(x, y);
+    }
+
+    /// [`tap_products`](Self::tap_products) into `y`, exactly
+    /// `[len, taps·C_out]` long. Each row of `y` depends on its row of `x`
+    /// alone, and is the same bits whichever rows are computed with it.
+    pub fn tap_products_of_rows(&self, x: &[f32], y: &mut [f32]) {
         let (weight, int8) = self.layout(Layout::ByInput);
         let c_in = self.c_in;
         assert_eq!(x.len() % c_in, 0, "input width");
         let (len, n) = (x.len() / c_in, self.k * self.k * self.c_out);
-        if y.len() != len * n {
-            y.resize(len * n, 0.0);
-        }
+        assert_eq!(y.len(), len * n, "tap products size");
         let row_major = |cols| Strides { row: cols, col: 1 };
         gemm_rows(
             weight,

@@ -6,7 +6,7 @@
 //! 2-D grid and passed through Inception2d -> GELU -> Inception2d, summed with
 //! softmax weights of their amplitudes, residual, LayerNorm over `d_t`.
 
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
@@ -35,12 +35,87 @@ pub struct PlanEncoder {
     top_k: usize,
 }
 
-/// The two fused convolutions of each block, for inference, and the DFT
-/// matrices of the plan length, made on the first forward (not every tick).
-#[derive(Debug, Clone)]
+/// The two fused convolutions of each block, for inference, the DFT
+/// matrices of the plan length, made on the first forward (not every tick),
+/// and each block's last tap products, kept for the next forward.
+#[derive(Debug)]
 pub struct PlanFused {
     blocks: Vec<[HostConv; 2]>,
     dft: OnceLock<Dft>,
+    tap_rows: Vec<Mutex<TapRows>>,
+}
+
+impl Clone for PlanFused {
+    /// The same weights; nothing kept from earlier forwards.
+    fn clone(&self) -> Self {
+        PlanFused {
+            blocks: self.blocks.clone(),
+            dft: self.dft.clone(),
+            tap_rows: self.blocks.iter().map(|_| Mutex::default()).collect(),
+        }
+    }
+}
+
+/// A block's first-convolution tap products ([`HostConv::tap_products`]),
+/// kept from one forward to the next. Between two plan messages the plan
+/// window slides one tick over the same plan, so the first block's input
+/// is the last one's rows moved up by one and a new last row; the products
+/// of a row depend on that row alone, so only the new row is multiplied.
+/// (The second block's input changes everywhere: it is computed whole.)
+#[derive(Debug, Default)]
+struct TapRows {
+    /// The input rows `[L, d]` the products are of.
+    x: Vec<f32>,
+    /// Rows `start..start + L` are the products of `x`, `taps·C_out` each;
+    /// up to `2L` rows once the window has slid, so that a slide moves
+    /// `start` instead of the rows (they are moved back once every `L`).
+    y: Vec<f32>,
+    start: usize,
+    /// Rows multiplied and rows reused, for tests and benchmarks.
+    computed: u64,
+    reused: u64,
+}
+
+impl TapRows {
+    /// The tap products of `x` (`[L, d]`), reusing the last call's rows
+    /// where `x` is its input slid by one row (bit for bit).
+    fn products(&mut self, conv: &HostConv, x: &[f32], d: usize) -> &[f32] {
+        let l = x.len() / d;
+        let n = conv.k() * conv.k() * conv.c_out();
+        let slid = l > 1
+            && self.x.len() == x.len()
+            && self.y.len() >= l * n
+            && x[..(l - 1) * d]
+                .iter()
+                .zip(&self.x[d..])
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+        if slid {
+            if self.y.len() < 2 * l * n {
+                self.y.resize(2 * l * n, 0.0);
+            }
+            if self.start + l == 2 * l {
+                let from = (self.start + 1) * n;
+                self.y.copy_within(from..from + (l - 1) * n, 0);
+                self.start = 0;
+            } else {
+                self.start += 1;
+            }
+            let last = (self.start + l - 1) * n;
+            conv.tap_products_of_rows(&x[(l - 1) * d..], &mut self.y[last..last + n]);
+            self.computed += 1;
+            self.reused += (l - 1) as u64;
+        } else {
+            if self.y.len() < l * n {
+                self.y.resize(l * n, 0.0);
+            }
+            self.start = 0;
+            conv.tap_products_of_rows(x, &mut self.y[..l * n]);
+            self.computed += l as u64;
+        }
+        self.x.clear();
+        self.x.extend_from_slice(x);
+        &self.y[self.start * n..(self.start + l) * n]
+    }
 }
 
 impl PlanFused {
@@ -51,6 +126,16 @@ impl PlanFused {
                 *conv = conv.clone().to_int8();
             }
         }
+        self.tap_rows.fill_with(Mutex::default);
+    }
+
+    /// The first block's tap-product rows reused from the forward before
+    /// and those multiplied, since these convolutions were made.
+    pub fn tap_rows(&self) -> (u64, u64) {
+        self.tap_rows.first().map_or((0, 0), |rows| {
+            let kept = rows.lock().unwrap_or_else(|e| e.into_inner());
+            (kept.reused, kept.computed)
+        })
     }
 }
 
@@ -114,6 +199,7 @@ impl PlanEncoder {
                 })
                 .collect(),
             dft: OnceLock::new(),
+            tap_rows: self.blocks.iter().map(|_| Mutex::default()).collect(),
         }
     }
 
@@ -191,19 +277,15 @@ impl PlanEncoder {
             let onehot = Tensor::<3>::from_data(TensorData::new(onehot, [b, nf, k]), &device);
             let weights = softmax(amp.unsqueeze_dim::<3>(1).matmul(onehot), 2); // [B, 1, k]
             let res = match fused {
-                Some(f) => fused_periods(&f.blocks[bi], x.clone(), &periods, weights),
+                Some(f) => {
+                    fused_periods(&f.blocks[bi], &f.tap_rows[bi], x.clone(), &periods, weights)
+                }
                 None => grouped_periods(&x, &periods, weights, &train_fused[bi]),
             };
             x = block.norm.forward(res + x);
         }
         x.reshape([b, l * d])
     }
-}
-
-thread_local! {
-    /// The first convolution's tap products ([`HostConv::tap_products_into`]),
-    /// kept between calls on this thread.
-    static TAP_PRODUCTS: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// The period branches of one block with the fused convolutions as im2col +
@@ -213,6 +295,7 @@ thread_local! {
 /// the padded, permuted grids.
 fn fused_periods(
     convs: &[HostConv; 2],
+    tap_rows: &Mutex<TapRows>,
     x: Tensor<3>,
     periods: &[Vec<usize>],
     weights: Tensor<3>,
@@ -259,14 +342,11 @@ fn fused_periods(
                 conv_in.grid_taps(l, rows, p, rows * p)
             })
             .sum();
-        // Kept from one call to the next (this thread's): written whole
-        // by the GEMM, so neither zeroed nor reallocated per tick.
-        let mut taps_buf = TAP_PRODUCTS.with(|t| std::mem::take(&mut *t.borrow_mut()));
+        // Kept from one call to the next ([`TapRows`]): written by the
+        // GEMM, neither zeroed nor reallocated per tick.
+        let mut kept = tap_rows.lock().unwrap_or_else(|e| e.into_inner());
         let use_shared = conv_in.has_tap_products() && one_pass_pays(folded, l, taps);
-        if use_shared {
-            conv_in.tap_products_into(xs, &mut taps_buf);
-        }
-        let shared = use_shared.then_some(taps_buf.as_slice());
+        let shared = use_shared.then(|| kept.products(conv_in, xs, d));
         let hidden: Vec<(usize, usize, f32, Vec<f32>)> = distinct
             .iter()
             .map(|&(p, w)| {
@@ -281,7 +361,7 @@ fn fused_periods(
                 (p, rows, w, h)
             })
             .collect();
-        TAP_PRODUCTS.with(|t| *t.borrow_mut() = taps_buf);
+        drop(kept);
         // The second convolution is linear: when folding each period would
         // multiply more than the whole kernel once, the weighted periods
         // go through one GEMM together.
@@ -516,6 +596,39 @@ mod tests {
     use crate::model::cpu_device;
     use burn::tensor::Distribution;
 
+    /// A plan window sliding over one plan: the forward that reuses the
+    /// first block's tap products equals, bit for bit, one made afresh at
+    /// every tick, in f32 and in int8, and reuses all but one row a tick.
+    #[test]
+    fn sliding_window_reuses_tap_rows_bit_for_bit() {
+        let device = cpu_device();
+        let cfg = ModelConfig::lite(60, 25, vec![15, 30, 45, 60], 64);
+        let enc = PlanEncoder::new(&cfg, &device);
+        let (l, c, ticks) = (cfg.plan_len(), cfg.n_joints, 6);
+        let plan = Tensor::<2>::random([l + ticks, c], Distribution::Normal(0.0, 1.0), &device);
+        for int8 in [false, true] {
+            let fused = || {
+                let mut f = enc.fuse();
+                if int8 {
+                    f.to_int8();
+                }
+                f
+            };
+            let kept = fused();
+            for t in 0..ticks {
+                let window = || plan.clone().slice([t..t + l, 0..c]).unsqueeze::<3>();
+                let got = enc.forward(window(), Some(&kept)).into_data();
+                let want = enc.forward(window(), Some(&fused())).into_data();
+                assert_eq!(got, want, "int8 {int8}, tick {t}");
+            }
+            let per_tick = (l - 1) as u64;
+            assert_eq!(
+                kept.tap_rows(),
+                (per_tick * (ticks as u64 - 1), (l + ticks - 1) as u64)
+            );
+        }
+    }
+
     /// A period that two or three frequencies fold to is computed once with
     /// the weights summed: the same sum as the training path, which takes
     /// every `(sample, period)` pair on its own.
@@ -544,7 +657,7 @@ mod tests {
             .into_data()
             .try_into_vec()
             .unwrap();
-        let got: Vec<f32> = fused_periods(&host, x, &periods, weights)
+        let got: Vec<f32> = fused_periods(&host, &Mutex::default(), x, &periods, weights)
             .into_data()
             .try_into_vec()
             .unwrap();

@@ -6,11 +6,15 @@
 //!
 //! What is reused across ticks (all exact, equal to the whole-window forward):
 //! - the low-pass of a frame, computed once when the frame enters;
-//! - in the vision encoder, every time slice of every layer whose receptive
-//!   field does not reach the window's edges (where "same" padding puts zeros):
-//!   such a slice depends only on the frames it covers, so it is cached by the
-//!   absolute tick where it starts. Each tick recomputes only the slices next
-//!   to the window's two ends (and the new ones).
+//! - in the vision encoder, every time slice of every layer, kept by the
+//!   absolute tick where it starts with the input slices it was computed
+//!   from, and reused while those are the same (by identity: a slice whose
+//!   value changes is a new one). Only the slices next to the window's two
+//!   ends change (there "same" padding puts zeros), and the new ones. An
+//!   output slice is the bias plus one term per time tap, one input slice
+//!   each ([`HostConv::slice_terms`](super::host_conv::HostConv::slice_terms)); the terms
+//!   of the input slices near the ends are kept too, so that a changed
+//!   output slice computes only the terms of the inputs that changed.
 //!
 //! Motion, plan and classifier are recomputed every tick (their inputs all
 //! move). The plan's features can be computed before their tick
@@ -33,9 +37,37 @@ use super::vision::lowpass_frames;
 struct Slice {
     /// Absolute tick of the first frame the slice covers.
     key: i64,
-    /// Whether its value depends on its frames only (not on the window's edges).
-    stable: bool,
+    /// Its value; a slice whose value changes is a new allocation, so
+    /// `Arc::ptr_eq` tells whether what was computed from it still holds.
     data: Arc<Vec<f32>>,
+}
+
+type Data = Arc<Vec<f32>>;
+
+/// What one vision layer keeps from one tick to the next.
+#[derive(Debug, Default, Clone)]
+struct LayerCache {
+    /// Output slice by key, with the `k` input slices it was computed from
+    /// (`None`: the window's padding).
+    outputs: HashMap<i64, (Vec<Option<Data>>, Data)>,
+    /// One input slice's term through one time tap, by (input key, tap),
+    /// with the input slice it is of; only of input slices near the
+    /// window's ends, where output slices change.
+    terms: HashMap<(i64, usize), (Data, Data)>,
+    /// A time-pooled pair by its first key, with the two slices it is of.
+    pooled: HashMap<i64, ([Data; 2], Data)>,
+    /// Buffers of terms no longer kept, for the next terms.
+    spare: Vec<Vec<f32>>,
+}
+
+/// Whether `kept` are the same slices as `now` (the same allocations).
+fn same_slices(kept: &[Option<Data>], now: &[Option<&Slice>]) -> bool {
+    kept.len() == now.len()
+        && kept.iter().zip(now).all(|(a, b)| match (a, b) {
+            (None, None) => true,
+            (Some(a), Some(b)) => Arc::ptr_eq(a, &b.data),
+            _ => false,
+        })
 }
 
 /// One tick as the forecaster keeps it.
@@ -68,10 +100,14 @@ pub struct StreamingForecaster {
     plan_ahead: Option<(Vec<f32>, Tensor<2>)>,
     /// Forecasts that used `plan_ahead`, for tests and benchmarks.
     plan_reused: u64,
-    /// Per vision layer: stable slice (after conv, ReLU, spatial pool) by key.
-    cache: Vec<HashMap<i64, Arc<Vec<f32>>>>,
+    /// Per vision layer: its slices (after conv, ReLU, spatial pool) and terms.
+    cache: Vec<LayerCache>,
     /// Vision slices computed so far (all layers), for tests and benchmarks.
     slices_computed: u64,
+    /// Vision slice terms computed so far (all layers), for tests and benchmarks.
+    terms_computed: u64,
+    /// Kept terms summed into a computed slice, for tests and benchmarks.
+    terms_reused: u64,
 }
 
 impl StreamingForecaster {
@@ -87,8 +123,10 @@ impl StreamingForecaster {
             plan_excursions: Vec::new(),
             plan_ahead: None,
             plan_reused: 0,
-            cache: vec![HashMap::new(); layers],
+            cache: vec![LayerCache::default(); layers],
             slices_computed: 0,
+            terms_computed: 0,
+            terms_reused: 0,
         }
     }
 
@@ -103,7 +141,7 @@ impl StreamingForecaster {
         self.plan_std = None;
         self.plan_excursions.clear();
         self.plan_ahead = None;
-        self.cache.iter_mut().for_each(HashMap::clear);
+        self.cache.fill_with(LayerCache::default);
     }
 
     /// The bounds the inputs are held to (none: the file has no ranges).
@@ -148,6 +186,28 @@ impl StreamingForecaster {
     /// how much vision work a tick did, independent of the machine's speed.
     pub fn slices_computed(&self) -> u64 {
         self.slices_computed
+    }
+
+    /// Vision slice terms (one input slice through one time tap) computed
+    /// since the forecaster was made (every layer): the convolution work.
+    pub fn terms_computed(&self) -> u64 {
+        self.terms_computed
+    }
+
+    /// Vision slice terms kept from an earlier tick and summed again.
+    pub fn terms_reused(&self) -> u64 {
+        self.terms_reused
+    }
+
+    /// The trajectory encoder's first-block rows reused from the forward
+    /// before (the plan window slid over the same plan) and those
+    /// multiplied, since the forecaster was made.
+    pub fn plan_rows(&self) -> (u64, u64) {
+        self.model
+            .network
+            .plan_fused
+            .as_ref()
+            .map_or((0, 0), |p| p.tap_rows())
     }
 
     /// The oldest tick in the window, if any.
@@ -249,7 +309,7 @@ impl StreamingForecaster {
             if tick != last.tick + 1 {
                 tracing::debug!(tick, last = last.tick, "tick gap: window restarts");
                 self.ticks.clear();
-                self.cache.iter_mut().for_each(HashMap::clear);
+                self.cache.fill_with(LayerCache::default);
             }
         }
         let keep_raw = meta.ablation.uses_plan() && !cfg.trajectory.reads_plan();
@@ -448,73 +508,148 @@ impl StreamingForecaster {
                 .frame_lp
                 .clone()
                 .ok_or_else(|| ModelError::Input(format!("tick {}: no frame", t.tick)))?;
-            slices.push(Slice {
-                key: t.tick,
-                stable: true,
-                data,
-            });
+            slices.push(Slice { key: t.tick, data });
         }
         let mut c_in = 3usize;
         let mut hw = cfg.lowpassed_size();
         for li in 0..fused.slices.len() {
             let c_out = cfg.vision_channels[li];
             let t_len = slices.len();
-            let (ho, wo) = (hw / 2, hw / 2);
-            let out_len = c_out * ho * wo;
+            let out_len = c_out * (hw / 2) * (hw / 2);
             let conv = &fused.slices[li];
-            // The kernel reaches one slice each way; `None` (zeros) stands
-            // for the "same" padding where the window really ends.
-            let half = conv.k() / 2;
-            let mut out: Vec<Slice> = Vec::with_capacity(t_len);
-            for pos in 0..t_len {
-                let key = slices[pos].key;
-                let stable = pos >= 1
-                    && pos + 1 < t_len
-                    && slices[pos - 1..=pos + 1].iter().all(|s| s.stable);
-                let cached = stable.then(|| self.cache[li].get(&key).cloned()).flatten();
-                let data = match cached {
-                    Some(d) => d,
-                    None => {
-                        let inputs: Vec<Option<&[f32]>> = (0..conv.k())
-                            .map(|kt| {
-                                (pos + kt)
-                                    .checked_sub(half)
-                                    .and_then(|i| slices.get(i))
-                                    .map(|s| s.data.as_slice())
-                            })
-                            .collect();
-                        let d = conv.forward_slice_pooled(&inputs, hw);
-                        debug_assert_eq!(d.len(), out_len);
-                        self.slices_computed += 1;
-                        let data = Arc::new(d);
-                        if stable {
-                            self.cache[li].insert(key, data.clone());
-                        }
-                        data
-                    }
-                };
-                out.push(Slice { key, stable, data });
-            }
-            slices = if fused.time_pool[li] {
-                out.chunks_exact(2)
-                    .map(|pair| Slice {
-                        key: pair[0].key,
-                        stable: pair[0].stable && pair[1].stable,
-                        data: Arc::new(
-                            pair[0]
-                                .data
-                                .iter()
-                                .zip(pair[1].data.iter())
-                                .map(|(a, b)| a.max(*b))
-                                .collect(),
-                        ),
-                    })
+            let cache = &mut self.cache[li];
+            // The kernel reaches `half` slices each way; `None` (zeros)
+            // stands for the "same" padding where the window really ends.
+            let (k, half) = (conv.k(), conv.k() / 2);
+            let near = |pos: usize| -> Vec<Option<&Slice>> {
+                (0..k)
+                    .map(|kt| (pos + kt).checked_sub(half).and_then(|i| slices.get(i)))
                     .collect()
+            };
+            let term_of = |terms: &HashMap<(i64, usize), (Data, Data)>, s: &Slice, kt: usize| {
+                terms
+                    .get(&(s.key, kt))
+                    .filter(|(of, _)| Arc::ptr_eq(of, &s.data))
+                    .map(|(_, term)| term.clone())
+            };
+            // The output slices to compute (their inputs changed), and the
+            // terms they need that are not kept, by input slice: each
+            // input's terms are computed together (one padded copy).
+            let mut stale: Vec<usize> = Vec::new();
+            let mut wanted: Vec<Vec<usize>> = vec![Vec::new(); t_len];
+            for pos in 0..t_len {
+                let around = near(pos);
+                if matches!(cache.outputs.get(&slices[pos].key), Some((from, _)) if same_slices(from, &around))
+                {
+                    continue;
+                }
+                stale.push(pos);
+                for (kt, s) in around.iter().enumerate() {
+                    if let Some(s) = s {
+                        if term_of(&cache.terms, s, kt).is_none() {
+                            wanted[pos + kt - half].push(kt);
+                        } else {
+                            self.terms_reused += 1;
+                        }
+                    }
+                }
+            }
+            for (i, kts) in wanted.iter().enumerate().filter(|(_, kts)| !kts.is_empty()) {
+                let s = &slices[i];
+                let terms = conv.slice_terms(&s.data, kts, hw, &mut cache.spare);
+                self.terms_computed += kts.len() as u64;
+                for (&kt, term) in kts.iter().zip(terms) {
+                    cache
+                        .terms
+                        .insert((s.key, kt), (s.data.clone(), Arc::new(term)));
+                }
+            }
+            for &pos in &stale {
+                let around = near(pos);
+                let terms: Vec<Data> = around
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(kt, s)| term_of(&cache.terms, (*s)?, kt))
+                    .collect();
+                let terms: Vec<&[f32]> = terms.iter().map(|t| t.as_slice()).collect();
+                let data = Arc::new(conv.pooled_of_terms(&terms, hw));
+                debug_assert_eq!(data.len(), out_len);
+                self.slices_computed += 1;
+                let from = around.iter().map(|s| s.map(|s| s.data.clone())).collect();
+                cache.outputs.insert(slices[pos].key, (from, data));
+            }
+            let out: Vec<Slice> = slices
+                .iter()
+                .map(|s| Slice {
+                    key: s.key,
+                    data: cache.outputs[&s.key].1.clone(),
+                })
+                .collect();
+            // Terms are reused where output slices change, next to the
+            // window's ends; of the input slices in between, and of those
+            // that changed or left the window, none is kept (their buffers
+            // are reused for the next terms). After a time pool the slices
+            // start every other tick, on alternate ticks from one tick to
+            // the next: the other ticks' terms near the ends are kept too.
+            let ends = 2 * k as i64;
+            let stride = match &slices[..] {
+                [a, b, ..] => b.key - a.key,
+                _ => 1,
+            };
+            let (first, last) = match (slices.first(), slices.last()) {
+                (Some(a), Some(b)) => (a.key, b.key),
+                _ => (0, -1),
+            };
+            let index: HashMap<i64, usize> =
+                slices.iter().enumerate().map(|(i, s)| (s.key, i)).collect();
+            let dropped = cache.terms.extract_if(|&(key, _), (of, _)| {
+                let near_an_end = key >= window_start
+                    && (key < first + ends * stride || key > last - ends * stride);
+                let current = index
+                    .get(&key)
+                    .is_none_or(|&i| Arc::ptr_eq(of, &slices[i].data));
+                !(near_an_end && current)
+            });
+            let recycled: Vec<Vec<f32>> = dropped
+                .filter_map(|(_, (_, term))| Arc::try_unwrap(term).ok())
+                .collect();
+            cache.spare.extend(recycled);
+            // Slices that start before the window can never be used again.
+            cache.outputs.retain(|&key, _| key >= window_start);
+            slices = if fused.time_pool[li] {
+                let pooled = out
+                    .chunks_exact(2)
+                    .map(|pair| {
+                        let key = pair[0].key;
+                        let data = match cache.pooled.get(&key) {
+                            Some(([a, b], data))
+                                if Arc::ptr_eq(a, &pair[0].data)
+                                    && Arc::ptr_eq(b, &pair[1].data) =>
+                            {
+                                data.clone()
+                            }
+                            _ => {
+                                let data: Data = Arc::new(
+                                    pair[0]
+                                        .data
+                                        .iter()
+                                        .zip(pair[1].data.iter())
+                                        .map(|(a, b)| a.max(*b))
+                                        .collect(),
+                                );
+                                let of = [pair[0].data.clone(), pair[1].data.clone()];
+                                cache.pooled.insert(key, (of, data.clone()));
+                                data
+                            }
+                        };
+                        Slice { key, data }
+                    })
+                    .collect();
+                cache.pooled.retain(|&key, _| key >= window_start);
+                pooled
             } else {
                 out
             };
-            // Slices that start before the window can never be used again.
-            self.cache[li].retain(|&k, _| k >= window_start);
             c_in = c_out;
             hw /= 2;
         }

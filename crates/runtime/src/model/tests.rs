@@ -650,6 +650,68 @@ fn prepared_fill_makes_the_first_forecast_a_normal_tick() {
     );
 }
 
+/// Steady ticks with the plan window sliding over one plan, as between two
+/// plan messages: the forecasts equal the whole-window forward, the vision
+/// sums terms kept from the tick before, and the trajectory encoder's first
+/// block multiplies one new row a tick.
+#[test]
+fn steady_ticks_reuse_vision_terms_and_plan_rows() {
+    let cfg = ModelConfig::lite(24, 25, vec![6, 12, 18, 24], 64);
+    let (meta, emp) = model(&cfg, Ablation::EMP);
+    let loaded = LoadedModel::from_parts(meta, &emp, cpu_device(), "mem".into());
+    let (n, c, s, l) = (cfg.n_ticks, cfg.n_joints, cfg.frame_size, cfg.plan_len());
+    let total = n + 6;
+    let joints = noise(total * c, 81);
+    let plan = noise((total + l) * c, 82);
+    let frames: Vec<Vec<f32>> = (0..total)
+        .map(|t| noise(3 * s * s, 4000 + t as u64))
+        .collect();
+    let mut stream = StreamingForecaster::new(&loaded);
+    for t in 0..total {
+        let window = &plan[t * c..(t + l) * c];
+        stream
+            .push_parts(
+                t as i64,
+                &joints[t * c..(t + 1) * c],
+                Some(&frames[t]),
+                Some(window),
+            )
+            .unwrap();
+        if t + 1 < n {
+            stream.prepare().unwrap();
+            continue;
+        }
+        let before = (
+            stream.terms_computed(),
+            stream.terms_reused(),
+            stream.plan_rows(),
+        );
+        let got = stream.forecast().unwrap();
+        let (wj, wf) = stream_window(&cfg, &joints, &frames, t);
+        let want = loaded.forecast_arrays(&wj, window, &wf).unwrap();
+        for (g, w) in got.iter().zip(&want) {
+            assert!(
+                (g - w).abs() < 1e-5,
+                "tick {t}: streaming {got:?} vs window {want:?}"
+            );
+        }
+        if t + 1 > n {
+            let computed = stream.terms_computed() - before.0;
+            let reused = stream.terms_reused() - before.1;
+            assert!(
+                computed > 0 && reused > 0,
+                "tick {t}: {computed} terms computed, {reused} reused"
+            );
+            let rows = stream.plan_rows();
+            assert_eq!(
+                (rows.0 - before.2 .0, rows.1 - before.2 .1),
+                (l as u64 - 1, 1),
+                "tick {t}: plan rows reused and multiplied"
+            );
+        }
+    }
+}
+
 #[test]
 fn calibration_is_stored_applied_everywhere_and_checked() {
     let cfg = small_config();
@@ -942,7 +1004,8 @@ fn host_gelu_equals_burn_gelu() {
     );
 }
 
-/// Every output slice of a short sequence through [`host_conv::HostConv::forward_slice_pooled`]
+/// Every output slice of a short sequence summed from its terms
+/// ([`host_conv::HostConv::slice_terms`], [`host_conv::HostConv::pooled_of_terms`])
 /// equals `conv3d` ("same" padding), ReLU and the spatial pool, the
 /// window's ends included.
 #[test]
@@ -989,15 +1052,14 @@ fn slice_conv_equals_conv3d_same_padding() {
     let sc = host_conv::HostConv::from_fused(&conv);
     let ho = hw / 2;
     for j in 0..t {
-        let inputs: Vec<Option<&[f32]>> = (0..k)
-            .map(|kt| {
-                (j + kt)
-                    .checked_sub(1)
-                    .and_then(|i| slices.get(i))
-                    .map(Vec::as_slice)
+        let terms: Vec<Vec<f32>> = (0..k)
+            .filter_map(|kt| {
+                let input = (j + kt).checked_sub(1).and_then(|i| slices.get(i))?;
+                Some(sc.slice_terms(input, &[kt], hw, &mut Vec::new()).remove(0))
             })
             .collect();
-        let got = sc.forward_slice_pooled(&inputs, hw);
+        let terms: Vec<&[f32]> = terms.iter().map(Vec::as_slice).collect();
+        let got = sc.pooled_of_terms(&terms, hw);
         for co in 0..c_out {
             for m in 0..ho * ho {
                 let w = want[(co * t + j) * ho * ho + m];
