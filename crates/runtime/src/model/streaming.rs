@@ -535,13 +535,16 @@ impl StreamingForecaster {
             // The output slices to compute (their inputs changed), and the
             // terms they need that are not kept, by input slice: each
             // input's terms are computed together (one padded copy).
+            let mut out: Vec<Option<Data>> = vec![None; t_len];
             let mut stale: Vec<usize> = Vec::new();
             let mut wanted: Vec<Vec<usize>> = vec![Vec::new(); t_len];
             for pos in 0..t_len {
                 let around = near(pos);
-                if matches!(cache.outputs.get(&slices[pos].key), Some((from, _)) if same_slices(from, &around))
-                {
-                    continue;
+                if let Some((from, data)) = cache.outputs.get(&slices[pos].key) {
+                    if same_slices(from, &around) {
+                        out[pos] = Some(data.clone());
+                        continue;
+                    }
                 }
                 stale.push(pos);
                 for (kt, s) in around.iter().enumerate() {
@@ -576,13 +579,17 @@ impl StreamingForecaster {
                 debug_assert_eq!(data.len(), out_len);
                 self.slices_computed += 1;
                 let from = around.iter().map(|s| s.map(|s| s.data.clone())).collect();
-                cache.outputs.insert(slices[pos].key, (from, data));
+                cache.outputs.insert(slices[pos].key, (from, data.clone()));
+                out[pos] = Some(data);
             }
             let out: Vec<Slice> = slices
                 .iter()
-                .map(|s| Slice {
-                    key: s.key,
-                    data: cache.outputs[&s.key].1.clone(),
+                .zip(out)
+                .filter_map(|(s, data)| {
+                    Some(Slice {
+                        key: s.key,
+                        data: data?,
+                    })
                 })
                 .collect();
             // Terms are reused where output slices change, next to the
