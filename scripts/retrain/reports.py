@@ -13,6 +13,9 @@
     reports.py chosen-pair THRESHOLDS_JSON
         prints "TRIGGER RELEASE": the pair chosen, or when none kept within
         the budget, the grid's highest trigger
+    reports.py warned-ahead THRESHOLDS_JSON
+        prints how many falls that pair (as chosen-pair) warned at least
+        0.5 s ahead
     reports.py causes BYCAUSE_DIR
         prints the test split's fall causes that subset_by_cause.py found
         (BYCAUSE_DIR/causes.json), most falls first, on one line: the
@@ -59,9 +62,13 @@ def shipped_run(model_file: str, trained_on: str) -> str:
                               "-pp" if m.get("protocol") == "paper" else "")))
 
 
-def chosen_pair(thresholds: str) -> str:
+def chosen(thresholds: str) -> dict:
     r = json.loads(Path(thresholds).read_text())
-    c = r["chosen"] or max(r["grid"], key=lambda s: s["trigger"])
+    return r["chosen"] or max(r["grid"], key=lambda s: s["trigger"])
+
+
+def chosen_pair(thresholds: str) -> str:
+    c = chosen(thresholds)
     return f"{c['trigger']} {c['release']}"
 
 
@@ -70,7 +77,7 @@ def causes(bycause: str) -> str:
 
 
 def main(argv: list[str]) -> int:
-    usage = "usage: reports.py current|shipped-run|chosen-pair|causes ARGS... (see the module's docstring)"
+    usage = "usage: reports.py current|shipped-run|chosen-pair|warned-ahead|causes ARGS... (see the module's docstring)"
     if not argv:
         print(usage, file=sys.stderr)
         return 2
@@ -82,6 +89,9 @@ def main(argv: list[str]) -> int:
         return 0
     if command == "chosen-pair" and len(args) == 1:
         print(chosen_pair(args[0]))
+        return 0
+    if command == "warned-ahead" and len(args) == 1:
+        print(chosen(args[0])["warned_by_0_5s"])
         return 0
     if command == "causes" and len(args) == 1:
         print(causes(args[0]))

@@ -7,7 +7,8 @@
 #   train     every network of the plan below, RETRAIN_PARALLEL at a time
 #   calibrate Platt scaling or beta calibration (per horizon, by
 #             cross-validation) of every network on the validation split
-#   select    the best network of each ablation by validation loss
+#   select    the network of each ablation to ship: EMP and MP by validation
+#             loss, the fallbacks EP and P by their latch on validation
 #   thresholds  the latch's trigger/release for each selected network (validation)
 #   evaluate  eval on test (both protocols, seeds as mean +- std), warnings on
 #             test and on the long walking set, by fall cause, at high sigma
@@ -383,12 +384,50 @@ best_run() {
   return 0
 }
 
+# choose_pair RUN: RUN's latch pair at LATCH_MS chosen on the validation falls
+# and walks (the budget `thresholds` uses): reports/choose-RUN.json.
+choose_pair() {
+  local model="$RUNS/$1.cal.bpk" out="$REPORTS/choose-$1.json"
+  newer "$out" "$model" "${DATA_SETS[@]}" && return 0
+  log "select: $1's pair at $LATCH_MS ms on validation falls and walks"
+  "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose \
+    --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 \
+    --out "$out.partial" >>"$LOG" 2>&1
+  mv "$out.partial" "$out"
+}
+
+# fallback_run GROUP: "RUN LOSS" of the calibrated seed of GROUP whose latch,
+# with its own pair chosen on validation (choose_pair), warns the most
+# validation falls at least 0.5 s ahead (ties: the lower validation loss).
+# The fallbacks (EP, P: what the daemon runs when the plan is lost) are
+# chosen by what the daemon does with them: a lower loss has shipped a
+# latch that, within the same alarm budget, warned half the falls.
+fallback_run() {
+  local best="" bestn=-1 bestloss="" name loss n
+  for name in $(plan | awk '{print $1}' | grep -E "^$1-s[0-9]+$"); do
+    [ -e "$RUNS/$name.cal.bpk" ] || continue
+    choose_pair "$name"
+    n=$("$PY" "$REPO/scripts/retrain/reports.py" warned-ahead "$REPORTS/choose-$name.json")
+    loss=$(val_loss "$RUNS/$name.cal.bpk")
+    if [ "$n" -gt "$bestn" ] || { [ "$n" -eq "$bestn" ] && awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; }; then
+      best=$name; bestn=$n; bestloss=$loss
+    fi
+  done
+  [ -n "$best" ] && echo "$best $bestloss"
+  return 0
+}
+
 step_select() {
   local abl best
+  need_binary
   restore_shipped
+  "$PY" "$REPO/scripts/retrain/choice_set.py" "$SET" "$WALK" "$DATA_ROOT/choice" >>"$LOG"
   : >"$REPORTS/selected.txt.partial"
   for abl in emp mp ep p; do
-    best=$(best_run "$abl$SHIP_PROTOCOL")
+    case $abl in
+      ep | p) best=$(fallback_run "$abl$SHIP_PROTOCOL") ;;
+      *) best=$(best_run "$abl$SHIP_PROTOCOL") ;;
+    esac
     [ -n "$best" ] && echo "$abl $best" >>"$REPORTS/selected.txt.partial"
   done
   mv "$REPORTS/selected.txt.partial" "$REPORTS/selected.txt"

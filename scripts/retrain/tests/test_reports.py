@@ -35,8 +35,8 @@ def test_a_report_is_current_only_for_its_model_horizon_and_hold(tmp_path):
 def test_a_shipped_file_names_its_run():
     r = reports("shipped-run", REPO / "models" / "p.bpk", MIXED)
     assert r.returncode == 0, r.stderr
-    # P early-stopped (best epoch 5 of 8): the plan's run, restored in a new data directory.
-    assert r.stdout.split() == ["True", "p", "1", "planned", "-pp"]
+    # P's seed 2 early-stopped (best epoch 2 of 5): the plan's run, restored in a new data directory.
+    assert r.stdout.split() == ["True", "p", "2", "planned", "-pp"]
     assert reports("shipped-run", REPO / "models" / "p.bpk", "another set").stdout.split()[0] == "False"
     # EMP was written after 3 of its epochs, the loss still falling: its run resumes instead.
     assert reports("shipped-run", REPO / "models" / "emp.bpk", MIXED).stdout.split()[:2] == ["False", "emp"]
@@ -49,6 +49,18 @@ def test_the_chosen_pair_or_the_highest_trigger(tmp_path):
     assert reports("chosen-pair", f).stdout.split() == ["0.7", "0.4"]
     f.write_text(json.dumps({"chosen": None, "grid": grid}))
     assert reports("chosen-pair", f).stdout.split() == ["0.9", "0.6"]
+
+
+def test_warned_ahead_is_the_chosen_pairs_or_the_highest_triggers(tmp_path):
+    f = tmp_path / "t.json"
+    grid = [
+        {"trigger": 0.7, "release": 0.4, "warned_by_0_5s": 90},
+        {"trigger": 0.9, "release": 0.6, "warned_by_0_5s": 40},
+    ]
+    f.write_text(json.dumps({"chosen": grid[0], "grid": grid}))
+    assert reports("warned-ahead", f).stdout.strip() == "90"
+    f.write_text(json.dumps({"chosen": None, "grid": grid}))
+    assert reports("warned-ahead", f).stdout.strip() == "40"
 
 
 def test_a_bad_call_says_how_to_call_it():
