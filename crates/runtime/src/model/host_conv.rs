@@ -275,24 +275,16 @@ impl HostConv {
     /// ([`HostConv::forward_grid_from_taps`]): one GEMM shared by all the
     /// periods a block folds the same input at.
     pub fn tap_products(&self, x: &[f32]) -> Vec<f32> {
-        let mut y = Vec::new();
-        self.tap_products_into(x, &mut y);
+        let mut y = vec![0.0; x.len() / self.c_in * self.k * self.k * self.c_out];
+        self.tap_products_of_rows(x, &mut y);
         y
     }
 
-    /// [`tap_products`](Self::tap_products) into `y`, resized to
-    /// `[len, taps·C_out]`: every element is written (the GEMM stores its
-    /// sums, it does not add them to what `y` held), so a buffer kept from
-    /// one tick to the next is neither zeroed nor reallocated.
-    pub fn tap_products_into(&self, x: &[f32], y: &mut Vec<f32>) {
-        let len = x.len() / self.c_in;
-        y.resize(len * self.k * self.k * self.c_out, 0.0);
-        self.tap_products_of_rows(x, y);
-    }
-
     /// [`tap_products`](Self::tap_products) into `y`, exactly
-    /// `[len, taps·C_out]` long. Each row of `y` depends on its row of `x`
-    /// alone, and is the same bits whichever rows are computed with it.
+    /// `[len, taps·C_out]` long: every element is written (the GEMM stores
+    /// its sums, it does not add them to what `y` held), so a kept buffer
+    /// needs no zeroing. Each row of `y` depends on its row of `x` alone,
+    /// and is the same bits whichever rows are computed with it.
     pub fn tap_products_of_rows(&self, x: &[f32], y: &mut [f32]) {
         let (weight, int8) = self.layout(Layout::ByInput);
         let c_in = self.c_in;

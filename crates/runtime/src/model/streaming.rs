@@ -536,7 +536,7 @@ impl StreamingForecaster {
             // terms they need that are not kept, by input slice: each
             // input's terms are computed together (one padded copy).
             let mut out: Vec<Option<Data>> = vec![None; t_len];
-            let mut stale: Vec<usize> = Vec::new();
+            let mut stale: Vec<(usize, Vec<Option<&Slice>>)> = Vec::new();
             let mut wanted: Vec<Vec<usize>> = vec![Vec::new(); t_len];
             for pos in 0..t_len {
                 let around = near(pos);
@@ -546,7 +546,6 @@ impl StreamingForecaster {
                         continue;
                     }
                 }
-                stale.push(pos);
                 for (kt, s) in around.iter().enumerate() {
                     if let Some(s) = s {
                         if term_of(&cache.terms, s, kt).is_none() {
@@ -556,6 +555,7 @@ impl StreamingForecaster {
                         }
                     }
                 }
+                stale.push((pos, around));
             }
             for (i, kts) in wanted.iter().enumerate().filter(|(_, kts)| !kts.is_empty()) {
                 let s = &slices[i];
@@ -567,8 +567,7 @@ impl StreamingForecaster {
                         .insert((s.key, kt), (s.data.clone(), Arc::new(term)));
                 }
             }
-            for &pos in &stale {
-                let around = near(pos);
+            for (pos, around) in stale {
                 let terms: Vec<Data> = around
                     .iter()
                     .enumerate()
