@@ -369,47 +369,44 @@ calibrate_per_horizon() {
   done
 }
 
-# best_run GROUP: "RUN LOSS" of the calibrated seed of GROUP (GROUP-sN in the
-# plan) with the lowest validation loss; nothing when none is calibrated.
-best_run() {
-  local best="" bestloss="" name loss
-  for name in $(plan | awk '{print $1}' | grep -E "^$1-s[0-9]+$"); do
-    [ -e "$RUNS/$name.cal.bpk" ] || continue
-    loss=$(val_loss "$RUNS/$name.cal.bpk")
-    if [ -z "$best" ] || awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; then
-      best=$name; bestloss=$loss
-    fi
-  done
-  [ -n "$best" ] && echo "$best $bestloss"
-  return 0
+# choose_on_validation MODEL HORIZON_MS OUT: MODEL's latch pair at HORIZON_MS
+# chosen on the validation falls and walks (<= 0.1 false alarms per minute,
+# `fall-guard-lab warnings --choose`), written to OUT.
+choose_on_validation() {
+  "$FG" warnings --model "$1" --data "$DATA_ROOT/choice" --split validation --choose \
+    --horizon-ms "$2" --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 \
+    --out "$3.partial" >>"$LOG" 2>&1
+  mv "$3.partial" "$3"
 }
 
-# choose_pair RUN: RUN's latch pair at LATCH_MS chosen on the validation falls
-# and walks (the budget `thresholds` uses): reports/choose-RUN.json.
+# choose_pair RUN: RUN's latch pair at LATCH_MS chosen on validation
+# (choose_on_validation), reports/choose-RUN.json; kept while current.
 choose_pair() {
   local model="$RUNS/$1.cal.bpk" out="$REPORTS/choose-$1.json"
-  newer "$out" "$model" "${DATA_SETS[@]}" && return 0
-  log "select: $1's pair at $LATCH_MS ms on validation falls and walks"
-  "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose \
-    --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 \
-    --out "$out.partial" >>"$LOG" 2>&1
-  mv "$out.partial" "$out"
+  current "$out" "$model" "$LATCH_MS" && return 0
+  log "$1's pair at $LATCH_MS ms on validation falls and walks"
+  choose_on_validation "$model" "$LATCH_MS" "$out"
 }
 
-# fallback_run GROUP: "RUN LOSS" of the calibrated seed of GROUP whose latch,
-# with its own pair chosen on validation (choose_pair), warns the most
-# validation falls at least 0.5 s ahead (ties: the lower validation loss).
-# The fallbacks (EP, P: what the daemon runs when the plan is lost) are
-# chosen by what the daemon does with them: a lower loss has shipped a
-# latch that, within the same alarm budget, warned half the falls.
-fallback_run() {
-  local best="" bestn=-1 bestloss="" name loss n
+# best_run GROUP [latch]: "RUN LOSS" of the calibrated seed of GROUP
+# (GROUP-sN in the plan) with the lowest validation loss; nothing when none
+# is calibrated. With `latch`, the seed whose latch, with its own pair
+# chosen on validation (choose_pair), warns the most validation falls at
+# least 0.5 s ahead, ties to the lower loss: the fallbacks (EP, P: what the
+# daemon runs when the plan is lost) are chosen by what the daemon does
+# with them (a lower loss has shipped a latch that, within the same alarm
+# budget, warned half the falls).
+best_run() {
+  local best="" bestn=0 bestloss="" name loss n=0
   for name in $(plan | awk '{print $1}' | grep -E "^$1-s[0-9]+$"); do
     [ -e "$RUNS/$name.cal.bpk" ] || continue
-    choose_pair "$name"
-    n=$("$PY" "$REPO/scripts/retrain/reports.py" warned-ahead "$REPORTS/choose-$name.json")
+    if [ "${2:-}" = latch ]; then
+      choose_pair "$name"
+      n=$("$PY" "$REPO/scripts/retrain/reports.py" warned-ahead "$REPORTS/choose-$name.json")
+    fi
     loss=$(val_loss "$RUNS/$name.cal.bpk")
-    if [ "$n" -gt "$bestn" ] || { [ "$n" -eq "$bestn" ] && awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; }; then
+    if [ -z "$best" ] || [ "$n" -gt "$bestn" ] \
+      || { [ "$n" -eq "$bestn" ] && awk -v a="$loss" -v b="$bestloss" 'BEGIN{exit !(a < b)}'; }; then
       best=$name; bestn=$n; bestloss=$loss
     fi
   done
@@ -425,7 +422,7 @@ step_select() {
   : >"$REPORTS/selected.txt.partial"
   for abl in emp mp ep p; do
     case $abl in
-      ep | p) best=$(fallback_run "$abl$SHIP_PROTOCOL") ;;
+      ep | p) best=$(best_run "$abl$SHIP_PROTOCOL" latch) ;;
       *) best=$(best_run "$abl$SHIP_PROTOCOL") ;;
     esac
     [ -n "$best" ] && echo "$abl $best" >>"$REPORTS/selected.txt.partial"
@@ -436,19 +433,18 @@ step_select() {
 
 step_thresholds() {
   need_binary
-  local abl name loss model out
+  local abl name loss out
   # Validation falls with validation walking (the set's sigma <= 0.01 walks and
   # the walking set's validation split): false alarms are bounded per minute
   # of walking; the walking set's train and test splits give the test figure.
   "$PY" "$REPO/scripts/retrain/choice_set.py" "$SET" "$WALK" "$DATA_ROOT/choice" >>"$LOG"
   while read -r abl name loss; do
-    model="$RUNS/$name.cal.bpk"
     out="$REPORTS/$abl-thresholds.json"
-    current "$out" "$model" "$LATCH_MS" && continue
-    log "thresholds $abl ($name) at $LATCH_MS ms on validation falls and walks"
-    "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose \
-      --horizon-ms "$LATCH_MS" --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 \
-      --out "$out.partial" >>"$LOG" 2>&1
+    current "$out" "$RUNS/$name.cal.bpk" "$LATCH_MS" && continue
+    # The same choice `select` made for a fallback's seeds: made once.
+    log "thresholds $abl ($name)"
+    choose_pair "$name"
+    cp "$REPORTS/choose-$name.json" "$out.partial"
     mv "$out.partial" "$out"
   done <"$REPORTS/selected.txt"
 }
@@ -638,9 +634,7 @@ warnings_2s() {
   out="$REPORTS/warn2s-$name-choose.json"
   if ! newer "$out" "$model" "${DATA_SETS[@]}"; then
     log "warnings $name at 2 s: thresholds on validation falls and walks"
-    "$FG" warnings --model "$model" --data "$DATA_ROOT/choice" --split validation --choose --horizon-ms 2000 \
-      --release-hold-ms "$HOLD_MS" --max-false-alarms-per-min 0.1 --out "$out.partial" >>"$LOG" 2>&1
-    mv "$out.partial" "$out"
+    choose_on_validation "$model" 2000 "$out"
   fi
   for target in set:test walk:train walk:test; do
     latch_warnings "$model" "$out" 2000 "$target" "$REPORTS/warn2s-$name-${target/:/-}.json"
