@@ -4,8 +4,9 @@
 //! publishes every tick, valid or NaN with the reason (a skipped tick
 //! names itself), sets EMP aside for MP once the budget is missed
 //! persistently, says so on `/diagnostics`, and returns to EMP when it tries
-//! it again after 10 s within budget. No timing is asserted: the slowed
-//! forecasts take twice a tick whatever the machine.
+//! it again after 10 s within budget; slowed further (15 ticks a
+//! forecast), its late ticks are not charged to MP. No timing is asserted:
+//! the slowed forecasts take 2 or 15 ticks whatever the machine.
 
 mod daemon_common;
 
@@ -15,8 +16,9 @@ use fall_guard_runtime::outputs::annotate::read_forecasts;
 use fall_guard_runtime::pipeline::inference::SLOW_INFERENCE_ENV;
 use fall_guard_runtime::recording::read_topic;
 
-#[test]
-fn a_slow_network_is_set_aside_for_a_lighter_one_and_taken_back() {
+/// A 20 s walk replayed at real time with the hook `slow`: its lines in
+/// tick order (every tick once, checked), the log and the output recording.
+fn replay_slowed(slow: &str) -> (Scene, Vec<Line>, String, std::path::PathBuf) {
     let scene = Scene::new("walk.mcap");
     let ticks = 600;
     write_recording(&scene.path("walk.mcap"), 11, false, ticks);
@@ -33,7 +35,7 @@ fn a_slow_network_is_set_aside_for_a_lighter_one_and_taken_back() {
         ])
         .current_dir(scene.dir.path())
         .env("RUST_LOG", "info")
-        .env(SLOW_INFERENCE_ENV, "EMP:70:150")
+        .env(SLOW_INFERENCE_ENV, slow)
         .output()
         .expect("run fall-guard");
     let log = stderr(&run);
@@ -64,16 +66,27 @@ fn a_slow_network_is_set_aside_for_a_lighter_one_and_taken_back() {
     assert!(skipped
         .iter()
         .all(|l| !l.valid && l.probabilities.is_empty()));
+    (scene, lines, log, out)
+}
 
-    // EMP, then MP while EMP is set aside, then EMP again.
-    let runs: Vec<(&str, i64)> = lines.iter().fold(Vec::new(), |mut v, l| {
+/// The networks that ran, in turn, each with the tick it started at.
+fn runs(lines: &[Line]) -> Vec<(&str, i64)> {
+    lines.iter().fold(Vec::new(), |mut v, l| {
         if v.last()
             .is_none_or(|(a, _): &(&str, i64)| *a != l.ablation.as_str())
         {
             v.push((l.ablation.as_str(), l.tick));
         }
         v
-    });
+    })
+}
+
+#[test]
+fn a_slow_network_is_set_aside_for_a_lighter_one_and_taken_back() {
+    let (_scene, lines, log, out) = replay_slowed("EMP:70:150");
+
+    // EMP, then MP while EMP is set aside, then EMP again.
+    let runs = runs(&lines);
     let order: Vec<&str> = runs.iter().map(|r| r.0).collect();
     assert!(
         order.starts_with(&["EMP", "MP", "EMP"]),
@@ -104,4 +117,18 @@ fn a_slow_network_is_set_aside_for_a_lighter_one_and_taken_back() {
         })
     });
     assert!(said, "the model status names the overload");
+}
+
+/// EMP slowed by 500 ms (15 ticks) a forecast: the ticks skipped while its
+/// last forecast finishes after it was set aside, and MP's first forecast
+/// (its whole window), are not MP's misses; MP keeps its budget and is not
+/// set aside in turn (the daemon does not fall through to EP and P).
+#[test]
+fn the_network_set_aside_does_not_charge_its_late_ticks_to_the_next() {
+    let (_scene, lines, log, _out) = replay_slowed("EMP:500:150");
+    let runs = runs(&lines);
+    let order: Vec<&str> = runs.iter().map(|r| r.0).collect();
+    assert_eq!(order, ["EMP", "MP", "EMP"], "switches {runs:?}\n{log}");
+    assert!(log.contains("overload: EMP set aside"), "{log}");
+    assert!(!log.contains("overload: MP set aside"), "{log}");
 }

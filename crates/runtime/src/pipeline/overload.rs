@@ -13,6 +13,16 @@
 //!
 //! Judged on ticks, not on clock time: the same decisions in a replay at
 //! any speed as live, for the same sequence of skipped ticks.
+//!
+//! A skipped tick is charged to the network whose steady work made it late.
+//! One skipped while another network's forecast is still running (the one
+//! just set aside finishing its last tick), or while a network makes its
+//! first forecast after a switch (its whole window pushed at once, a cost
+//! of the switch, not of the network), is excused: published and counted
+//! like any other, but neither a miss nor a tick within budget here.
+//! Without that, on a core where EMP runs late, EMP's last forecast and
+//! MP's first one are charged to MP, which is then set aside in turn and
+//! the daemon falls through to P although MP keeps its budget.
 
 use std::collections::VecDeque;
 
@@ -46,6 +56,18 @@ impl OverloadSettings {
             max_retry_ticks: ticks(300.0),
         }
     }
+}
+
+/// A tick as the policy counts it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Budget {
+    /// Forecast in time.
+    Kept,
+    /// Skipped: the running network's own forecast was still running.
+    Missed,
+    /// Skipped, but charged to no network: another network's forecast, or
+    /// this one's first after a switch, was running (module docs).
+    Excused,
 }
 
 /// A decision of the policy.
@@ -140,16 +162,21 @@ impl Overload {
         (!self.set_aside.is_empty()).then(|| self.retry_ticks.saturating_sub(self.calm))
     }
 
-    /// One tick: `skipped` when it was not forecast because the previous
-    /// inference was still running; `active` the network running and
-    /// `lighter` whether the model choice has one to fall back to.
+    /// One tick: its [`Budget`]; `active` the network running and
+    /// `lighter` whether the model choice has one to fall back to. An
+    /// excused tick moves neither the window nor the calm count.
     pub fn tick(
         &mut self,
-        skipped: bool,
+        budget: Budget,
         active: Ablation,
         lighter: bool,
     ) -> Option<OverloadChange> {
         self.ticks += 1;
+        let skipped = match budget {
+            Budget::Kept => false,
+            Budget::Missed => true,
+            Budget::Excused => return None,
+        };
         if self.recent.len() == self.settings.window_ticks {
             self.recent.pop_front();
         }
@@ -203,6 +230,14 @@ impl Overload {
 mod tests {
     use super::*;
 
+    fn missed(skipped: bool) -> Budget {
+        if skipped {
+            Budget::Missed
+        } else {
+            Budget::Kept
+        }
+    }
+
     fn settings() -> OverloadSettings {
         OverloadSettings {
             window_ticks: 10,
@@ -216,7 +251,11 @@ mod tests {
     fn a_budget_missed_now_and_then_sets_nothing_aside() {
         let mut o = Overload::new(settings());
         for i in 0..100 {
-            assert_eq!(o.tick(i % 5 == 0, Ablation::EMP, true), None, "tick {i}");
+            assert_eq!(
+                o.tick(missed(i % 5 == 0), Ablation::EMP, true),
+                None,
+                "tick {i}"
+            );
         }
         assert!(o.set_aside().is_empty());
     }
@@ -227,7 +266,7 @@ mod tests {
         // Every other tick skipped: the third skip in the window decides.
         let mut decided = None;
         for i in 0..10 {
-            if let Some(c) = o.tick(i % 2 == 1, Ablation::EMP, true) {
+            if let Some(c) = o.tick(missed(i % 2 == 1), Ablation::EMP, true) {
                 decided = Some((i, c));
                 break;
             }
@@ -245,11 +284,11 @@ mod tests {
         assert_eq!(o.set_aside(), &[Ablation::EMP]);
         // MP keeps its budget: EMP is tried after 20 calm ticks.
         for _ in 0..19 {
-            assert_eq!(o.tick(false, Ablation::MP, true), None);
+            assert_eq!(o.tick(Budget::Kept, Ablation::MP, true), None);
         }
         assert_eq!(o.retry_in_ticks(), Some(1));
         assert_eq!(
-            o.tick(false, Ablation::MP, true),
+            o.tick(Budget::Kept, Ablation::MP, true),
             Some(OverloadChange::Retry {
                 network: Ablation::EMP,
                 calm: 20
@@ -259,7 +298,7 @@ mod tests {
         // EMP misses again at once: set aside, and the next wait doubles.
         let mut again = None;
         for i in 0..10 {
-            again = again.or(o.tick(i % 2 == 1, Ablation::EMP, true));
+            again = again.or(o.tick(missed(i % 2 == 1), Ablation::EMP, true));
         }
         assert!(matches!(again, Some(OverloadChange::SetAside { .. })));
         assert_eq!(o.retry_in_ticks(), Some(40));
@@ -270,9 +309,36 @@ mod tests {
     fn without_a_lighter_network_the_miss_is_only_counted() {
         let mut o = Overload::new(settings());
         for _ in 0..30 {
-            assert_eq!(o.tick(true, Ablation::P, false), None);
+            assert_eq!(o.tick(Budget::Missed, Ablation::P, false), None);
         }
         assert_eq!(o.skipped_in_window(), 10);
+    }
+
+    #[test]
+    fn excused_ticks_are_charged_to_no_network() {
+        let mut o = Overload::new(settings());
+        // Two misses, then as many excused ticks as a window: the third
+        // miss still decides, the excused ones neither fill nor empty it.
+        for _ in 0..2 {
+            assert_eq!(o.tick(Budget::Missed, Ablation::MP, true), None);
+        }
+        for _ in 0..30 {
+            assert_eq!(o.tick(Budget::Excused, Ablation::MP, true), None);
+        }
+        assert_eq!(o.skipped_in_window(), 2);
+        assert!(matches!(
+            o.tick(Budget::Missed, Ablation::MP, true),
+            Some(OverloadChange::SetAside {
+                network: Ablation::MP,
+                ..
+            })
+        ));
+        // Nor do they count as calm: the retry still needs 20 kept ticks.
+        for _ in 0..19 {
+            assert_eq!(o.tick(Budget::Kept, Ablation::P, true), None);
+            assert_eq!(o.tick(Budget::Excused, Ablation::P, true), None);
+        }
+        assert_eq!(o.retry_in_ticks(), Some(1));
     }
 
     #[test]

@@ -28,7 +28,7 @@ use crate::outputs::{
 use crate::pipeline::choice::{best_configured, Freshness, JointsAt, ModelChoice};
 use crate::pipeline::inference::{percentiles_ms, print_forecast, Inference, InferenceJob};
 use crate::pipeline::models::{ablation_name, ModelSet};
-use crate::pipeline::overload::{Overload, OverloadSettings};
+use crate::pipeline::overload::{Budget, Overload, OverloadSettings};
 use crate::shutdown::Shutdown;
 use crate::streams::input::Seq;
 use crate::streams::sample::Sample;
@@ -139,6 +139,11 @@ pub struct TickLoop {
     last_joints_stale: Option<(i64, String)>,
     /// When inference runs late: which networks are set aside.
     overload: Overload,
+    /// The network of the last job dispatched, and whether it was that
+    /// network's first after a switch: a tick skipped meanwhile is charged
+    /// to it only when it is the active network's steady work
+    /// ([`Budget::Excused`]).
+    last_job: Option<(Ablation, bool)>,
 }
 
 /// Names of the joints a tick has no angle for: never read (a motor that
@@ -311,6 +316,7 @@ impl TickLoop {
             last_reason: String::new(),
             last_joints_stale: None,
             overload,
+            last_job: None,
         })
     }
 
@@ -419,7 +425,9 @@ impl TickLoop {
             match self.inference.try_dispatch(job) {
                 Ok(()) => {
                     self.counters.dispatched += 1;
-                    self.budget(false, active);
+                    let switched = self.last_job.is_none_or(|(a, _)| a != active);
+                    self.last_job = Some((active, switched));
+                    self.budget(Budget::Kept, active);
                 }
                 Err(_) => self.overrun(tick_index, stamp_ns, active, sensed_at),
             }
@@ -467,14 +475,18 @@ impl TickLoop {
             print_forecast(&skipped);
         }
         self.bus.send_forecast(skipped);
-        self.budget(true, active);
+        let budget = match self.last_job {
+            Some((network, first)) if network != active || first => Budget::Excused,
+            _ => Budget::Missed,
+        };
+        self.budget(budget, active);
     }
 
-    /// One tick's budget, kept or missed, to the overload policy; a
-    /// network it sets aside (or tries again) reaches the model choice.
-    fn budget(&mut self, skipped: bool, active: Ablation) {
+    /// One tick's budget to the overload policy; a network it sets aside
+    /// (or tries again) reaches the model choice.
+    fn budget(&mut self, budget: Budget, active: Ablation) {
         let lighter = self.choice.has_lighter();
-        if self.overload.tick(skipped, active, lighter).is_some() {
+        if self.overload.tick(budget, active, lighter).is_some() {
             self.choice.set_aside(self.overload.set_aside());
         }
     }
