@@ -21,7 +21,9 @@
 //! products each way):
 //! - [`HostConv::tap_products`] (`host_conv`) multiplies every input
 //!   position by every kernel tap once; [`HostConv::forward_grid_from_taps`]
-//!   then makes any period's output by sums alone;
+//!   then makes any period's output by sums alone (also taken, whatever
+//!   the counts, when the block's input is its last one slid by a row and
+//!   only the new row's products are made: `plan.rs`, `TapRows`);
 //! - [`HostConv::forward_grids_summed`] runs the weighted periods through one
 //!   GEMM (the weighted sum of their im2col matrices: the convolution is
 //!   linear).

@@ -64,8 +64,11 @@ impl Clone for PlanFused {
 /// (The second block's input changes everywhere: it is computed whole.)
 #[derive(Debug, Default)]
 struct TapRows {
-    /// The input rows `[L, d]` the products are of.
+    /// The block's last input rows `[L, d]`, whichever way it was computed.
     x: Vec<f32>,
+    /// Whether `y` holds the products of `x` (not when the block last
+    /// folded each period on its own).
+    has_y: bool,
     /// Rows `start..start + L` are the products of `x`, `taps·C_out` each;
     /// up to `2L` rows once the window has slid, so that a slide moves
     /// `start` instead of the rows (they are moved back once every `L`).
@@ -77,18 +80,32 @@ struct TapRows {
 }
 
 impl TapRows {
+    /// Whether `x` (`[L, d]`) is the block's last input slid by one row
+    /// (bit for bit).
+    fn slides(&self, x: &[f32], d: usize) -> bool {
+        let l = x.len() / d;
+        l > 1
+            && self.x.len() == x.len()
+            && x[..(l - 1) * d]
+                .iter()
+                .zip(&self.x[d..])
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+    }
+
+    /// The block took its input `x` another way: no products kept, but
+    /// the next input can still be seen to slide from it.
+    fn without_products(&mut self, x: &[f32]) {
+        self.x.clear();
+        self.x.extend_from_slice(x);
+        self.has_y = false;
+    }
+
     /// The tap products of `x` (`[L, d]`), reusing the last call's rows
     /// where `x` is its input slid by one row (bit for bit).
     fn products(&mut self, conv: &HostConv, x: &[f32], d: usize) -> &[f32] {
         let l = x.len() / d;
         let n = conv.k() * conv.k() * conv.c_out();
-        let slid = l > 1
-            && self.x.len() == x.len()
-            && self.y.len() >= l * n
-            && x[..(l - 1) * d]
-                .iter()
-                .zip(&self.x[d..])
-                .all(|(a, b)| a.to_bits() == b.to_bits());
+        let slid = self.has_y && self.y.len() >= l * n && self.slides(x, d);
         if slid {
             if self.y.len() < 2 * l * n {
                 self.y.resize(2 * l * n, 0.0);
@@ -114,6 +131,7 @@ impl TapRows {
         }
         self.x.clear();
         self.x.extend_from_slice(x);
+        self.has_y = true;
         &self.y[self.start * n..(self.start + l) * n]
     }
 }
@@ -332,7 +350,11 @@ fn fused_periods(
         // Every period's first convolution reads the same input: when
         // folding it at each period would multiply more than once per tap
         // and position, the tap products are made once and each period
-        // only sums them.
+        // only sums them. And whenever the input is the last one slid by
+        // a row (the first block between two plan messages): then only
+        // the new row is multiplied, while folding would multiply every
+        // position again (at a new plan the block folds if that is
+        // cheaper, and the next tick makes all the products once).
         let conv_in = &convs[0];
         let taps = conv_in.k() * conv_in.k();
         let folded: usize = distinct
@@ -345,7 +367,11 @@ fn fused_periods(
         // Kept from one call to the next ([`TapRows`]): written by the
         // GEMM, neither zeroed nor reallocated per tick.
         let mut kept = tap_rows.lock().unwrap_or_else(|e| e.into_inner());
-        let use_shared = conv_in.has_tap_products() && one_pass_pays(folded, l, taps);
+        let use_shared =
+            conv_in.has_tap_products() && (one_pass_pays(folded, l, taps) || kept.slides(xs, d));
+        if !use_shared {
+            kept.without_products(xs);
+        }
         let shared = use_shared.then(|| kept.products(conv_in, xs, d));
         let hidden: Vec<(usize, usize, f32, Vec<f32>)> = distinct
             .iter()
@@ -615,17 +641,30 @@ mod tests {
                 f
             };
             let kept = fused();
+            let window = |t: usize| plan.clone().slice([t..t + l, 0..c]).unsqueeze::<3>();
             for t in 0..ticks {
-                let window = || plan.clone().slice([t..t + l, 0..c]).unsqueeze::<3>();
-                let got = enc.forward(window(), Some(&kept)).into_data();
-                let want = enc.forward(window(), Some(&fused())).into_data();
+                let before = kept.tap_rows();
+                let got = enc.forward(window(t), Some(&kept)).into_data();
+                // The same path without kept rows: fresh convolutions that
+                // saw only the window before (so that the window slides for
+                // them too, and every row is multiplied).
+                let fresh = fused();
+                if t > 0 {
+                    enc.forward(window(t - 1), Some(&fresh));
+                }
+                let want = enc.forward(window(t), Some(&fresh)).into_data();
                 assert_eq!(got, want, "int8 {int8}, tick {t}");
+                // From the third tick on (the first may fold, the second
+                // then multiplies every row), one row multiplied a tick.
+                if t >= 2 {
+                    let (reused, computed) = kept.tap_rows();
+                    assert_eq!(
+                        (reused - before.0, computed - before.1),
+                        ((l - 1) as u64, 1),
+                        "int8 {int8}, tick {t}"
+                    );
+                }
             }
-            let per_tick = (l - 1) as u64;
-            assert_eq!(
-                kept.tap_rows(),
-                (per_tick * (ticks as u64 - 1), (l + ticks - 1) as u64)
-            );
         }
     }
 
