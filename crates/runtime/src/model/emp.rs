@@ -13,7 +13,7 @@ use burn::tensor::activation::{gelu, softplus};
 
 use super::config::{Ablation, ModelConfig};
 use super::host_linear::HostLinear;
-use super::motion::MotionEncoder;
+use super::motion::{MotionEncoder, MotionHost};
 use super::plan::{PlanEncoder, PlanFused};
 use super::vision::{VisionEncoder, VisionFused};
 
@@ -123,7 +123,7 @@ impl Emp {
         EmpInference {
             plan_fused: plan.as_ref().map(PlanEncoder::fuse),
             vision_fused: vision.as_ref().map(VisionEncoder::fuse),
-            motion,
+            motion: MotionHost::of(&motion),
             plan,
             hidden: HostLinear::from_linear(&classifier.hidden),
             out: classifier.out,
@@ -134,7 +134,8 @@ impl Emp {
 /// The network for inference: fused Inception kernels, no autodiff, no dropout.
 #[derive(Debug, Clone)]
 pub struct EmpInference {
-    motion: MotionEncoder,
+    /// The motion encoder on the host ([`MotionHost`]).
+    motion: MotionHost,
     /// Embedding, norms and period choice (its convolutions run fused).
     plan: Option<PlanEncoder>,
     /// Classifier input projection `features -> d_model`.
