@@ -48,22 +48,7 @@ impl HostLinear {
     /// From a burn [`Linear`] (weight `[in, out]`); f16 when that is lossless.
     pub fn from_linear(linear: &Linear) -> HostLinear {
         let [d_in, d_out] = linear.weight.dims();
-        let w: Vec<f32> = linear
-            .weight
-            .val()
-            .into_data()
-            .convert::<f32>()
-            .try_into_vec::<f32>()
-            .expect("f32 weights");
-        let bias: Vec<f32> = match &linear.bias {
-            Some(b) => b
-                .val()
-                .into_data()
-                .convert::<f32>()
-                .try_into_vec::<f32>()
-                .expect("f32 bias"),
-            None => vec![0.0; d_out],
-        };
+        let (w, bias) = linear_values(linear);
         HostLinear::new(w, bias, d_in, d_out)
     }
 
@@ -224,6 +209,26 @@ impl HostLinear {
             }
         }
     }
+}
+
+/// A tensor's values on the host, in f32, row-major.
+pub(super) fn host_values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data()
+        .convert::<f32>()
+        .try_into_vec::<f32>()
+        .expect("f32 values")
+}
+
+/// A burn [`Linear`]'s weight `[in, out]` row-major and its bias (zeros
+/// when it has none), on the host.
+pub(super) fn linear_values(linear: &Linear) -> (Vec<f32>, Vec<f32>) {
+    let d_out = linear.weight.dims()[1];
+    let w = host_values(linear.weight.val());
+    let bias = linear
+        .bias
+        .as_ref()
+        .map_or_else(|| vec![0.0; d_out], |b| host_values(b.val()));
+    (w, bias)
 }
 
 /// The int8 product's input: `x[r] · scale[r]` (the rows' weight scales

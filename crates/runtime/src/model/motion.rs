@@ -10,6 +10,7 @@ use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::prelude::*;
 
 use super::config::ModelConfig;
+use super::host_linear::{host_values, linear_values};
 use super::spectral::dct_matrix_shared;
 
 /// The layer norms' epsilon (burn's default, set explicitly so that the
@@ -83,23 +84,6 @@ impl MotionEncoder {
     }
 }
 
-/// A linear layer's weight `[in, out]` and bias as host values.
-fn linear_host(linear: &Linear) -> (Vec<f32>, Vec<f32>) {
-    let host = |t: Tensor<1>| -> Vec<f32> {
-        t.into_data()
-            .convert::<f32>()
-            .try_into_vec::<f32>()
-            .expect("f32 weights")
-    };
-    let [d_in, d_out] = linear.weight.dims();
-    let w = host(linear.weight.val().reshape([d_in * d_out]));
-    let b = linear
-        .bias
-        .as_ref()
-        .map_or_else(|| vec![0.0; d_out], |b| host(b.val()));
-    (w, b)
-}
-
 /// A layer norm over the last axis, on the host.
 #[derive(Debug, Clone)]
 struct HostNorm {
@@ -109,17 +93,11 @@ struct HostNorm {
 
 impl HostNorm {
     fn of(norm: &LayerNorm) -> HostNorm {
-        let host = |t: Tensor<1>| -> Vec<f32> {
-            t.into_data()
-                .convert::<f32>()
-                .try_into_vec::<f32>()
-                .expect("f32 weights")
-        };
-        let gamma = host(norm.gamma.val());
+        let gamma = host_values(norm.gamma.val());
         let beta = norm
             .beta
             .as_ref()
-            .map_or_else(|| vec![0.0; gamma.len()], |b| host(b.val()));
+            .map_or_else(|| vec![0.0; gamma.len()], |b| host_values(b.val()));
         HostNorm { gamma, beta }
     }
 
@@ -153,17 +131,47 @@ fn mix_rows(m: &[f32], x: &[f32], c: usize, out: &mut [f32]) {
     }
 }
 
-/// `row · W + b` in place for `W` `[c, c]` row-major (`[in, out]`).
-#[inline(always)]
-fn spatial(w: &[f32], b: &[f32], row: &mut [f32], tmp: &mut [f32]) {
-    let c = row.len();
-    tmp.copy_from_slice(b);
-    for (i, &x) in row.iter().enumerate() {
-        for (o, wv) in tmp.iter_mut().zip(&w[i * c..(i + 1) * c]) {
-            *o += x * wv;
+/// A spatial layer and the norm after it, on the host: each tick's row
+/// `norm(row · W + b)`, `W` `[c, c]` row-major (`[in, out]`).
+#[derive(Debug, Clone)]
+struct HostSpatial {
+    w: Vec<f32>,
+    b: Vec<f32>,
+    norm: HostNorm,
+}
+
+impl HostSpatial {
+    fn of(linear: &Linear, norm: &LayerNorm) -> HostSpatial {
+        let (w, b) = linear_values(linear);
+        HostSpatial {
+            w,
+            b,
+            norm: HostNorm::of(norm),
         }
     }
-    row.copy_from_slice(tmp);
+
+    /// Every row of `x` (`w` values apart, the first `tmp.len()` of each
+    /// the joints) in place.
+    #[inline(always)]
+    fn rows(&self, x: &mut [f32], w: usize, tmp: &mut [f32]) {
+        let c = tmp.len();
+        for row in x.chunks_exact_mut(w) {
+            let row = &mut row[..c];
+            tmp.copy_from_slice(&self.b);
+            for (i, &v) in row.iter().enumerate() {
+                for (o, wv) in tmp.iter_mut().zip(&self.w[i * c..(i + 1) * c]) {
+                    *o += v * wv;
+                }
+            }
+            row.copy_from_slice(tmp);
+            self.norm.apply(row);
+        }
+    }
+}
+
+/// `m` `[n, n]` row-major, transposed.
+fn transposed(m: &[f32], n: usize) -> Vec<f32> {
+    (0..n * n).map(|k| m[(k % n) * n + k / n]).collect()
 }
 
 /// The motion encoder for inference, on the host: the same operations as
@@ -179,13 +187,11 @@ pub struct MotionHost {
     dct: Arc<[f32]>,
     /// `D^T`, `[n, n]`, for the inverse transform as the same row mix.
     dct_t: Vec<f32>,
-    spatial_in: (Vec<f32>, Vec<f32>),
-    norm_in: HostNorm,
+    spatial_in: HostSpatial,
     /// Per temporal block: `U^T` `[out, in]` (rows mixed as `dct` is), its
     /// bias per output tick, and its norm.
     temporal: Vec<(Vec<f32>, Vec<f32>, HostNorm)>,
-    spatial_out: (Vec<f32>, Vec<f32>),
-    norm_out: HostNorm,
+    spatial_out: HostSpatial,
 }
 
 impl MotionHost {
@@ -193,14 +199,13 @@ impl MotionHost {
         let n = enc.n_ticks;
         let c = enc.spatial_in.weight.dims()[0];
         let dct = dct_matrix_shared(n);
-        let dct_t = (0..n * n).map(|k| dct[(k % n) * n + k / n]).collect();
+        let dct_t = transposed(&dct, n);
         let temporal = enc
             .temporal
             .iter()
             .map(|b| {
-                let (w, bias) = linear_host(&b.time);
-                let w_t = (0..n * n).map(|k| w[(k % n) * n + k / n]).collect();
-                (w_t, bias, HostNorm::of(&b.norm))
+                let (w, bias) = linear_values(&b.time);
+                (transposed(&w, n), bias, HostNorm::of(&b.norm))
             })
             .collect();
         MotionHost {
@@ -208,11 +213,9 @@ impl MotionHost {
             c,
             dct,
             dct_t,
-            spatial_in: linear_host(&enc.spatial_in),
-            norm_in: HostNorm::of(&enc.norm_in),
+            spatial_in: HostSpatial::of(&enc.spatial_in, &enc.norm_in),
             temporal,
-            spatial_out: linear_host(&enc.spatial_out),
-            norm_out: HostNorm::of(&enc.norm_out),
+            spatial_out: HostSpatial::of(&enc.spatial_out, &enc.norm_out),
         }
     }
 
@@ -221,11 +224,7 @@ impl MotionHost {
         let [b, n, c] = joints.dims();
         assert_eq!((n, c), (self.n, self.c), "motion input shape");
         let device = joints.device();
-        let xs: Vec<f32> = joints
-            .into_data()
-            .convert::<f32>()
-            .try_into_vec::<f32>()
-            .expect("f32 joints");
+        let xs = host_values(joints);
         let mut out = vec![0.0f32; b * n * c];
         for (x, y) in xs.chunks_exact(n * c).zip(out.chunks_exact_mut(n * c)) {
             self.sample(x, y);
@@ -275,15 +274,7 @@ impl MotionHost {
         let mut u = vec![0.0f32; n * w];
         let mut tmp = vec![0.0f32; c];
         mix(&self.dct, &j, &mut x);
-        for row in x.chunks_exact_mut(w) {
-            spatial(
-                &self.spatial_in.0,
-                &self.spatial_in.1,
-                &mut row[..c],
-                &mut tmp,
-            );
-            self.norm_in.apply(&mut row[..c]);
-        }
+        self.spatial_in.rows(&mut x, w, &mut tmp);
         for (w_t, bias, norm) in &self.temporal {
             mix(w_t, &x, &mut u);
             for ((ur, xr), b) in u.chunks_exact_mut(w).zip(x.chunks_exact_mut(w)).zip(bias) {
@@ -296,15 +287,7 @@ impl MotionHost {
                     .for_each(|(xv, uv)| *xv += uv);
             }
         }
-        for row in x.chunks_exact_mut(w) {
-            spatial(
-                &self.spatial_out.0,
-                &self.spatial_out.1,
-                &mut row[..c],
-                &mut tmp,
-            );
-            self.norm_out.apply(&mut row[..c]);
-        }
+        self.spatial_out.rows(&mut x, w, &mut tmp);
         mix(&self.dct_t, &x, &mut u);
         for (dst, row) in out.chunks_exact_mut(c).zip(u.chunks_exact(w)) {
             dst.copy_from_slice(&row[..c]);

@@ -101,11 +101,12 @@ impl TapRows {
     }
 
     /// The tap products of `x` (`[L, d]`), reusing the last call's rows
-    /// where `x` is its input slid by one row (bit for bit).
-    fn products(&mut self, conv: &HostConv, x: &[f32], d: usize) -> &[f32] {
+    /// where `x` is its input slid by one row (`slides`, as
+    /// [`slides`](Self::slides) said of it; bit for bit).
+    fn products(&mut self, conv: &HostConv, x: &[f32], d: usize, slides: bool) -> &[f32] {
         let l = x.len() / d;
         let n = conv.k() * conv.k() * conv.c_out();
-        let slid = self.has_y && self.y.len() >= l * n && self.slides(x, d);
+        let slid = slides && self.has_y && self.y.len() >= l * n;
         if slid {
             if self.y.len() < 2 * l * n {
                 self.y.resize(2 * l * n, 0.0);
@@ -367,12 +368,12 @@ fn fused_periods(
         // Kept from one call to the next ([`TapRows`]): written by the
         // GEMM, neither zeroed nor reallocated per tick.
         let mut kept = tap_rows.lock().unwrap_or_else(|e| e.into_inner());
-        let use_shared =
-            conv_in.has_tap_products() && (one_pass_pays(folded, l, taps) || kept.slides(xs, d));
+        let slides = kept.slides(xs, d);
+        let use_shared = conv_in.has_tap_products() && (one_pass_pays(folded, l, taps) || slides);
         if !use_shared {
             kept.without_products(xs);
         }
-        let shared = use_shared.then(|| kept.products(conv_in, xs, d));
+        let shared = use_shared.then(|| kept.products(conv_in, xs, d, slides));
         let hidden: Vec<(usize, usize, f32, Vec<f32>)> = distinct
             .iter()
             .map(|&(p, w)| {
