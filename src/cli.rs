@@ -204,9 +204,10 @@ pub struct BenchArgs {
     /// daemon holds it by default (`[model].projection`), or `as-file`.
     #[arg(long, default_value = "int8")]
     pub projection: ProjectionWeights,
-    /// How the trajectory encoder's convolutions multiply: `int8`, as the
-    /// daemon runs them by default (`[model].convolutions`), or `f32`.
-    #[arg(long, default_value = "int8")]
+    /// How the trajectory encoder's convolutions multiply: `auto`, as the
+    /// daemon runs them by default (`[model].convolutions`: `int8` on x86-64
+    /// with AVX2, `f32` elsewhere), `int8` or `f32`.
+    #[arg(long, default_value = "auto")]
     pub convolutions: Convolutions,
 }
 

@@ -84,7 +84,7 @@ fn main() -> Result<()> {
             eprintln!(
                 "input projection held {}, convolutions in {}",
                 options.projection.name(),
-                options.convolutions.name()
+                options.convolutions.resolved().name()
             );
             let report = bench::run_bench(&options)?;
             for ablation in &report.ablations {

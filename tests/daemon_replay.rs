@@ -327,10 +327,11 @@ fn int8_projection_forecasts_close_to_the_stored_weights() {
     assert!(quantised.iter().any(|l| l.ablation == "MP" && l.valid));
 }
 
-/// `[model].convolutions = "int8"` (the default): the daemon logs it for
-/// every network and forecasts the same ticks with the same networks and
-/// validity as with `"f32"`, each probability within 0.01 and not every
-/// one unchanged.
+/// `[model].convolutions`: without the key the daemon runs `"auto"` and
+/// logs what it chose on this CPU for every network (`"int8"` on x86-64
+/// with AVX2); `"int8"` forecasts the same ticks with the same networks and
+/// validity as `"f32"`, each probability within 0.01 and not every one
+/// unchanged.
 #[test]
 fn int8_convolutions_forecast_close_to_f32() {
     let scene = camera_gap_scene();
@@ -338,13 +339,40 @@ fn int8_convolutions_forecast_close_to_f32() {
     set_model_key(&scene, &text, "convolutions", "f32");
     let (plain, plain_log) = scene.replay_max_speed();
     assert!(plain_log.contains("convolutions=\"f32\""), "{plain_log}");
-    // Without the key: int8, the default.
-    std::fs::write(&scene.config, &text).expect("config");
+    set_model_key(&scene, &text, "convolutions", "int8");
     let (quantised, log) = scene.replay_max_speed();
     assert!(log.contains("convolutions=\"int8\""), "{log}");
     let moved = probabilities_moved(&plain, &quantised, 0.01);
     assert!(moved > 0, "int8 changed no probability: not applied");
     assert!(quantised.iter().any(|l| l.ablation == "EMP" && l.valid));
+    // Without the key: auto, resolved on this CPU and said so.
+    std::fs::write(&scene.config, &text).expect("config");
+    let (auto, auto_log) = scene.replay_max_speed();
+    let chosen = Convolutions::Auto.resolved();
+    assert!(
+        auto_log.contains(&format!("convolutions=\"{}\"", chosen.name())),
+        "{auto_log}"
+    );
+    let same_as = if chosen == Convolutions::Int8 {
+        &quantised
+    } else {
+        &plain
+    };
+    assert_eq!(same_as.len(), auto.len());
+    for (a, b) in same_as.iter().zip(&auto) {
+        let bits = |l: &Line| {
+            l.probabilities
+                .iter()
+                .map(|p| p.to_bits())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(
+            (a.tick, &a.ablation, a.valid, bits(a)),
+            (b.tick, &b.ablation, b.valid, bits(b)),
+            "auto is {}",
+            chosen.name()
+        );
+    }
 }
 
 #[test]

@@ -273,7 +273,7 @@ pub struct EvalArgs {
     #[arg(long, default_value = "as-file")]
     pub projection: ProjectionWeights,
     /// How each network's trajectory convolutions multiply: `f32` (as
-    /// training evaluated them) or `int8` (`[model].convolutions`).
+    /// training evaluated them), `int8` or `auto` (`[model].convolutions`).
     #[arg(long, default_value = "f32")]
     pub convolutions: Convolutions,
 }

@@ -143,10 +143,11 @@ pub struct ModelConfig {
     /// (f16 for the shipped files: the product training evaluated).
     #[serde(default = "default_projection")]
     pub projection: crate::model::ProjectionWeights,
-    /// How the trajectory encoder's convolutions multiply: `"int8"` (default:
-    /// integer products, fewer instructions per tick; forecasts within
-    /// 0.004 of f32's on the bundled recordings, model card) or `"f32"`
-    /// (the products training evaluated).
+    /// How the trajectory encoder's convolutions multiply: `"auto"`
+    /// (default: `"int8"` on x86-64 with AVX2, `"f32"` elsewhere), `"int8"`
+    /// (integer products, fewer instructions per tick on AVX2; forecasts
+    /// within 0.004 of f32's on the bundled recordings, model card) or
+    /// `"f32"` (the products training evaluated).
     #[serde(default = "default_convolutions")]
     pub convolutions: crate::model::Convolutions,
     /// Horizon watched by the safety latch (`/fall_guard/fall_imminent`), ms;
@@ -242,7 +243,7 @@ fn default_projection() -> crate::model::ProjectionWeights {
 }
 
 fn default_convolutions() -> crate::model::Convolutions {
-    crate::model::Convolutions::Int8
+    crate::model::Convolutions::Auto
 }
 
 fn default_model_dir() -> PathBuf {
@@ -885,10 +886,10 @@ mod tests {
         assert_eq!(config.origin, EMBEDDED_REPLAY_NAME);
     }
 
-    /// `[model].convolutions`: int8 when absent, `"f32"` taken, anything
-    /// else refused naming the choices.
+    /// `[model].convolutions`: auto when absent, `"f32"` and `"int8"`
+    /// taken, anything else refused naming the choices.
     #[test]
-    fn convolutions_default_to_int8_and_parse() {
+    fn convolutions_default_to_auto_and_parse() {
         use crate::model::Convolutions;
         // The embedded config without its `convolutions` line.
         let text: String = EMBEDDED_REPLAY_CONFIG
@@ -898,7 +899,7 @@ mod tests {
             .collect();
         assert_eq!(
             parse(&text).expect("parses").model.convolutions,
-            Convolutions::Int8
+            Convolutions::Auto
         );
         let with = |v: &str| {
             text.replacen(
@@ -910,6 +911,10 @@ mod tests {
         assert_eq!(
             parse(&with("f32")).expect("f32").model.convolutions,
             Convolutions::F32
+        );
+        assert_eq!(
+            parse(&with("int8")).expect("int8").model.convolutions,
+            Convolutions::Int8
         );
         let e = parse(&with("f16")).expect_err("f16 refused").to_string();
         assert!(e.contains("f16"), "{e}");

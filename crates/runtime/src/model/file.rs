@@ -661,6 +661,12 @@ pub enum Convolutions {
     /// 7 bits, integer sums: fewer instructions per tick on AVX2; forecasts
     /// move by the amounts the model card gives.
     Int8,
+    /// [`Convolutions::Int8`] where the integer kernel is the faster one
+    /// (x86-64 with AVX2), [`Convolutions::F32`] elsewhere: on aarch64 the
+    /// f32 products run in NEON registers, and the integer ones in a
+    /// portable loop that takes twice the instructions of a whole tick
+    /// (`docs/performance.md`, "aarch64: instructions per tick").
+    Auto,
 }
 
 impl Convolutions {
@@ -669,19 +675,43 @@ impl Convolutions {
         match self {
             Convolutions::F32 => "f32",
             Convolutions::Int8 => "int8",
+            Convolutions::Auto => "auto",
+        }
+    }
+
+    /// What `Auto` is on this CPU; the others as they are.
+    pub fn resolved(self) -> Convolutions {
+        match self {
+            Convolutions::Auto if int8_kernel_is_faster() => Convolutions::Int8,
+            Convolutions::Auto => Convolutions::F32,
+            chosen => chosen,
         }
     }
 }
 
-/// As the command lines spell it (`--convolutions f32|int8`).
+/// Whether this CPU runs the integer convolution kernel (`int8_gemm`) in
+/// SIMD registers: x86-64 with AVX2.
+fn int8_kernel_is_faster() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// As the command lines spell it (`--convolutions f32|int8|auto`).
 impl std::str::FromStr for Convolutions {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "f32" => Ok(Convolutions::F32),
             "int8" => Ok(Convolutions::Int8),
+            "auto" => Ok(Convolutions::Auto),
             other => Err(format!(
-                "unknown convolutions {other:?}: expected f32 or int8"
+                "unknown convolutions {other:?}: expected f32, int8 or auto"
             )),
         }
     }
@@ -718,9 +748,10 @@ impl LoadedModel {
         self
     }
 
-    /// The same model with its trajectory convolutions as `convolutions` says.
+    /// The same model with its trajectory convolutions as `convolutions` says
+    /// (`Auto` as [`Convolutions::resolved`] chooses on this CPU).
     pub fn with_convolutions(mut self, convolutions: Convolutions) -> Self {
-        if convolutions == Convolutions::Int8 {
+        if convolutions.resolved() == Convolutions::Int8 {
             self.network.quantize_convolutions();
         }
         self

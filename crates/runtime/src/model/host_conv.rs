@@ -417,7 +417,15 @@ fn gemm_rows(
         }
     }
     // SAFETY: as above.
-    unsafe { kernel::gemm_portable(&ops) };
+    #[cfg(target_arch = "aarch64")]
+    unsafe {
+        kernel::gemm_neon(&ops)
+    };
+    // SAFETY: as above.
+    #[cfg(not(target_arch = "aarch64"))]
+    unsafe {
+        kernel::gemm_portable(&ops)
+    };
 }
 
 /// The raw operands of [`gemm_rows`], bounds already checked.
@@ -512,6 +520,7 @@ mod kernel {
 
     /// All of `dst`: columns in blocks of 16 (two AVX2 registers), then 8,
     /// then one at a time.
+    #[cfg(not(target_arch = "aarch64"))]
     #[inline(always)]
     unsafe fn gemm(o: &Operands, fma: impl Fn(f32, f32, f32) -> f32 + Copy) {
         let mut j0 = 0;
@@ -662,16 +671,293 @@ mod kernel {
         }
     }
 
+    /// All of `dst` with NEON registers (aarch64): columns in blocks of 16
+    /// (four registers) and 8, rows in blocks of [`MR`] (twenty-four
+    /// accumulators), the last columns (fewer than 8) one at a time. Each
+    /// output the same fused multiply-adds in the same order as the AVX2
+    /// path: the same bits.
+    ///
     /// # Safety
     /// The operands as [`Operands`] says.
+    #[cfg(target_arch = "aarch64")]
+    pub(super) unsafe fn gemm_neon(o: &Operands) {
+        let mut j0 = 0;
+        // SAFETY (all calls): `j0 + width <= n`.
+        unsafe {
+            while j0 + 16 <= o.n {
+                columns_neon::<4>(o, j0);
+                j0 += 16;
+            }
+            if j0 + 8 <= o.n {
+                columns_neon::<2>(o, j0);
+                j0 += 8;
+            }
+            while j0 < o.n {
+                columns::<1>(o, j0, f32::mul_add);
+                j0 += 1;
+            }
+        }
+    }
+
+    /// Every block of rows for columns `j0..j0 + 4·V`.
+    #[cfg(target_arch = "aarch64")]
+    #[inline]
+    unsafe fn columns_neon<const V: usize>(o: &Operands, j0: usize) {
+        // SAFETY (all calls): `i0 + rows <= m`, `j0 + 4·V <= n`.
+        unsafe {
+            if o.a_cols.is_null() {
+                rows_neon::<V, false>(o, j0);
+            } else {
+                rows_neon::<V, true>(o, j0);
+            }
+        }
+    }
+
+    /// [`columns_neon`] with `a`'s columns strided (`G` false) or
+    /// gathered (`G` true).
+    #[cfg(target_arch = "aarch64")]
+    #[inline]
+    unsafe fn rows_neon<const V: usize, const G: bool>(o: &Operands, j0: usize) {
+        let mut i0 = 0;
+        // SAFETY (all calls): `i0 + rows <= m`, `j0 + 4·V <= n`.
+        unsafe {
+            while i0 + MR <= o.m {
+                block_neon::<MR, V, G>(o, i0, j0);
+                i0 += MR;
+            }
+            match o.m - i0 {
+                0 => {}
+                1 => block_neon::<1, V, G>(o, i0, j0),
+                2 => block_neon::<2, V, G>(o, i0, j0),
+                3 => block_neon::<3, V, G>(o, i0, j0),
+                4 => block_neon::<4, V, G>(o, i0, j0),
+                _ => block_neon::<5, V, G>(o, i0, j0),
+            }
+        }
+    }
+
+    /// [`block`] in NEON registers: `R x 4·V` sums ([`sums_neon`]), then
+    /// stored or added into `dst`.
+    ///
+    /// # Safety
+    /// `i0 + R <= m`, `j0 + 4·V <= n`, the operands as [`Operands`] says.
+    #[cfg(target_arch = "aarch64")]
+    #[inline]
+    unsafe fn block_neon<const R: usize, const V: usize, const G: bool>(
+        o: &Operands,
+        i0: usize,
+        j0: usize,
+    ) {
+        use std::arch::aarch64::{vaddq_f32, vld1q_f32, vst1q_f32};
+        // SAFETY: NEON is part of aarch64; `dst` rows `i0..i0 + R`, columns
+        // `j0..j0 + 4·V` are inside it.
+        unsafe {
+            let acc = sums_neon::<R, V, G>(o, i0, j0);
+            if o.dst_s.col != 1 {
+                store_strided(o, i0, j0, &acc);
+                return;
+            }
+            for (r, row) in acc.iter().enumerate() {
+                let d = o.dst.add((i0 + r) * o.dst_s.row + j0);
+                for (v, &s) in row.iter().enumerate() {
+                    let at = d.add(4 * v);
+                    let sum = if o.store {
+                        s
+                    } else {
+                        vaddq_f32(vld1q_f32(at), s)
+                    };
+                    vst1q_f32(at, sum);
+                }
+            }
+        }
+    }
+
+    /// `R x 4·V` sums `Σ_p a[i0 + r, p] · w[p, j0..]`, each `a` element
+    /// multiplied by lane, each weight row loaded once per `p`: the fused
+    /// multiply-adds of [`block`] in the same order. A function of its own,
+    /// not inlined: where the sums were used in the same function as the
+    /// strided store, LLVM kept them in memory and stored all of them at
+    /// every `p` (twelve 32-byte stores for twenty-four multiply-adds).
+    ///
+    /// # Safety
+    /// `i0 + R <= m`, `j0 + 4·V <= n`, the operands as [`Operands`] says.
+    #[cfg(target_arch = "aarch64")]
+    #[inline(never)]
+    unsafe fn sums_neon<const R: usize, const V: usize, const G: bool>(
+        o: &Operands,
+        i0: usize,
+        j0: usize,
+    ) -> [[std::arch::aarch64::float32x4_t; V]; R] {
+        use std::arch::aarch64::{float32x4_t, vdupq_n_f32, vfmaq_n_f32, vld1q_f32};
+        // SAFETY: NEON is part of aarch64; weight row `p < kk` columns
+        // `j0..j0 + 4·V` and `a` rows `i0..i0 + R` column `p` are inside
+        // their matrices.
+        unsafe {
+            let mut acc: [[float32x4_t; V]; R] = [[vdupq_n_f32(0.0); V]; R];
+            let mut w = o.weight.add(j0);
+            let mut a = o.a.add(i0 * o.a_s.row);
+            for p in 0..o.kk {
+                let wv: [float32x4_t; V] = std::array::from_fn(|v| vld1q_f32(w.add(4 * v)));
+                if G {
+                    a = o.a.add(i0 * o.a_s.row + *o.a_cols.add(p));
+                }
+                for (r, row) in acc.iter_mut().enumerate() {
+                    let x = *a.add(r * o.a_s.row);
+                    for (s, &wj) in row.iter_mut().zip(&wv) {
+                        *s = vfmaq_n_f32(*s, wj, x);
+                    }
+                }
+                w = w.add(o.n);
+                if !G {
+                    a = a.add(o.a_s.col);
+                }
+            }
+            acc
+        }
+    }
+
+    /// [`block_neon`]'s sums into a `dst` whose columns are strided.
+    ///
+    /// # Safety
+    /// `i0 + R <= m`, `j0 + 4·V <= n`, the operands as [`Operands`] says.
+    #[cfg(target_arch = "aarch64")]
+    unsafe fn store_strided<const R: usize, const V: usize>(
+        o: &Operands,
+        i0: usize,
+        j0: usize,
+        acc: &[[std::arch::aarch64::float32x4_t; V]; R],
+    ) {
+        for (r, row) in acc.iter().enumerate() {
+            for (v, &s) in row.iter().enumerate() {
+                let mut lanes = [0.0f32; 4];
+                // SAFETY: NEON is part of aarch64; element
+                // `(i0 + r, j0 + 4·v + j)` is inside `dst`.
+                unsafe {
+                    std::arch::aarch64::vst1q_f32(lanes.as_mut_ptr(), s);
+                    for (j, &l) in lanes.iter().enumerate() {
+                        let at = o
+                            .dst
+                            .add((i0 + r) * o.dst_s.row + (j0 + 4 * v + j) * o.dst_s.col);
+                        *at = if o.store { l } else { *at + l };
+                    }
+                }
+            }
+        }
+    }
+
+    /// Elsewhere than x86-64 with AVX2 and aarch64: a product and a sum.
+    ///
+    /// # Safety
+    /// The operands as [`Operands`] says.
+    #[cfg(not(target_arch = "aarch64"))]
     pub(super) unsafe fn gemm_portable(o: &Operands) {
-        // aarch64 always has fused multiply-add (and NEON): the same sums
-        // as the AVX2 path. Elsewhere a product and a sum.
-        #[cfg(target_arch = "aarch64")]
-        let fma = f32::mul_add;
-        #[cfg(not(target_arch = "aarch64"))]
-        let fma = |a: f32, b: f32, c: f32| a * b + c;
         // SAFETY: passed on.
-        unsafe { gemm(o, fma) }
+        unsafe { gemm(o, |a: f32, b: f32, c: f32| a * b + c) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Values with every bit of the mantissa in use, so that another order
+    /// of the sums, or a product rounded before its sum, shows.
+    fn values(len: usize, seed: u32) -> Vec<f32> {
+        let mut state = seed.wrapping_mul(0x9e37_79b9) | 1;
+        (0..len)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 17;
+                state ^= state << 5;
+                (state >> 8) as f32 / (1u32 << 23) as f32 - 1.0
+            })
+            .collect()
+    }
+
+    /// Whether this build's kernel sums with fused multiply-adds (AVX2 +
+    /// FMA on x86-64, NEON on aarch64); elsewhere a product and a sum.
+    fn fused() -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            cfg!(target_arch = "aarch64")
+        }
+    }
+
+    /// Every register block shape (rows 1-13: whole blocks of six and
+    /// every remainder; columns 1-37: blocks of 16, of 8 and single
+    /// columns), `a` strided and gathered, `dst` contiguous and strided,
+    /// stored and added: each output is `dst + Σ_p a[i, p] · w[p, j]`
+    /// summed in the order of `p` from zero, with fused multiply-adds
+    /// where the kernel has them, to the bit.
+    #[test]
+    fn every_block_shape_sums_in_the_order_of_p() {
+        let fused = fused();
+        for m in 1..=13 {
+            for n in [1, 3, 8, 11, 16, 24, 37] {
+                for kk in [1, 7, 33] {
+                    let weight = values(kk * n, (m * 1000 + n * 10 + kk) as u32);
+                    // `a` stored column-major with a gap, so that the
+                    // strided and the gathered reads both leave a row.
+                    let a = values((kk + 1) * (m + 2), (m + n + kk) as u32);
+                    let a_s = Strides { row: 1, col: m + 2 };
+                    let columns: Vec<usize> = (0..kk).map(|p| p * (m + 2)).collect();
+                    for gathered in [false, true] {
+                        for transposed in [false, true] {
+                            for write in [Write::Store, Write::Add] {
+                                let dst_s = if transposed {
+                                    Strides { row: 1, col: m }
+                                } else {
+                                    Strides { row: n, col: 1 }
+                                };
+                                let start = values(m * n, 7);
+                                let mut dst = start.clone();
+                                gemm_rows(
+                                    &weight,
+                                    n,
+                                    Product {
+                                        m,
+                                        dst: &mut dst,
+                                        dst_s,
+                                        a: &a,
+                                        a_s,
+                                    },
+                                    write,
+                                    gathered.then_some(&columns[..]),
+                                    None,
+                                );
+                                for i in 0..m {
+                                    for j in 0..n {
+                                        let mut s = 0.0f32;
+                                        for p in 0..kk {
+                                            let x = a[i * a_s.row + p * a_s.col];
+                                            let w = weight[p * n + j];
+                                            s = if fused { x.mul_add(w, s) } else { x * w + s };
+                                        }
+                                        let at = i * dst_s.row + j * dst_s.col;
+                                        let want = match write {
+                                            Write::Store => s,
+                                            Write::Add => start[at] + s,
+                                        };
+                                        assert_eq!(
+                                            dst[at].to_bits(),
+                                            want.to_bits(),
+                                            "m {m} n {n} kk {kk} gathered {gathered} \
+                                             transposed {transposed} {write:?} ({i}, {j}): \
+                                             {} against {want}",
+                                            dst[at]
+                                        );
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
     }
 }

@@ -205,7 +205,7 @@ impl ModelSet {
                 trained_on = %meta.trained_on, best_epoch = meta.best_epoch,
                 projection = m.projection.name(),
                 projection_mb = format!("{:.1}", model.network.projection_bytes() as f64 / 1e6),
-                convolutions = m.convolutions.name(),
+                convolutions = m.convolutions.resolved().name(),
                 "network ready");
             if emp.is_none() {
                 emp = Some(model.clone());
