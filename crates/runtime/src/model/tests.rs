@@ -656,8 +656,9 @@ fn prepared_fill_makes_the_first_forecast_a_normal_tick() {
 /// block multiplies one new row a tick once it holds the products of the
 /// tick before. (The first forecast may fold each period on its own when
 /// its periods make that cheaper, keeping no products; the tick after it
-/// then makes all the rows once. Which it does depends on the periods, and
-/// they on amplitudes whose last bits burn's matrix product does not pin.)
+/// then makes all the rows once. Which it does depends on the periods
+/// alone, and it has varied between runs of this test: the periods come
+/// from DFT amplitudes computed by burn's matrix product.)
 #[test]
 fn steady_ticks_reuse_vision_terms_and_plan_rows() {
     let cfg = ModelConfig::lite(24, 25, vec![6, 12, 18, 24], 64);
