@@ -1,7 +1,8 @@
 //! The forecasts of every bundled recording, bit for bit, against a committed
 //! reference (`tests/fixtures/forecast_reference.json`): the daemon's path
 //! (`fall-guard replay --max-speed --out`, the embedded config: EMP and its
-//! fallbacks, input projection and trajectory convolutions in int8; the
+//! fallbacks, input projection in int8, trajectory convolutions as `auto`
+//! chooses, int8 on x86-64 with AVX2, where the reference is written; the
 //! real walk with its own config: MP) and the offline path (`fall-guard-lab eval --recording --per-tick-out`,
 //! the lab's `commands::run_eval`, called here) of each shipped network. A
 //! change that moves a single bit of any forecast fails here, naming the
