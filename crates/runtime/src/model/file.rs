@@ -682,23 +682,10 @@ impl Convolutions {
     /// What `Auto` is on this CPU; the others as they are.
     pub fn resolved(self) -> Convolutions {
         match self {
-            Convolutions::Auto if int8_kernel_is_faster() => Convolutions::Int8,
+            Convolutions::Auto if super::int8_gemm::has_simd_kernel() => Convolutions::Int8,
             Convolutions::Auto => Convolutions::F32,
             chosen => chosen,
         }
-    }
-}
-
-/// Whether this CPU runs the integer convolution kernel (`int8_gemm`) in
-/// SIMD registers: x86-64 with AVX2.
-fn int8_kernel_is_faster() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
     }
 }
 

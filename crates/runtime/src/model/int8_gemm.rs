@@ -168,8 +168,8 @@ pub(super) fn gemm(
         };
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU has AVX2 (checked just above); the
+            if has_simd_kernel() {
+                // SAFETY: the CPU has AVX2 (`has_simd_kernel`); the
                 // quantised rows are `m x width`, the weights from group
                 // `g0` hold `groups` groups of `n` columns, the scales and
                 // offsets `n`, and `dst` holds every `(i, j)` its strides
@@ -180,6 +180,21 @@ pub(super) fn gemm(
         }
         portable(&k, &mut s.sums);
     });
+}
+
+/// Whether this CPU runs the integer products in SIMD registers (the AVX2
+/// kernel, x86-64); elsewhere they run in the portable loop, which takes
+/// more instructions than the f32 kernels (`Convolutions::Auto` chooses by
+/// this).
+pub(super) fn has_simd_kernel() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
 }
 
 /// Row `i` of `a` (`kk` values) into `s.a[i·width..]` as `q + 64`; its
