@@ -605,6 +605,42 @@ def warning_checks(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     return out
 
 
+TRADE_SHARES = (0.80, 0.90, 0.95)
+
+
+def trade_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
+    """What warning more falls costs, per selected network, from its latch's grid on the validation
+    falls and walks (ABL-thresholds.json, where the pair was chosen): the chosen pair, then for each
+    share in TRADE_SHARES the highest trigger whose latch warns at least that share of the validation
+    falls >= 0.5 s ahead, with its false alarms per minute and share of walking held; "none" when no
+    pair of the grid reaches it."""
+    rows = []
+    for abl, _ in selected:
+        r = load(reports / f"{abl}-thresholds.json")
+        if not r or not r.get("grid") or not r.get("chosen"):
+            continue
+
+        def cells(g: dict) -> str:
+            share = g["warned_by_0_5s"] / g["falling_episodes"]
+            return (f"{g['trigger']:.2f} / {g['release']:.2f} | {g['warned_by_0_5s']}/{g['falling_episodes']} "
+                    f"({100 * share:.0f}%) | {g['false_alarms_per_min']:.2f} | {100 * g['held_share']:.1f}%")
+
+        rows.append(f"| {abl.upper()} | chosen (<= {r['max_false_alarms_per_min']:g} / min) | {cells(r['chosen'])} |")
+        for want in TRADE_SHARES:
+            reach = [g for g in r["grid"] if g["falling_episodes"]
+                     and g["warned_by_0_5s"] >= want * g["falling_episodes"] - 1e-9]
+            if reach:
+                rows.append(f"| {abl.upper()} | >= {100 * want:.0f}% warned | "
+                            f"{cells(max(reach, key=lambda g: g['trigger']))} |")
+            else:
+                rows.append(f"| {abl.upper()} | >= {100 * want:.0f}% warned | none of the grid | - | - | - |")
+    if not rows:
+        return []
+    return ["| network | pair | trigger / release | validation falls warned >= 0.5 s ahead | "
+            "false alarms / min (validation walking) | walking held |",
+            "| --- | --- | --- | --- | --- | --- |", *rows]
+
+
 def stats_rows(stats: dict | None, title: str) -> list[str]:
     if not stats:
         return [f"({title}: no stats yet)"]
@@ -770,6 +806,10 @@ def main() -> int:
                   "", *warned_rows, "",
                   "A fall whose cause comes less than 0.5 s before its onset is warned 0.5 s ahead only by a latch "
                   "already asserted before the cause.", ""]
+    trade = trade_rows(kept, selected)
+    if trade:
+        lines += ["### What warning more falls costs (the latch's pairs on the validation falls and walks, where "
+                  "each pair was chosen)", "", *trade, ""]
     lead_rows = cause_lead_rows(kept, selected)
     if lead_rows:
         lines += ["### Warnings by fall cause (`fall-guard-lab warnings` on the test falls of that cause)", "",

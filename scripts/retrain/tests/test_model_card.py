@@ -310,3 +310,32 @@ def test_calibration_is_tabled_under_both_protocols(tmp_path):
     assert "| EMP (emp-pp-s3) | deployment | 0.231 [0.221, 0.241], floor 0.020 |" in rows
     assert "| EP (ep5-pp-s1) | paper | 0.075 [0.065, 0.085], floor 0.020 |" in rows
     assert not any("MP (mp-pp-s1)" in r for r in rows)
+
+
+def grid_entry(trigger: float, warned_early: int, alarms_per_min: float, held: float, falls: int = 20) -> dict:
+    return {"trigger": trigger, "release": trigger - 0.3, "falling_episodes": falls, "warned_by_0_5s": warned_early,
+            "false_alarms_per_min": alarms_per_min, "held_share": held}
+
+
+def test_the_trade_table_gives_the_cost_of_each_share_of_warned_falls(tmp_path):
+    grid = [grid_entry(0.4, 20, 6.0, 0.8), grid_entry(0.6, 19, 2.5, 0.3), grid_entry(0.7, 18, 0.5, 0.05),
+            grid_entry(0.8, 16, 0.0, 0.0), grid_entry(0.9, 12, 0.0, 0.0)]
+    (tmp_path / "emp-thresholds.json").write_text(json.dumps(
+        {"grid": grid, "chosen": grid[3], "max_false_alarms_per_min": 0.1}))
+    # A network whose grid never reaches 95%.
+    low = [grid_entry(0.4, 18, 7.0, 1.0), grid_entry(0.8, 15, 0.0, 0.0)]
+    (tmp_path / "mp-thresholds.json").write_text(json.dumps(
+        {"grid": low, "chosen": low[1], "max_false_alarms_per_min": 0.1}))
+    rows = model_card.trade_rows(tmp_path, [("emp", "emp-s1"), ("mp", "mp-s1"), ("p", "p-s1")])
+    assert rows[2:] == [
+        "| EMP | chosen (<= 0.1 / min) | 0.80 / 0.50 | 16/20 (80%) | 0.00 | 0.0% |",
+        # 80% is the chosen pair itself; 90% needs the trigger down to 0.7 (the highest that reaches it).
+        "| EMP | >= 80% warned | 0.80 / 0.50 | 16/20 (80%) | 0.00 | 0.0% |",
+        "| EMP | >= 90% warned | 0.70 / 0.40 | 18/20 (90%) | 0.50 | 5.0% |",
+        "| EMP | >= 95% warned | 0.60 / 0.30 | 19/20 (95%) | 2.50 | 30.0% |",
+        "| MP | chosen (<= 0.1 / min) | 0.80 / 0.50 | 15/20 (75%) | 0.00 | 0.0% |",
+        "| MP | >= 80% warned | 0.40 / 0.10 | 18/20 (90%) | 7.00 | 100.0% |",
+        "| MP | >= 90% warned | 0.40 / 0.10 | 18/20 (90%) | 7.00 | 100.0% |",
+        "| MP | >= 95% warned | none of the grid | - | - | - |",
+    ]
+    assert model_card.trade_rows(tmp_path / "none", [("emp", "emp-s1")]) == []
