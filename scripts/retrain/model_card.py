@@ -608,6 +608,12 @@ def warning_checks(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
 TRADE_SHARES = (0.80, 0.90, 0.95)
 
 
+def trade_cells(g: dict) -> str:
+    """A latch grid entry as the trade table's cells: pair, falls warned >= 0.5 s ahead, alarms, held."""
+    return (f"{g['trigger']:.2f} / {g['release']:.2f} | {g['warned_by_0_5s']}/{g['falling_episodes']} "
+            f"({100 * early_share(g):.0f}%) | {g['false_alarms_per_min']:.2f} | {100 * g['held_share']:.1f}%")
+
+
 def trade_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
     """What warning more falls costs, per selected network, from its latch's grid on the validation
     falls and walks (ABL-thresholds.json, where the pair was chosen): the chosen pair, then for each
@@ -619,19 +625,13 @@ def trade_rows(reports: Path, selected: list[tuple[str, str]]) -> list[str]:
         r = load(reports / f"{abl}-thresholds.json")
         if not r or not r.get("grid") or not r.get("chosen"):
             continue
-
-        def cells(g: dict) -> str:
-            share = g["warned_by_0_5s"] / g["falling_episodes"]
-            return (f"{g['trigger']:.2f} / {g['release']:.2f} | {g['warned_by_0_5s']}/{g['falling_episodes']} "
-                    f"({100 * share:.0f}%) | {g['false_alarms_per_min']:.2f} | {100 * g['held_share']:.1f}%")
-
-        rows.append(f"| {abl.upper()} | chosen (<= {r['max_false_alarms_per_min']:g} / min) | {cells(r['chosen'])} |")
+        rows.append(f"| {abl.upper()} | chosen (<= {r['max_false_alarms_per_min']:g} / min) | "
+                    f"{trade_cells(r['chosen'])} |")
         for want in TRADE_SHARES:
-            reach = [g for g in r["grid"] if g["falling_episodes"]
-                     and g["warned_by_0_5s"] >= want * g["falling_episodes"] - 1e-9]
+            reach = [g for g in r["grid"] if (e := early_share(g)) is not None and e >= want - 1e-9]
             if reach:
                 rows.append(f"| {abl.upper()} | >= {100 * want:.0f}% warned | "
-                            f"{cells(max(reach, key=lambda g: g['trigger']))} |")
+                            f"{trade_cells(max(reach, key=lambda g: g['trigger']))} |")
             else:
                 rows.append(f"| {abl.upper()} | >= {100 * want:.0f}% warned | none of the grid | - | - | - |")
     if not rows:
