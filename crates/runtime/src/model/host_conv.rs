@@ -448,9 +448,6 @@ struct Operands {
 mod kernel {
     use super::Operands;
 
-    /// Output rows per register block.
-    const MR: usize = 6;
-
     /// `acc[r][j] = Σ_p a[i0 + r, p] · w[p, j0 + j]`, `r < R`, `j < W`, then
     /// added to `dst`. `fma(a, b, c)` is `a·b + c`.
     ///
@@ -500,22 +497,8 @@ mod kernel {
         j0: usize,
         fma: impl Fn(f32, f32, f32) -> f32 + Copy,
     ) {
-        let mut i0 = 0;
-        // SAFETY (all calls): `i0 + rows <= m`, `j0 + W <= n`.
-        unsafe {
-            while i0 + MR <= o.m {
-                block::<MR, W>(o, i0, j0, fma);
-                i0 += MR;
-            }
-            match o.m - i0 {
-                0 => {}
-                1 => block::<1, W>(o, i0, j0, fma),
-                2 => block::<2, W>(o, i0, j0, fma),
-                3 => block::<3, W>(o, i0, j0, fma),
-                4 => block::<4, W>(o, i0, j0, fma),
-                _ => block::<5, W>(o, i0, j0, fma),
-            }
-        }
+        // SAFETY (all calls): `i0 + R <= m`, `j0 + W <= n`.
+        unsafe { row_blocks!(o.m, |R, i0| block::<R, W>(o, i0, j0, fma)) }
     }
 
     /// All of `dst`: columns in blocks of 16 (two AVX2 registers), then 8,
@@ -523,26 +506,35 @@ mod kernel {
     #[cfg(not(target_arch = "aarch64"))]
     #[inline(always)]
     unsafe fn gemm(o: &Operands, fma: impl Fn(f32, f32, f32) -> f32 + Copy) {
-        let mut j0 = 0;
         // SAFETY (all calls): `j0 + width <= n`.
         unsafe {
-            while j0 + 16 <= o.n {
-                columns::<16>(o, j0, fma);
-                j0 += 16;
-            }
-            if j0 + 8 <= o.n {
-                columns::<8>(o, j0, fma);
-                j0 += 8;
-            }
-            while j0 < o.n {
-                columns::<1>(o, j0, fma);
-                j0 += 1;
-            }
+            column_blocks!(
+                o.n,
+                |j0| columns::<16>(o, j0, fma),
+                columns::<8>(o, j0, fma),
+                for j in j0..o.n {
+                    columns::<1>(o, j, fma)
+                }
+            )
+        }
+    }
+
+    /// Columns `j0..n` (fewer than 8, after the register blocks) one at a
+    /// time, with fused multiply-adds.
+    ///
+    /// # Safety
+    /// `j0 <= n`, the operands as [`Operands`] says.
+    #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+    #[inline(always)]
+    unsafe fn last_columns(o: &Operands, j0: usize) {
+        for j in j0..o.n {
+            // SAFETY: `j + 1 <= n`.
+            unsafe { columns::<1>(o, j, f32::mul_add) }
         }
     }
 
     /// All of `dst` with AVX2 registers: columns in blocks of 16 (two
-    /// registers) and 8, rows in blocks of [`MR`] (twelve accumulators),
+    /// registers) and 8, rows in blocks of six (twelve accumulators),
     /// the last columns (fewer than 8) one at a time.
     ///
     /// # Safety
@@ -550,21 +542,14 @@ mod kernel {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn gemm_avx2(o: &Operands) {
-        let mut j0 = 0;
         // SAFETY (all calls): `j0 + width <= n`, `i0 + rows <= m`.
         unsafe {
-            while j0 + 16 <= o.n {
-                columns_avx2::<2>(o, j0);
-                j0 += 16;
-            }
-            if j0 + 8 <= o.n {
-                columns_avx2::<1>(o, j0);
-                j0 += 8;
-            }
-            while j0 < o.n {
-                columns::<1>(o, j0, f32::mul_add);
-                j0 += 1;
-            }
+            column_blocks!(
+                o.n,
+                |j0| columns_avx2::<2>(o, j0),
+                columns_avx2::<1>(o, j0),
+                last_columns(o, j0)
+            )
         }
     }
 
@@ -589,22 +574,8 @@ mod kernel {
     #[target_feature(enable = "avx2,fma")]
     #[inline]
     unsafe fn rows_avx2<const V: usize, const G: bool>(o: &Operands, j0: usize) {
-        let mut i0 = 0;
-        // SAFETY (all calls): `i0 + rows <= m`, `j0 + 8·V <= n`.
-        unsafe {
-            while i0 + MR <= o.m {
-                block_avx2::<MR, V, G>(o, i0, j0);
-                i0 += MR;
-            }
-            match o.m - i0 {
-                0 => {}
-                1 => block_avx2::<1, V, G>(o, i0, j0),
-                2 => block_avx2::<2, V, G>(o, i0, j0),
-                3 => block_avx2::<3, V, G>(o, i0, j0),
-                4 => block_avx2::<4, V, G>(o, i0, j0),
-                _ => block_avx2::<5, V, G>(o, i0, j0),
-            }
-        }
+        // SAFETY (all calls): `i0 + R <= m`, `j0 + 8·V <= n`.
+        unsafe { row_blocks!(o.m, |R, i0| block_avx2::<R, V, G>(o, i0, j0)) }
     }
 
     /// [`block`] in AVX2 registers: `R x 8·V` sums, each `a` element
@@ -672,7 +643,7 @@ mod kernel {
     }
 
     /// All of `dst` with NEON registers (aarch64): columns in blocks of 16
-    /// (four registers) and 8, rows in blocks of [`MR`] (twenty-four
+    /// (four registers) and 8, rows in blocks of six (twenty-four
     /// accumulators), the last columns (fewer than 8) one at a time. Each
     /// output the same fused multiply-adds in the same order as the AVX2
     /// path: the same bits.
@@ -681,21 +652,14 @@ mod kernel {
     /// The operands as [`Operands`] says.
     #[cfg(target_arch = "aarch64")]
     pub(super) unsafe fn gemm_neon(o: &Operands) {
-        let mut j0 = 0;
         // SAFETY (all calls): `j0 + width <= n`.
         unsafe {
-            while j0 + 16 <= o.n {
-                columns_neon::<4>(o, j0);
-                j0 += 16;
-            }
-            if j0 + 8 <= o.n {
-                columns_neon::<2>(o, j0);
-                j0 += 8;
-            }
-            while j0 < o.n {
-                columns::<1>(o, j0, f32::mul_add);
-                j0 += 1;
-            }
+            column_blocks!(
+                o.n,
+                |j0| columns_neon::<4>(o, j0),
+                columns_neon::<2>(o, j0),
+                last_columns(o, j0)
+            )
         }
     }
 
@@ -718,22 +682,8 @@ mod kernel {
     #[cfg(target_arch = "aarch64")]
     #[inline]
     unsafe fn rows_neon<const V: usize, const G: bool>(o: &Operands, j0: usize) {
-        let mut i0 = 0;
-        // SAFETY (all calls): `i0 + rows <= m`, `j0 + 4·V <= n`.
-        unsafe {
-            while i0 + MR <= o.m {
-                block_neon::<MR, V, G>(o, i0, j0);
-                i0 += MR;
-            }
-            match o.m - i0 {
-                0 => {}
-                1 => block_neon::<1, V, G>(o, i0, j0),
-                2 => block_neon::<2, V, G>(o, i0, j0),
-                3 => block_neon::<3, V, G>(o, i0, j0),
-                4 => block_neon::<4, V, G>(o, i0, j0),
-                _ => block_neon::<5, V, G>(o, i0, j0),
-            }
-        }
+        // SAFETY (all calls): `i0 + R <= m`, `j0 + 4·V <= n`.
+        unsafe { row_blocks!(o.m, |R, i0| block_neon::<R, V, G>(o, i0, j0)) }
     }
 
     /// [`block`] in NEON registers: `R x 4·V` sums ([`sums_neon`]), then

@@ -329,50 +329,19 @@ mod avx2 {
     use super::{Kernel, GROUP};
     use std::arch::x86_64::*;
 
-    /// Output rows per register block (twelve accumulators with two
-    /// registers of columns).
-    const MR: usize = 6;
-
     /// # Safety
     /// The CPU has AVX2; the operands as [`Kernel`] says.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn gemm(k: &Kernel) {
-        let mut j0 = 0;
         // SAFETY (all calls): `j0 + width <= n`.
-        unsafe {
-            while j0 + 16 <= k.n {
-                rows::<2>(k, j0);
-                j0 += 16;
-            }
-            if j0 + 8 <= k.n {
-                rows::<1>(k, j0);
-                j0 += 8;
-            }
-            if j0 < k.n {
-                rest(k, j0);
-            }
-        }
+        unsafe { column_blocks!(k.n, |j0| rows::<2>(k, j0), rows::<1>(k, j0), rest(k, j0)) }
     }
 
     /// Every block of rows for columns `j0..j0 + 8·V`.
     #[target_feature(enable = "avx2")]
     unsafe fn rows<const V: usize>(k: &Kernel, j0: usize) {
-        let mut i0 = 0;
-        // SAFETY (all calls): `i0 + rows <= m`, `j0 + 8·V <= n`.
-        unsafe {
-            while i0 + MR <= k.m {
-                block::<MR, V>(k, i0, j0);
-                i0 += MR;
-            }
-            match k.m - i0 {
-                0 => {}
-                1 => block::<1, V>(k, i0, j0),
-                2 => block::<2, V>(k, i0, j0),
-                3 => block::<3, V>(k, i0, j0),
-                4 => block::<4, V>(k, i0, j0),
-                _ => block::<5, V>(k, i0, j0),
-            }
-        }
+        // SAFETY (all calls): `i0 + R <= m`, `j0 + 8·V <= n`.
+        unsafe { row_blocks!(k.m, |R, i0| block::<R, V>(k, i0, j0)) }
     }
 
     /// `R x 8·V` sums in registers: per group of four rows, each weight
