@@ -58,7 +58,10 @@ DEVICE=${RETRAIN_DEVICE:-cpu}
 FG=${FALL_GUARD_LAB_BIN:-$REPO/target/release/fall-guard-lab}
 PY=${SIM_PYTHON:-$REPO/sim/.venv/bin/python}
 SET_NAME=simv6-mixed               # the training set's name: the two sets below, joined
-SET=$DATA_ROOT/$SET_NAME            # split by split (links to their episodes, compose_set.py)
+# The training set, split by split (links to their episodes, compose_set.py);
+# a task run elsewhere (`job`) gets the set its step was on, a subset by fall
+# cause or the held-out set, as RETRAIN_SET.
+SET=${RETRAIN_SET:-$DATA_ROOT/$SET_NAME}
 DYNAMIC=$DATA_ROOT/simv6            # 2,000 episodes of the dynamic gait (generator 6, seed 1)
 HARDWARE=$DATA_ROOT/simv6-hw        # 400 episodes of the hardware gait (the real walk's step, seed 21)
 WALK=$DATA_ROOT/walk                # low sigma, no ball: false alarms per minute
@@ -80,11 +83,11 @@ TASK_ENV=(FALL_GUARD_DATA FALL_GUARD_LAB_BIN SIM_PYTHON RETRAIN_DEVICE RETRAIN_T
 # job FUNCTION ARGS...: run one unit of a step's work (a calibration, an
 # evaluation, a warnings replay) now or, with RETRAIN_RAY, queue it as a
 # Ray task of one CPU; `run_jobs` runs the queue. The task calls this script
-# again (`task FUNCTION ARGS...`) with the SET this shell has now.
+# again (`task FUNCTION ARGS...`) with the SET this shell has now (RETRAIN_SET).
 JOBS_QUEUE=$DATA_ROOT/.ray-jobs.$$
 job() {
   if [ -z "$RAY" ]; then "$@"; return; fi
-  printf '%s\n' "$(printf '%q ' env SET="$SET" bash "$REPO/scripts/retrain/retrain.sh" task "$@")" >>"$JOBS_QUEUE"
+  printf '%s\n' "$(printf '%q ' env RETRAIN_SET="$SET" bash "$REPO/scripts/retrain/retrain.sh" task "$@")" >>"$JOBS_QUEUE"
 }
 
 # run_tasks CPUS GPUS: the commands on stdin (one a line) as Ray tasks of
