@@ -512,24 +512,21 @@ mod kernel {
                 o.n,
                 |j0| columns::<16>(o, j0, fma),
                 columns::<8>(o, j0, fma),
-                for j in j0..o.n {
-                    columns::<1>(o, j, fma)
-                }
+                last_columns(o, j0, fma)
             )
         }
     }
 
     /// Columns `j0..n` (fewer than 8, after the register blocks) one at a
-    /// time, with fused multiply-adds.
+    /// time.
     ///
     /// # Safety
     /// `j0 <= n`, the operands as [`Operands`] says.
-    #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
     #[inline(always)]
-    unsafe fn last_columns(o: &Operands, j0: usize) {
+    unsafe fn last_columns(o: &Operands, j0: usize, fma: impl Fn(f32, f32, f32) -> f32 + Copy) {
         for j in j0..o.n {
             // SAFETY: `j + 1 <= n`.
-            unsafe { columns::<1>(o, j, f32::mul_add) }
+            unsafe { columns::<1>(o, j, fma) }
         }
     }
 
@@ -548,7 +545,7 @@ mod kernel {
                 o.n,
                 |j0| columns_avx2::<2>(o, j0),
                 columns_avx2::<1>(o, j0),
-                last_columns(o, j0)
+                last_columns(o, j0, f32::mul_add)
             )
         }
     }
@@ -658,7 +655,7 @@ mod kernel {
                 o.n,
                 |j0| columns_neon::<4>(o, j0),
                 columns_neon::<2>(o, j0),
-                last_columns(o, j0)
+                last_columns(o, j0, f32::mul_add)
             )
         }
     }
