@@ -30,23 +30,35 @@ done
 """
 
 
+def lab_env(tmp_path: Path, data: Path) -> tuple[dict[str, str], Path]:
+    """This machine's environment with the recording lab in the real one's place, no RETRAIN_SET and
+    no RETRAIN_RAY; and the file the lab writes its arguments to."""
+    lab = tmp_path / "lab"
+    lab.write_text(RECORDING_LAB)
+    lab.chmod(0o755)
+    args = tmp_path / "lab-args.txt"
+    env = {k: v for k, v in os.environ.items() if k not in ("RETRAIN_SET", "RETRAIN_RAY")}
+    return {**env, "FALL_GUARD_DATA": str(data), "FALL_GUARD_LAB_BIN": str(lab), "LAB_ARGS": str(args)}, args
+
+
+def data_argument(args: Path) -> str:
+    """The `--data` the lab was given."""
+    recorded = args.read_text().splitlines()
+    return recorded[recorded.index("--data") + 1]
+
+
 def test_a_queued_evaluation_runs_on_the_subset_its_step_set(tmp_path):
     data = tmp_path / "data"
     subset = data / "bycause" / "push"
     subset.mkdir(parents=True)
     model = tmp_path / "emp-pp-s1.cal.bpk"
     model.write_bytes(b"")
-    lab = tmp_path / "lab"
-    lab.write_text(RECORDING_LAB)
-    lab.chmod(0o755)
-    args = tmp_path / "lab-args.txt"
-    env = {**os.environ, "FALL_GUARD_DATA": str(data), "FALL_GUARD_LAB_BIN": str(lab), "LAB_ARGS": str(args),
-           "RETRAIN_RAY": "127.0.0.1:1"}
-    env.pop("RETRAIN_SET", None)
+    node_env, args = lab_env(tmp_path, data)
 
     # The step's shell with SET on the subset, queueing one evaluation.
     queued = subprocess.run(["bash", str(RETRAIN), "task", "job", "eval_group", "emp-pp-push", "paper", str(model)],
-                            cwd=REPO, env={**env, "RETRAIN_SET": str(subset)}, capture_output=True, text=True)
+                            cwd=REPO, env={**node_env, "RETRAIN_RAY": "127.0.0.1:1", "RETRAIN_SET": str(subset)},
+                            capture_output=True, text=True)
     assert queued.returncode == 0, queued.stderr
     queues = list(data.glob(".ray-jobs.*"))
     assert len(queues) == 1, "one queue file"
@@ -54,12 +66,10 @@ def test_a_queued_evaluation_runs_on_the_subset_its_step_set(tmp_path):
     assert len(lines) == 1, lines
 
     # The node: the command line alone, in an environment without the subset.
-    node_env = {k: v for k, v in env.items() if k != "RETRAIN_RAY"}
     ran = subprocess.run(shlex.split(lines[0]), cwd=REPO, env=node_env, capture_output=True, text=True)
     assert ran.returncode == 0, ran.stderr
-    recorded = args.read_text().splitlines()
-    assert recorded[0] == "eval"
-    assert recorded[recorded.index("--data") + 1] == str(subset), recorded
+    assert args.read_text().splitlines()[0] == "eval"
+    assert data_argument(args) == str(subset)
     assert (data / "reports" / "eval-emp-pp-push-paper" / "metrics.json").is_file()
 
 
@@ -67,15 +77,8 @@ def test_without_a_subset_the_task_runs_on_the_training_set(tmp_path):
     data = tmp_path / "data"
     model = tmp_path / "mp-pp-s1.cal.bpk"
     model.write_bytes(b"")
-    lab = tmp_path / "lab"
-    lab.write_text(RECORDING_LAB)
-    lab.chmod(0o755)
-    args = tmp_path / "lab-args.txt"
-    env = {**os.environ, "FALL_GUARD_DATA": str(data), "FALL_GUARD_LAB_BIN": str(lab), "LAB_ARGS": str(args)}
-    env.pop("RETRAIN_SET", None)
-    env.pop("RETRAIN_RAY", None)
+    env, args = lab_env(tmp_path, data)
     ran = subprocess.run(["bash", str(RETRAIN), "task", "eval_group", "mp-pp", "paper", str(model)],
                          cwd=REPO, env=env, capture_output=True, text=True)
     assert ran.returncode == 0, ran.stderr
-    recorded = args.read_text().splitlines()
-    assert recorded[recorded.index("--data") + 1] == str(data / "simv6-mixed"), recorded
+    assert data_argument(args) == str(data / "simv6-mixed")
